@@ -1,0 +1,437 @@
+//! The recorder: trees are built by the tracing threads, sealed into shared chunks, and handed
+//! to a sink (write mode: background workers writing segments; immediate mode: memory).
+
+use std::cell::Cell;
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::Duration;
+
+use store::{KindTable, PayloadMismatch, PayloadSchema, RayColumns, RayFields, TreeId, TreeRow, Value, WriteOptions};
+
+use crate::immediate::{ImmediateSink, MemoryTrace};
+use crate::write::WriteSink;
+use crate::{Error, Result};
+
+/// Index of a ray within its tree.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct RayId(pub u32);
+
+/// The payload handed with one ray: typed values (in declared column order) and opaque bytes.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Payload<'a> {
+    pub values: &'a [Value<'a>],
+    pub bytes: Option<&'a [u8]>,
+}
+
+impl<'a> Payload<'a> {
+    /// No payload.
+    pub const NONE: Payload<'static> = Payload {
+        values: &[],
+        bytes: None,
+    };
+
+    /// Typed values only.
+    pub fn values(values: &'a [Value<'a>]) -> Self {
+        Self { values, bytes: None }
+    }
+
+    /// Opaque bytes only.
+    pub fn bytes(bytes: &'a [u8]) -> Self {
+        Self {
+            values: &[],
+            bytes: Some(bytes),
+        }
+    }
+}
+
+/// How a recorder records.
+#[derive(Clone, Debug)]
+pub struct RecorderOptions {
+    /// Typed payload columns and the optional bytes column.
+    pub payload: PayloadSchema,
+    /// Kinds registered by name up front (more may be registered while recording).
+    pub kinds: Vec<String>,
+    /// Bytes of sealed rays that may wait for the workers before `end_tree` blocks.
+    pub memory_budget: usize,
+    /// Rays gathered from the tracing threads before a chunk goes to a worker.
+    pub chunk_rays: usize,
+    /// Rays per segment file before it is sealed.
+    pub segment_rays: u64,
+    /// A segment holding rays is sealed at least this often, bounding what a crash can lose.
+    pub seal_interval: Duration,
+    /// Background threads that encode and write segments.
+    pub workers: usize,
+    /// Parquet settings of the segments.
+    pub write: WriteOptions,
+}
+
+impl Default for RecorderOptions {
+    fn default() -> Self {
+        Self {
+            payload: PayloadSchema::default(),
+            kinds: Vec::new(),
+            memory_budget: 256 << 20,
+            chunk_rays: 64 * 1024,
+            segment_rays: 4 << 20,
+            seal_interval: Duration::from_secs(2),
+            workers: 1,
+            write: WriteOptions::default(),
+        }
+    }
+}
+
+/// What a sink did, reported by `finish`.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Summary {
+    pub trees: u64,
+    pub rays: u64,
+    /// Segments sealed (write mode).
+    pub segments: u64,
+    /// Bytes of the sealed segment files (write mode).
+    pub bytes: u64,
+    /// Trees evicted from memory to stay under the budget (immediate mode).
+    pub evicted_trees: u64,
+    /// The most bytes of sealed rays waiting for the workers at once (write mode).
+    pub peak_buffered_bytes: u64,
+}
+
+/// Where sealed chunks of whole trees go: the one interface behind write and immediate mode.
+pub trait Sink: Send + Sync {
+    /// Takes a chunk of whole trees; may block to stay within the memory budget.
+    fn submit(&self, chunk: RayColumns, kinds: &Arc<KindTable>);
+    /// Makes every submitted tree durable (write mode) or visible (immediate mode).
+    fn flush(&self, kinds: &Arc<KindTable>) -> Result<()>;
+    /// Flushes, stops background work and reports what was recorded.
+    fn finish(&self, kinds: &Arc<KindTable>) -> Result<Summary>;
+}
+
+#[derive(Default)]
+struct Mistakes {
+    count: u64,
+    first: Vec<String>,
+}
+
+pub(crate) struct Inner {
+    payload: PayloadSchema,
+    kinds: RwLock<Arc<KindTable>>,
+    next_tree: AtomicU64,
+    shards: Vec<Mutex<RayColumns>>,
+    pool: Mutex<Vec<RayColumns>>,
+    chunk_rays: usize,
+    sink: Box<dyn Sink>,
+    mistakes: Mutex<Mistakes>,
+    open_trees: AtomicU64,
+    mode: &'static str,
+}
+
+impl Inner {
+    fn mistake(&self, msg: String) {
+        let mut m = self.mistakes.lock().unwrap_or_else(|p| p.into_inner());
+        m.count += 1;
+        if m.first.len() < 8 {
+            m.first.push(msg);
+        }
+    }
+
+    fn kinds(&self) -> Arc<KindTable> {
+        self.kinds.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+}
+
+/// Records ray trees from any number of threads. Cheap to clone (shared handle).
+#[derive(Clone)]
+pub struct Recorder {
+    inner: Arc<Inner>,
+}
+
+static NEXT_SHARD: AtomicUsize = AtomicUsize::new(0);
+thread_local! {
+    static SHARD: Cell<usize> = Cell::new(NEXT_SHARD.fetch_add(1, Ordering::Relaxed));
+}
+
+impl Recorder {
+    /// Write mode: records into a new dataset directory `dir` (which must not exist or be empty).
+    pub fn create(dir: impl AsRef<Path>, options: RecorderOptions) -> Result<Recorder> {
+        let kinds = registry(&options.kinds)?;
+        let sink = WriteSink::start(dir.as_ref(), &options)?;
+        Ok(Self::with_sink(Box::new(sink), options, kinds, "write"))
+    }
+
+    /// Immediate mode: records into memory; the returned [`MemoryTrace`] reads it from any thread
+    /// while recording goes on. Trees become visible as soon as they end. When the memory budget
+    /// is exceeded, the oldest trees are evicted.
+    pub fn immediate(mut options: RecorderOptions) -> Result<(Recorder, MemoryTrace)> {
+        let kinds = registry(&options.kinds)?;
+        let (sink, trace) = ImmediateSink::new(options.payload.clone(), options.memory_budget);
+        options.chunk_rays = 0;
+        Ok((Self::with_sink(Box::new(sink), options, kinds, "immediate"), trace))
+    }
+
+    /// A recorder over any sink.
+    pub fn with_sink(sink: Box<dyn Sink>, options: RecorderOptions, kinds: KindTable, mode: &'static str) -> Recorder {
+        let shards = (0..8).map(|_| Mutex::new(RayColumns::new(&options.payload))).collect();
+        Recorder {
+            inner: Arc::new(Inner {
+                payload: options.payload,
+                kinds: RwLock::new(Arc::new(kinds)),
+                next_tree: AtomicU64::new(0),
+                shards,
+                pool: Mutex::new(Vec::new()),
+                chunk_rays: options.chunk_rays,
+                sink,
+                mistakes: Mutex::new(Mistakes::default()),
+                open_trees: AtomicU64::new(0),
+                mode,
+            }),
+        }
+    }
+
+    /// `"write"` or `"immediate"`.
+    pub fn mode(&self) -> &'static str {
+        self.inner.mode
+    }
+
+    pub fn payload_schema(&self) -> &PayloadSchema {
+        &self.inner.payload
+    }
+
+    /// Registers a ray kind by name (or returns the kind already registered under it).
+    pub fn register_kind(&self, name: &str) -> Result<store::Kind> {
+        let mut k = self.inner.kinds.write().unwrap_or_else(|p| p.into_inner());
+        if let Some(kind) = k.lookup(name) {
+            return Ok(kind);
+        }
+        let mut next = (**k).clone();
+        let kind = next.register(name)?;
+        *k = Arc::new(next);
+        Ok(kind)
+    }
+
+    /// Starts a tree for `(x, y)` and sample `sample`. Any number may be open at once, on any threads.
+    pub fn begin_tree(&self, x: u32, y: u32, sample: u32) -> TreeBuilder {
+        let id = self.inner.next_tree.fetch_add(1, Ordering::Relaxed);
+        self.inner.open_trees.fetch_add(1, Ordering::Relaxed);
+        let cols = self
+            .inner
+            .pool
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .pop()
+            .unwrap_or_else(|| RayColumns::new(&self.inner.payload));
+        TreeBuilder {
+            rec: self.inner.clone(),
+            id,
+            pixel: [x, y],
+            sample,
+            cols,
+            stack: Vec::new(),
+            last: None,
+            max_depth: 0,
+            mismatches: Vec::new(),
+            ended: false,
+        }
+    }
+
+    /// Hands every ended tree to the sink and waits until they are sealed (write mode: durable
+    /// on disk and listed in the manifest; immediate mode: visible).
+    pub fn flush(&self) -> Result<()> {
+        self.drain_shards();
+        self.inner.sink.flush(&self.inner.kinds())
+    }
+
+    fn drain_shards(&self) {
+        let kinds = self.inner.kinds();
+        for shard in &self.inner.shards {
+            let chunk = {
+                let mut s = shard.lock().unwrap_or_else(|p| p.into_inner());
+                if s.trees.is_empty() {
+                    continue;
+                }
+                std::mem::replace(&mut *s, RayColumns::new(&self.inner.payload))
+            };
+            self.inner.sink.submit(chunk, &kinds);
+        }
+    }
+
+    /// Seals everything and stops the workers. Reports write failures (trees sealed before them
+    /// stay intact) and recording mistakes (nesting, payload types, trees never ended).
+    pub fn finish(self) -> Result<Summary> {
+        self.drain_shards();
+        let summary = self.inner.sink.finish(&self.inner.kinds())?;
+        let open = self.inner.open_trees.load(Ordering::Relaxed);
+        if open > 0 {
+            self.inner
+                .mistake(format!("{open} trees were begun and never ended (they are not in the trace)"));
+        }
+        let m = self.inner.mistakes.lock().unwrap_or_else(|p| p.into_inner());
+        if m.count > 0 {
+            return Err(Error::Misuse {
+                count: m.count,
+                first: m.first.clone(),
+            });
+        }
+        Ok(summary)
+    }
+
+    fn seal(&self, cols: RayColumns) {
+        let inner = &self.inner;
+        if cols.len() >= inner.chunk_rays {
+            // Big trees (and immediate mode) go straight to the sink.
+            inner.sink.submit(cols, &inner.kinds());
+            return;
+        }
+        let shard = SHARD.with(|s| s.get()) % inner.shards.len();
+        let full = {
+            let mut s = inner.shards[shard].lock().unwrap_or_else(|p| p.into_inner());
+            s.append(&cols);
+            if s.len() >= inner.chunk_rays {
+                let cap = inner.chunk_rays + inner.chunk_rays / 8;
+                Some(std::mem::replace(&mut *s, RayColumns::with_capacity(&inner.payload, cap)))
+            } else {
+                None
+            }
+        };
+        let mut cols = cols;
+        cols.clear();
+        {
+            let mut pool = inner.pool.lock().unwrap_or_else(|p| p.into_inner());
+            if pool.len() < 256 {
+                pool.push(cols);
+            }
+        }
+        if let Some(chunk) = full {
+            inner.sink.submit(chunk, &inner.kinds());
+        }
+    }
+}
+
+fn registry(names: &[String]) -> Result<KindTable> {
+    let mut k = KindTable::default();
+    for n in names {
+        k.register(n)?;
+    }
+    Ok(k)
+}
+
+/// One tree being recorded. Depth-first renderers use [`TreeBuilder::descend`] /
+/// [`TreeBuilder::ascend`]; breadth-first and wavefront renderers name parents with
+/// [`TreeBuilder::add_ray_under`].
+pub struct TreeBuilder {
+    rec: Arc<Inner>,
+    id: u64,
+    pixel: [u32; 2],
+    sample: u32,
+    cols: RayColumns,
+    stack: Vec<u32>,
+    last: Option<u32>,
+    max_depth: u16,
+    mismatches: Vec<PayloadMismatch>,
+    ended: bool,
+}
+
+impl TreeBuilder {
+    pub fn id(&self) -> TreeId {
+        TreeId(self.id)
+    }
+
+    /// Rays added so far.
+    pub fn ray_count(&self) -> u32 {
+        self.cols.len() as u32
+    }
+
+    /// Adds a ray under the current parent (the ray last descended into; none at the top).
+    #[inline]
+    pub fn add_ray(&mut self, ray: &RayFields, payload: Payload<'_>) -> RayId {
+        let parent = self.stack.last().copied();
+        self.push(parent, ray, payload)
+    }
+
+    /// Adds a ray under an explicit parent ray of this tree (breadth-first recording).
+    pub fn add_ray_under(&mut self, parent: RayId, ray: &RayFields, payload: Payload<'_>) -> RayId {
+        if parent.0 as usize >= self.cols.len() {
+            self.rec.mistake(format!(
+                "tree {}: parent ray {} does not exist yet (tree has {} rays); recorded as a root",
+                self.id,
+                parent.0,
+                self.cols.len()
+            ));
+            return self.push(None, ray, payload);
+        }
+        self.push(Some(parent.0), ray, payload)
+    }
+
+    #[inline]
+    fn push(&mut self, parent: Option<u32>, ray: &RayFields, payload: Payload<'_>) -> RayId {
+        let index = self.cols.len() as u32;
+        let depth = parent.map_or(0, |p| self.cols.depth[p as usize] + 1);
+        self.max_depth = self.max_depth.max(depth);
+        self.cols
+            .push_core(self.id, index, parent.unwrap_or(store::NONE_U32), depth, ray);
+        if !self.rec.payload.fields.is_empty() || self.rec.payload.bytes.is_some() || payload.bytes.is_some() || !payload.values.is_empty() {
+            self.cols
+                .push_payload(&self.rec.payload, payload.values, payload.bytes, &mut self.mismatches);
+        }
+        self.last = Some(index);
+        RayId(index)
+    }
+
+    /// Makes the last added ray the parent of the rays added next (recursion into it).
+    pub fn descend(&mut self) {
+        match self.last {
+            Some(l) if self.stack.last() != Some(&l) => self.stack.push(l),
+            _ => self.rec.mistake(format!(
+                "tree {}: descend without a new ray to descend into; ignored",
+                self.id
+            )),
+        }
+    }
+
+    /// Returns to the parent level (the end of a recursion).
+    pub fn ascend(&mut self) {
+        match self.stack.pop() {
+            Some(p) => self.last = Some(p),
+            None => self.rec.mistake(format!("tree {}: ascend above the root; ignored", self.id)),
+        }
+    }
+
+    /// Ends the tree and hands it to the recorder. Returns its id.
+    pub fn end(mut self) -> TreeId {
+        self.ended = true;
+        if !self.stack.is_empty() {
+            self.rec.mistake(format!(
+                "tree {}: ended {} levels below the root (missing ascend)",
+                self.id,
+                self.stack.len()
+            ));
+        }
+        for m in self.mismatches.drain(..).take(1) {
+            self.rec.mistake(format!(
+                "tree {}: payload column `{}` expected {}, got {}; stored as null",
+                self.id, m.column, m.expected, m.found
+            ));
+        }
+        let mut cols = std::mem::take(&mut self.cols);
+        cols.trees.push(TreeRow {
+            tree_id: self.id,
+            pixel_x: self.pixel[0],
+            pixel_y: self.pixel[1],
+            sample: self.sample,
+            ray_count: cols.len() as u32,
+            max_depth: self.max_depth,
+            first_row: 0,
+        });
+        self.rec.open_trees.fetch_sub(1, Ordering::Relaxed);
+        Recorder { inner: self.rec.clone() }.seal(cols);
+        TreeId(self.id)
+    }
+}
+
+impl Drop for TreeBuilder {
+    fn drop(&mut self) {
+        if !self.ended {
+            // Counted by `finish` through `open_trees`; the tree is not recorded.
+            self.ended = true;
+        }
+    }
+}

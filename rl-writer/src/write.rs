@@ -1,0 +1,287 @@
+//! Write mode: background workers encode chunks into Parquet segments and seal them.
+
+use std::path::Path;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use store::{DatasetWriter, KindTable, RayColumns, SegmentWriter};
+
+use crate::budget::Budget;
+use crate::recorder::{RecorderOptions, Sink, Summary};
+use crate::{Error, Result};
+
+enum Msg {
+    Chunk(RayColumns, Arc<KindTable>, usize),
+    Flush(Arc<KindTable>, Sender<()>),
+}
+
+#[derive(Default)]
+struct Shared {
+    first_error: Mutex<Option<store::Error>>,
+    lost_trees: AtomicU64,
+    trees: AtomicU64,
+    rays: AtomicU64,
+    segments: AtomicU64,
+    bytes: AtomicU64,
+}
+
+impl Shared {
+    fn fail(&self, e: store::Error, lost_trees: u64) {
+        self.lost_trees.fetch_add(lost_trees, Ordering::Relaxed);
+        let mut f = self.first_error.lock().unwrap_or_else(|p| p.into_inner());
+        if f.is_none() {
+            *f = Some(e);
+        }
+    }
+
+    fn failed(&self) -> bool {
+        self.first_error.lock().unwrap_or_else(|p| p.into_inner()).is_some()
+    }
+}
+
+struct Worker {
+    tx: Option<Sender<Msg>>,
+    join: Option<JoinHandle<()>>,
+}
+
+/// The write-mode sink.
+pub(crate) struct WriteSink {
+    ds: Arc<DatasetWriter>,
+    workers: Mutex<Vec<Worker>>,
+    next: AtomicUsize,
+    budget: Arc<Budget>,
+    shared: Arc<Shared>,
+}
+
+impl WriteSink {
+    pub(crate) fn start(dir: &Path, options: &RecorderOptions) -> Result<Self> {
+        let ds = Arc::new(DatasetWriter::create(dir, options.payload.clone(), options.write.clone())?);
+        let budget = Arc::new(Budget::new(options.memory_budget));
+        let shared = Arc::new(Shared::default());
+        let mut workers = Vec::new();
+        for i in 0..options.workers.max(1) {
+            let (tx, rx) = mpsc::channel();
+            let ctx = WorkerCtx {
+                ds: ds.clone(),
+                budget: budget.clone(),
+                shared: shared.clone(),
+                segment_rays: options.segment_rays.max(1),
+                seal_interval: options.seal_interval,
+                segment: None,
+                kinds: Arc::new(KindTable::default()),
+            };
+            let join = std::thread::Builder::new()
+                .name(format!("rl-writer-{i}"))
+                .spawn(move || ctx.run(rx))
+                .map_err(|e| {
+                    Error::Store(store::Error::Io {
+                        action: "starting a writer thread",
+                        path: dir.to_path_buf(),
+                        source: e,
+                    })
+                })?;
+            workers.push(Worker {
+                tx: Some(tx),
+                join: Some(join),
+            });
+        }
+        Ok(Self {
+            ds,
+            workers: Mutex::new(workers),
+            next: AtomicUsize::new(0),
+            budget,
+            shared,
+        })
+    }
+
+    fn send_all(&self, kinds: &Arc<KindTable>) -> Vec<mpsc::Receiver<()>> {
+        let workers = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+        let mut acks = Vec::new();
+        for w in workers.iter() {
+            if let Some(tx) = &w.tx {
+                let (ack_tx, ack_rx) = mpsc::channel();
+                if tx.send(Msg::Flush(kinds.clone(), ack_tx)).is_ok() {
+                    acks.push(ack_rx);
+                }
+            }
+        }
+        acks
+    }
+
+    fn error(&self) -> Result<()> {
+        let mut f = self.shared.first_error.lock().unwrap_or_else(|p| p.into_inner());
+        match f.take() {
+            None => Ok(()),
+            Some(source) => {
+                let lost = self.shared.lost_trees.load(Ordering::Relaxed);
+                // Keep reporting on later calls too.
+                *f = Some(store::Error::Corrupt {
+                    path: self.ds.dir().to_path_buf(),
+                    what: "recording".into(),
+                    message: format!("an earlier write failed: {source}"),
+                });
+                Err(Error::Write {
+                    source,
+                    lost_trees: lost,
+                })
+            }
+        }
+    }
+}
+
+impl Sink for WriteSink {
+    fn submit(&self, chunk: RayColumns, kinds: &Arc<KindTable>) {
+        let bytes = chunk.heap_bytes();
+        self.budget.acquire(bytes);
+        let workers = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+        let n = workers.len().max(1);
+        let i = self.next.fetch_add(1, Ordering::Relaxed) % n;
+        let trees = chunk.trees.len() as u64;
+        let sent = workers
+            .get(i)
+            .and_then(|w| w.tx.as_ref())
+            .map(|tx| tx.send(Msg::Chunk(chunk, kinds.clone(), bytes)).is_ok())
+            .unwrap_or(false);
+        if !sent {
+            self.budget.release(bytes);
+            self.shared.lost_trees.fetch_add(trees, Ordering::Relaxed);
+        }
+    }
+
+    fn flush(&self, kinds: &Arc<KindTable>) -> Result<()> {
+        for ack in self.send_all(kinds) {
+            let _ = ack.recv();
+        }
+        self.error()
+    }
+
+    fn finish(&self, kinds: &Arc<KindTable>) -> Result<Summary> {
+        self.flush(kinds)?;
+        let mut workers = self.workers.lock().unwrap_or_else(|p| p.into_inner());
+        let mut panicked = false;
+        for w in workers.iter_mut() {
+            w.tx.take();
+            if let Some(j) = w.join.take() {
+                panicked |= j.join().is_err();
+            }
+        }
+        drop(workers);
+        if panicked {
+            return Err(Error::WorkerPanicked);
+        }
+        self.error()?;
+        self.ds.mark_complete()?;
+        Ok(Summary {
+            trees: self.shared.trees.load(Ordering::Relaxed),
+            rays: self.shared.rays.load(Ordering::Relaxed),
+            segments: self.shared.segments.load(Ordering::Relaxed),
+            bytes: self.shared.bytes.load(Ordering::Relaxed),
+            evicted_trees: 0,
+            peak_buffered_bytes: self.budget.peak() as u64,
+        })
+    }
+}
+
+impl Drop for WriteSink {
+    fn drop(&mut self) {
+        // A recorder dropped without `finish` still seals what it has.
+        let workers = self.workers.get_mut().unwrap_or_else(|p| p.into_inner());
+        for w in workers.iter_mut() {
+            w.tx.take();
+            if let Some(j) = w.join.take() {
+                let _ = j.join();
+            }
+        }
+    }
+}
+
+struct WorkerCtx {
+    ds: Arc<DatasetWriter>,
+    budget: Arc<Budget>,
+    shared: Arc<Shared>,
+    segment_rays: u64,
+    seal_interval: Duration,
+    segment: Option<(SegmentWriter, Instant, u64)>,
+    kinds: Arc<KindTable>,
+}
+
+impl WorkerCtx {
+    fn run(mut self, rx: Receiver<Msg>) {
+        loop {
+            let timeout = match &self.segment {
+                Some((_, opened, _)) => self.seal_interval.saturating_sub(opened.elapsed()),
+                None => Duration::from_secs(3600),
+            };
+            match rx.recv_timeout(timeout) {
+                Ok(Msg::Chunk(chunk, kinds, bytes)) => {
+                    self.kinds = kinds;
+                    self.write(chunk);
+                    self.budget.release(bytes);
+                    if self.segment.as_ref().is_some_and(|(s, _, _)| s.rows() >= self.segment_rays) {
+                        self.seal();
+                    }
+                }
+                Ok(Msg::Flush(kinds, ack)) => {
+                    self.kinds = kinds;
+                    self.seal();
+                    let _ = ack.send(());
+                }
+                Err(RecvTimeoutError::Timeout) => self.seal(),
+                Err(RecvTimeoutError::Disconnected) => {
+                    self.seal();
+                    return;
+                }
+            }
+        }
+    }
+
+    fn write(&mut self, chunk: RayColumns) {
+        let trees = chunk.trees.len() as u64;
+        if self.shared.failed() {
+            self.shared.lost_trees.fetch_add(trees, Ordering::Relaxed);
+            return;
+        }
+        if self.segment.is_none() {
+            match self.ds.open_segment() {
+                Ok(s) => self.segment = Some((s, Instant::now(), 0)),
+                Err(e) => {
+                    self.shared.fail(e, trees);
+                    return;
+                }
+            }
+        }
+        if let Some((seg, _, seg_trees)) = &mut self.segment {
+            match seg.write(chunk, self.ds.payload(), &self.kinds) {
+                Ok(()) => *seg_trees += trees,
+                Err(e) => {
+                    let lost = *seg_trees + trees;
+                    if let Some((s, _, _)) = self.segment.take() {
+                        s.abandon();
+                    }
+                    self.shared.fail(e, lost);
+                }
+            }
+        }
+    }
+
+    fn seal(&mut self) {
+        let Some((seg, _, seg_trees)) = self.segment.take() else {
+            return;
+        };
+        match seg.seal(&self.ds, &self.kinds) {
+            Ok(Some(entry)) => {
+                self.shared.trees.fetch_add(entry.trees.rows, Ordering::Relaxed);
+                self.shared.rays.fetch_add(entry.rays.rows, Ordering::Relaxed);
+                self.shared.segments.fetch_add(1, Ordering::Relaxed);
+                self.shared
+                    .bytes
+                    .fetch_add(entry.rays.bytes + entry.trees.bytes, Ordering::Relaxed);
+            }
+            Ok(None) => {}
+            Err(e) => self.shared.fail(e, seg_trees),
+        }
+    }
+}

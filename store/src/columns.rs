@@ -1,0 +1,579 @@
+//! Columnar buffers rays are recorded into before they become Arrow record batches.
+
+use std::sync::Arc;
+
+use arrow::array::{
+    Array, ArrayRef, BinaryArray, BooleanArray, DictionaryArray, FixedSizeBinaryArray, FixedSizeListArray,
+    Float32Array, RecordBatch, StringArray, UInt16Array, UInt32Array, UInt64Array, UInt8Array, make_array,
+};
+use arrow::buffer::{BooleanBuffer, Buffer, NullBuffer, OffsetBuffer, ScalarBuffer};
+use arrow::datatypes::{Field, SchemaRef, UInt8Type};
+
+use crate::error::arrow_err;
+use crate::schema::{BytesPayload, KindTable, PayloadSchema, Storage, ray_schema, tree_schema};
+use crate::{Kind, Result};
+
+/// "No parent" / "no primitive" in the recording buffers (null in Arrow).
+pub const NONE_U32: u32 = u32::MAX;
+
+/// A payload value handed to `add_ray` for one typed payload column.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Value<'a> {
+    Null,
+    Bool(bool),
+    I8(i8),
+    I16(i16),
+    I32(i32),
+    I64(i64),
+    U8(u8),
+    U16(u16),
+    U32(u32),
+    U64(u64),
+    /// IEEE half float as raw bits.
+    F16(u16),
+    F32(f32),
+    F64(f64),
+    /// Elements of a fixed-size list column.
+    List(ListValue<'a>),
+}
+
+/// The elements of a fixed-size list payload value.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ListValue<'a> {
+    I8(&'a [i8]),
+    I16(&'a [i16]),
+    I32(&'a [i32]),
+    I64(&'a [i64]),
+    U8(&'a [u8]),
+    U16(&'a [u16]),
+    U32(&'a [u32]),
+    U64(&'a [u64]),
+    F16(&'a [u16]),
+    F32(&'a [f32]),
+    F64(&'a [f64]),
+}
+
+macro_rules! le_extend {
+    ($out:expr, $slice:expr) => {
+        for v in $slice.iter() {
+            $out.extend_from_slice(&v.to_le_bytes());
+        }
+    };
+}
+
+impl Value<'_> {
+    fn storage(&self) -> Option<Storage> {
+        Some(match self {
+            Value::Null | Value::List(_) => return None,
+            Value::Bool(_) => Storage::Bool,
+            Value::I8(_) => Storage::Int(1),
+            Value::I16(_) => Storage::Int(2),
+            Value::I32(_) => Storage::Int(4),
+            Value::I64(_) => Storage::Int(8),
+            Value::U8(_) => Storage::UInt(1),
+            Value::U16(_) => Storage::UInt(2),
+            Value::U32(_) => Storage::UInt(4),
+            Value::U64(_) => Storage::UInt(8),
+            Value::F16(_) => Storage::Float(2),
+            Value::F32(_) => Storage::Float(4),
+            Value::F64(_) => Storage::Float(8),
+        })
+    }
+
+    /// A short description for error messages.
+    pub fn describe(&self) -> String {
+        match self {
+            Value::Null => "null".into(),
+            Value::List(l) => {
+                let (name, n) = l.describe();
+                format!("list of {n} {name}")
+            }
+            v => format!("{:?}", v.storage()),
+        }
+    }
+}
+
+impl ListValue<'_> {
+    fn describe(&self) -> (&'static str, usize) {
+        match self {
+            ListValue::I8(s) => ("int8", s.len()),
+            ListValue::I16(s) => ("int16", s.len()),
+            ListValue::I32(s) => ("int32", s.len()),
+            ListValue::I64(s) => ("int64", s.len()),
+            ListValue::U8(s) => ("uint8", s.len()),
+            ListValue::U16(s) => ("uint16", s.len()),
+            ListValue::U32(s) => ("uint32", s.len()),
+            ListValue::U64(s) => ("uint64", s.len()),
+            ListValue::F16(s) => ("float16", s.len()),
+            ListValue::F32(s) => ("float32", s.len()),
+            ListValue::F64(s) => ("float64", s.len()),
+        }
+    }
+
+    fn storage(&self) -> Storage {
+        match self {
+            ListValue::I8(_) => Storage::Int(1),
+            ListValue::I16(_) => Storage::Int(2),
+            ListValue::I32(_) => Storage::Int(4),
+            ListValue::I64(_) => Storage::Int(8),
+            ListValue::U8(_) => Storage::UInt(1),
+            ListValue::U16(_) => Storage::UInt(2),
+            ListValue::U32(_) => Storage::UInt(4),
+            ListValue::U64(_) => Storage::UInt(8),
+            ListValue::F16(_) => Storage::Float(2),
+            ListValue::F32(_) => Storage::Float(4),
+            ListValue::F64(_) => Storage::Float(8),
+        }
+    }
+
+    fn len(&self) -> usize {
+        self.describe().1
+    }
+
+    fn write(&self, out: &mut Vec<u8>) {
+        match self {
+            ListValue::I8(s) => le_extend!(out, s),
+            ListValue::I16(s) => le_extend!(out, s),
+            ListValue::I32(s) => le_extend!(out, s),
+            ListValue::I64(s) => le_extend!(out, s),
+            ListValue::U8(s) => out.extend_from_slice(s),
+            ListValue::U16(s) => le_extend!(out, s),
+            ListValue::U32(s) => le_extend!(out, s),
+            ListValue::U64(s) => le_extend!(out, s),
+            ListValue::F16(s) => le_extend!(out, s),
+            ListValue::F32(s) => le_extend!(out, s),
+            ListValue::F64(s) => le_extend!(out, s),
+        }
+    }
+}
+
+/// The buffer of one typed payload column.
+#[derive(Clone, Debug, Default)]
+pub struct PayloadBuf {
+    pub bytes: Vec<u8>,
+    pub valid: Vec<bool>,
+}
+
+/// The opaque bytes payload column buffer.
+#[derive(Clone, Debug)]
+pub struct BytesBuf {
+    pub offsets: Vec<i32>,
+    pub data: Vec<u8>,
+    pub valid: Vec<bool>,
+}
+
+impl Default for BytesBuf {
+    fn default() -> Self {
+        Self {
+            offsets: vec![0],
+            data: Vec::new(),
+            valid: Vec::new(),
+        }
+    }
+}
+
+/// One row of the tree table, as recorded.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TreeRow {
+    pub tree_id: u64,
+    pub pixel_x: u32,
+    pub pixel_y: u32,
+    pub sample: u32,
+    pub ray_count: u32,
+    pub max_depth: u16,
+    /// Row of the tree's first ray in the buffer (or file) holding it.
+    pub first_row: u64,
+}
+
+/// The core fields of one ray as a renderer records it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayFields {
+    pub origin: [f32; 3],
+    pub direction: [f32; 3],
+    /// Hit distance, `None` for a miss.
+    pub t: Option<f32>,
+    pub kind: Kind,
+    /// Hit primitive, if any.
+    pub prim: Option<u32>,
+}
+
+/// Why a payload did not fit its declared column: recorded, the value stored as null.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PayloadMismatch {
+    pub column: String,
+    pub expected: String,
+    pub found: String,
+}
+
+/// Rays of whole trees in columns, plus their tree rows.
+#[derive(Clone, Debug, Default)]
+pub struct RayColumns {
+    pub tree_id: Vec<u64>,
+    pub ray: Vec<u32>,
+    pub parent: Vec<u32>,
+    pub depth: Vec<u16>,
+    pub kind: Vec<u8>,
+    pub origin: [Vec<f32>; 3],
+    pub direction: [Vec<f32>; 3],
+    pub t: Vec<f32>,
+    pub hit: Vec<bool>,
+    pub prim: Vec<u32>,
+    pub payload: Vec<PayloadBuf>,
+    pub bytes: Option<BytesBuf>,
+    pub trees: Vec<TreeRow>,
+}
+
+impl RayColumns {
+    /// Empty buffers for a payload schema.
+    pub fn new(schema: &PayloadSchema) -> Self {
+        Self {
+            payload: vec![PayloadBuf::default(); schema.fields.len()],
+            bytes: schema.bytes.map(|_| BytesBuf::default()),
+            ..Default::default()
+        }
+    }
+
+    /// Empty buffers with room for `rays` rays.
+    pub fn with_capacity(schema: &PayloadSchema, rays: usize) -> Self {
+        fn v<T>(n: usize) -> Vec<T> {
+            Vec::with_capacity(n)
+        }
+        Self {
+            tree_id: v(rays),
+            ray: v(rays),
+            parent: v(rays),
+            depth: v(rays),
+            kind: v(rays),
+            origin: [v(rays), v(rays), v(rays)],
+            direction: [v(rays), v(rays), v(rays)],
+            t: v(rays),
+            hit: v(rays),
+            prim: v(rays),
+            payload: schema
+                .fields
+                .iter()
+                .map(|f| PayloadBuf {
+                    bytes: Vec::with_capacity(rays * f.row_width()),
+                    valid: v(rays),
+                })
+                .collect(),
+            bytes: schema.bytes.map(|_| BytesBuf::default()),
+            trees: Vec::with_capacity(rays / 4 + 1),
+        }
+    }
+
+    /// Number of rays held.
+    pub fn len(&self) -> usize {
+        self.tree_id.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.tree_id.is_empty()
+    }
+
+    /// Empties the buffers, keeping their allocations.
+    pub fn clear(&mut self) {
+        self.tree_id.clear();
+        self.ray.clear();
+        self.parent.clear();
+        self.depth.clear();
+        self.kind.clear();
+        for c in self.origin.iter_mut().chain(self.direction.iter_mut()) {
+            c.clear();
+        }
+        self.t.clear();
+        self.hit.clear();
+        self.prim.clear();
+        for p in &mut self.payload {
+            p.bytes.clear();
+            p.valid.clear();
+        }
+        if let Some(b) = &mut self.bytes {
+            *b = BytesBuf::default();
+        }
+        self.trees.clear();
+    }
+
+    /// Approximate heap bytes held (for the memory budget).
+    pub fn heap_bytes(&self) -> usize {
+        let n = self.len();
+        let core = n * (8 + 4 + 4 + 2 + 1 + 24 + 4 + 1 + 4);
+        let payload: usize = self.payload.iter().map(|p| p.bytes.len() + p.valid.len()).sum();
+        let bytes = self.bytes.as_ref().map_or(0, |b| b.data.len() + b.offsets.len() * 4 + b.valid.len());
+        core + payload + bytes + self.trees.len() * std::mem::size_of::<TreeRow>()
+    }
+
+    /// Appends one ray's core fields (payload columns must be pushed separately, one per column).
+    #[inline]
+    pub fn push_core(&mut self, tree_id: u64, ray: u32, parent: u32, depth: u16, fields: &RayFields) {
+        self.tree_id.push(tree_id);
+        self.ray.push(ray);
+        self.parent.push(parent);
+        self.depth.push(depth);
+        self.kind.push(fields.kind.0);
+        for i in 0..3 {
+            self.origin[i].push(fields.origin[i]);
+            self.direction[i].push(fields.direction[i]);
+        }
+        self.t.push(fields.t.unwrap_or(0.0));
+        self.hit.push(fields.t.is_some());
+        self.prim.push(fields.prim.unwrap_or(NONE_U32));
+    }
+
+    /// Appends one ray's payload; a value that does not fit its column is stored as null and reported.
+    pub fn push_payload(
+        &mut self,
+        schema: &PayloadSchema,
+        values: &[Value<'_>],
+        bytes: Option<&[u8]>,
+        mismatches: &mut Vec<PayloadMismatch>,
+    ) {
+        for (i, field) in schema.fields.iter().enumerate() {
+            let buf = &mut self.payload[i];
+            let value = values.get(i).copied().unwrap_or(Value::Null);
+            let storage = field.storage();
+            let ok = match (value, field.list_len) {
+                (Value::Null, _) => false,
+                (Value::List(l), Some(n)) => l.storage() == storage && l.len() == n,
+                (v, None) => v.storage() == Some(storage),
+                _ => false,
+            };
+            if ok {
+                match value {
+                    Value::Bool(b) => buf.bytes.push(u8::from(b)),
+                    Value::I8(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::I16(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::I32(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::I64(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::U8(v) => buf.bytes.push(v),
+                    Value::U16(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::U32(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::U64(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::F16(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::F32(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::F64(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
+                    Value::List(l) => l.write(&mut buf.bytes),
+                    Value::Null => {}
+                }
+            } else {
+                if value != Value::Null {
+                    mismatches.push(PayloadMismatch {
+                        column: field.name.clone(),
+                        expected: field.type_name(),
+                        found: value.describe(),
+                    });
+                }
+                buf.bytes.resize(buf.bytes.len() + field.row_width(), 0);
+            }
+            buf.valid.push(ok);
+        }
+        if values.len() > schema.fields.len() {
+            mismatches.push(PayloadMismatch {
+                column: "(payload)".into(),
+                expected: format!("{} typed values", schema.fields.len()),
+                found: format!("{} values", values.len()),
+            });
+        }
+        match (&mut self.bytes, schema.bytes) {
+            (Some(buf), Some(decl)) => {
+                let ok = match (bytes, decl) {
+                    (Some(b), BytesPayload::Fixed(n)) => {
+                        if b.len() == n {
+                            buf.data.extend_from_slice(b);
+                            true
+                        } else {
+                            mismatches.push(PayloadMismatch {
+                                column: "payload".into(),
+                                expected: format!("{n} bytes"),
+                                found: format!("{} bytes", b.len()),
+                            });
+                            buf.data.resize(buf.data.len() + n, 0);
+                            false
+                        }
+                    }
+                    (None, BytesPayload::Fixed(n)) => {
+                        buf.data.resize(buf.data.len() + n, 0);
+                        false
+                    }
+                    (Some(b), BytesPayload::Variable) => {
+                        buf.data.extend_from_slice(b);
+                        buf.offsets.push(buf.data.len() as i32);
+                        true
+                    }
+                    (None, BytesPayload::Variable) => {
+                        buf.offsets.push(buf.data.len() as i32);
+                        false
+                    }
+                };
+                buf.valid.push(ok);
+            }
+            (_, _) => {
+                if bytes.is_some() {
+                    mismatches.push(PayloadMismatch {
+                        column: "payload".into(),
+                        expected: "no bytes payload (none was declared)".into(),
+                        found: "bytes".into(),
+                    });
+                }
+            }
+        }
+    }
+
+    /// Appends all rays of `other` (whose `trees` must describe them) after the rays held.
+    pub fn append(&mut self, other: &RayColumns) {
+        let base = self.len() as u64;
+        self.tree_id.extend_from_slice(&other.tree_id);
+        self.ray.extend_from_slice(&other.ray);
+        self.parent.extend_from_slice(&other.parent);
+        self.depth.extend_from_slice(&other.depth);
+        self.kind.extend_from_slice(&other.kind);
+        for i in 0..3 {
+            self.origin[i].extend_from_slice(&other.origin[i]);
+            self.direction[i].extend_from_slice(&other.direction[i]);
+        }
+        self.t.extend_from_slice(&other.t);
+        self.hit.extend_from_slice(&other.hit);
+        self.prim.extend_from_slice(&other.prim);
+        for (p, q) in self.payload.iter_mut().zip(&other.payload) {
+            p.bytes.extend_from_slice(&q.bytes);
+            p.valid.extend_from_slice(&q.valid);
+        }
+        if let (Some(b), Some(o)) = (&mut self.bytes, &other.bytes) {
+            let shift = b.data.len() as i32;
+            b.data.extend_from_slice(&o.data);
+            b.offsets.extend(o.offsets[1..].iter().map(|x| x + shift));
+            b.valid.extend_from_slice(&o.valid);
+        }
+        self.trees.extend(other.trees.iter().map(|t| TreeRow {
+            first_row: t.first_row + base,
+            ..*t
+        }));
+    }
+
+    /// The rays as an Arrow record batch of the ray table schema.
+    pub fn to_ray_batch(&self, schema: &PayloadSchema, kinds: &KindTable) -> Result<RecordBatch> {
+        self.clone().into_ray_batch(schema, kinds)
+    }
+
+    /// Like [`RayColumns::to_ray_batch`], consuming the buffers instead of copying them.
+    pub fn into_ray_batch(self, schema: &PayloadSchema, kinds: &KindTable) -> Result<RecordBatch> {
+        let arrow_schema: SchemaRef = ray_schema(schema);
+        let n = self.len();
+        let nulls_where = |sentinel: &[u32]| -> Option<NullBuffer> {
+            let valid: Vec<bool> = sentinel.iter().map(|&p| p != NONE_U32).collect();
+            nullable(&valid)
+        };
+        let kind = self.kind_array(kinds)?;
+        let parent_nulls = nulls_where(&self.parent);
+        let prim_nulls = nulls_where(&self.prim);
+        let mut columns: Vec<ArrayRef> = vec![
+            Arc::new(UInt64Array::from(self.tree_id)),
+            Arc::new(UInt32Array::from(self.ray)),
+            Arc::new(UInt32Array::new(ScalarBuffer::from(self.parent), parent_nulls)),
+            Arc::new(UInt16Array::from(self.depth)),
+            Arc::new(kind),
+        ];
+        for c in self.origin.into_iter().chain(self.direction) {
+            columns.push(Arc::new(Float32Array::from(c)));
+        }
+        columns.push(Arc::new(Float32Array::new(ScalarBuffer::from(self.t), nullable(&self.hit))));
+        columns.push(Arc::new(UInt32Array::new(ScalarBuffer::from(self.prim), prim_nulls)));
+        for (field, buf) in schema.fields.iter().zip(self.payload) {
+            columns.push(payload_array(field, buf, n)?);
+        }
+        if let (Some(decl), Some(b)) = (schema.bytes, self.bytes) {
+            let nulls = nullable(&b.valid);
+            let arr: ArrayRef = match decl {
+                BytesPayload::Fixed(size) => Arc::new(
+                    FixedSizeBinaryArray::try_new(size as i32, Buffer::from_vec(b.data), nulls)
+                        .map_err(arrow_err("bytes payload column"))?,
+                ),
+                BytesPayload::Variable => Arc::new(
+                    BinaryArray::try_new(
+                        OffsetBuffer::new(ScalarBuffer::from(b.offsets)),
+                        Buffer::from_vec(b.data),
+                        nulls,
+                    )
+                    .map_err(arrow_err("bytes payload column"))?,
+                ),
+            };
+            columns.push(arr);
+        }
+        RecordBatch::try_new(arrow_schema, columns).map_err(arrow_err("ray batch"))
+    }
+
+    fn kind_array(&self, kinds: &KindTable) -> Result<DictionaryArray<UInt8Type>> {
+        // Only the kinds this batch uses go into its dictionary.
+        let mut remap = [u8::MAX; 256];
+        let mut used: Vec<u8> = Vec::new();
+        for &k in &self.kind {
+            if remap[k as usize] == u8::MAX {
+                remap[k as usize] = 0;
+                used.push(k);
+            }
+        }
+        used.sort_unstable();
+        let mut names = Vec::with_capacity(used.len());
+        for (i, &k) in used.iter().enumerate() {
+            remap[k as usize] = i as u8;
+            names.push(kinds.name(Kind(k)).map_or_else(|| format!("kind{k}"), str::to_string));
+        }
+        let keys = UInt8Array::from(self.kind.iter().map(|&k| remap[k as usize]).collect::<Vec<_>>());
+        DictionaryArray::try_new(keys, Arc::new(StringArray::from(names))).map_err(arrow_err("kind column"))
+    }
+
+    /// The tree rows as an Arrow record batch of the tree table schema, for segment `segment`.
+    pub fn to_tree_batch(trees: &[TreeRow], segment: u32) -> Result<RecordBatch> {
+        let col32 = |f: fn(&TreeRow) -> u32| -> ArrayRef { Arc::new(UInt32Array::from_iter_values(trees.iter().map(f))) };
+        RecordBatch::try_new(
+            tree_schema(),
+            vec![
+                Arc::new(UInt64Array::from_iter_values(trees.iter().map(|t| t.tree_id))),
+                col32(|t| t.pixel_x),
+                col32(|t| t.pixel_y),
+                col32(|t| t.sample),
+                col32(|t| t.ray_count),
+                Arc::new(UInt16Array::from_iter_values(trees.iter().map(|t| t.max_depth))),
+                Arc::new(UInt32Array::from_iter_values(trees.iter().map(|_| segment))),
+                Arc::new(UInt64Array::from_iter_values(trees.iter().map(|t| t.first_row))),
+            ],
+        )
+        .map_err(arrow_err("tree batch"))
+    }
+}
+
+fn nullable(valid: &[bool]) -> Option<NullBuffer> {
+    if valid.iter().all(|&v| v) {
+        None
+    } else {
+        Some(NullBuffer::new(BooleanBuffer::from(valid.to_vec())))
+    }
+}
+
+fn payload_array(field: &crate::PayloadField, buf: PayloadBuf, n: usize) -> Result<ArrayRef> {
+    let nulls = nullable(&buf.valid);
+    let context = || format!("payload column {}", field.name);
+    if field.storage() == Storage::Bool {
+        let values = BooleanBuffer::from_iter(buf.bytes.iter().map(|&b| b != 0));
+        return Ok(Arc::new(BooleanArray::new(values, nulls)));
+    }
+    let elems = n * field.list_len.unwrap_or(1);
+    let data = arrow::array::ArrayData::builder(field.element.clone())
+        .len(elems)
+        .add_buffer(Buffer::from_vec(buf.bytes))
+        .build()
+        .map_err(arrow_err(context()))?;
+    let values = make_array(data);
+    match field.list_len {
+        None => Ok(make_array(values.to_data().into_builder().nulls(nulls).build().map_err(arrow_err(context()))?)),
+        Some(len) => Ok(Arc::new(
+            FixedSizeListArray::try_new(
+                Arc::new(Field::new("item", field.element.clone(), false)),
+                len as i32,
+                values,
+                nulls,
+            )
+            .map_err(arrow_err(context()))?,
+        )),
+    }
+}

@@ -1,0 +1,649 @@
+//! Reading a dataset: the manifest, the tree index, one tree by id or pixel, every tree in order,
+//! and `check`.
+
+use std::collections::{HashMap, HashSet};
+use std::fs::{self, File};
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+use arrow::array::{AsArray, RecordBatch};
+use arrow::compute::concat_batches;
+use arrow::datatypes::{SchemaRef, UInt16Type, UInt32Type, UInt64Type};
+use parquet::file::metadata::PageIndexPolicy;
+use parquet::arrow::arrow_reader::{
+    ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector,
+};
+
+use crate::error::{arrow_err, io_err, pq_err};
+use crate::manifest::{MANIFEST_FILE, Manifest, SegmentEntry};
+use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
+use crate::stats::Stats;
+use crate::tree::{Tree, TreeId, TreeInfo, rays_from_batch, tree_ids_of, validate_tree};
+use crate::{Error, Kind, Result};
+
+/// Where one tree's rays are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TreeEntry {
+    pub info: TreeInfo,
+    /// Index of the segment in the manifest's list.
+    pub segment: u32,
+    /// Row of the first ray in that segment's ray file.
+    pub first_row: u64,
+}
+
+/// The in-memory tree index: every tree, sorted by id, plus a pixel order.
+struct TreeIndex {
+    by_id: Vec<TreeEntry>,
+    /// Positions in `by_id`, sorted by (pixel y, pixel x, sample, id).
+    by_pixel: Vec<u32>,
+}
+
+struct SegmentMeta {
+    meta: ArrowReaderMetadata,
+    /// First row of each row group.
+    row_group_starts: Vec<u64>,
+}
+
+/// A trace dataset opened for reading.
+pub struct Dataset {
+    dir: PathBuf,
+    manifest: Manifest,
+    payload: PayloadSchema,
+    kinds: KindTable,
+    kinds_by_name: HashMap<String, Kind>,
+    schema: SchemaRef,
+    metas: Vec<OnceLock<Arc<SegmentMeta>>>,
+    index: OnceLock<Arc<TreeIndex>>,
+}
+
+impl Dataset {
+    /// Opens the dataset at `dir`: reads the manifest and checks every listed file is there
+    /// with the size the manifest records.
+    pub fn open(dir: impl AsRef<Path>) -> Result<Self> {
+        let dir = dir.as_ref().to_path_buf();
+        let manifest = Manifest::load(&dir)?;
+        let payload = manifest.payload_schema(&dir.join(MANIFEST_FILE))?;
+        for seg in &manifest.segments {
+            for file in [&seg.rays, &seg.trees] {
+                let path = dir.join(&file.path);
+                let len = match fs::metadata(&path) {
+                    Ok(m) => m.len(),
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                        return Err(Error::MissingFile { segment: seg.id, path });
+                    }
+                    Err(e) => {
+                        return Err(Error::Io {
+                            action: "reading segment file metadata",
+                            path,
+                            source: e,
+                        });
+                    }
+                };
+                if len != file.bytes {
+                    return Err(Error::SizeMismatch {
+                        segment: seg.id,
+                        path,
+                        expected: file.bytes,
+                        found: len,
+                    });
+                }
+            }
+        }
+        let kinds = manifest.kind_table();
+        let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();
+        let metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
+        Ok(Self {
+            schema: ray_schema(&payload),
+            dir,
+            manifest,
+            payload,
+            kinds,
+            kinds_by_name,
+            metas,
+            index: OnceLock::new(),
+        })
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    pub fn stats(&self) -> &Stats {
+        &self.manifest.stats
+    }
+
+    pub fn payload_schema(&self) -> &PayloadSchema {
+        &self.payload
+    }
+
+    /// The Arrow schema of the ray table.
+    pub fn ray_schema(&self) -> SchemaRef {
+        self.schema.clone()
+    }
+
+    pub fn kinds(&self) -> &KindTable {
+        &self.kinds
+    }
+
+    /// Paths of the ray files, in segment order (for engines that read the Parquet directly).
+    pub fn ray_files(&self) -> Vec<PathBuf> {
+        self.manifest.segments.iter().map(|s| self.dir.join(&s.rays.path)).collect()
+    }
+
+    /// Paths of the tree files, in segment order.
+    pub fn tree_files(&self) -> Vec<PathBuf> {
+        self.manifest.segments.iter().map(|s| self.dir.join(&s.trees.path)).collect()
+    }
+
+    fn segment(&self, i: usize) -> &SegmentEntry {
+        &self.manifest.segments[i]
+    }
+
+    fn segment_meta(&self, i: usize) -> Result<Arc<SegmentMeta>> {
+        if let Some(m) = self.metas[i].get() {
+            return Ok(m.clone());
+        }
+        let path = self.dir.join(&self.segment(i).rays.path);
+        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
+        let meta = ArrowReaderMetadata::load(&file, ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required))
+            .map_err(pq_err(&path))?;
+        check_schema(meta.schema(), &self.schema, &path)?;
+        let mut starts = Vec::with_capacity(meta.metadata().num_row_groups());
+        let mut row = 0u64;
+        for rg in meta.metadata().row_groups() {
+            starts.push(row);
+            row += rg.num_rows() as u64;
+        }
+        if row != self.segment(i).rays.rows {
+            return Err(Error::Corrupt {
+                path,
+                what: "ray file".into(),
+                message: format!("manifest lists {} rows, file holds {row}", self.segment(i).rays.rows),
+            });
+        }
+        let m = Arc::new(SegmentMeta {
+            meta,
+            row_group_starts: starts,
+        });
+        let _ = self.metas[i].set(m.clone());
+        Ok(m)
+    }
+
+    /// Reads the tree table of segment `i`.
+    fn read_tree_table(&self, i: usize) -> Result<Vec<TreeEntry>> {
+        let seg = self.segment(i);
+        let path = self.dir.join(&seg.trees.path);
+        let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
+        let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path))?;
+        check_schema(builder.schema(), &tree_schema(), &path)?;
+        let reader = builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?;
+        let mut out = Vec::with_capacity(seg.trees.rows as usize);
+        for batch in reader {
+            let b = batch.map_err(|e| Error::Parquet {
+                path: path.clone(),
+                source: e.into(),
+            })?;
+            let c = |j: usize| b.column(j);
+            let (id, px, py, s) = (
+                c(0).as_primitive::<UInt64Type>(),
+                c(1).as_primitive::<UInt32Type>(),
+                c(2).as_primitive::<UInt32Type>(),
+                c(3).as_primitive::<UInt32Type>(),
+            );
+            let (n, d, first) = (
+                c(4).as_primitive::<UInt32Type>(),
+                c(5).as_primitive::<UInt16Type>(),
+                c(7).as_primitive::<UInt64Type>(),
+            );
+            for r in 0..b.num_rows() {
+                out.push(TreeEntry {
+                    info: TreeInfo {
+                        id: TreeId(id.value(r)),
+                        pixel: [px.value(r), py.value(r)],
+                        sample: s.value(r),
+                        ray_count: n.value(r),
+                        max_depth: d.value(r),
+                    },
+                    segment: i as u32,
+                    first_row: first.value(r),
+                });
+            }
+        }
+        if out.len() as u64 != seg.trees.rows {
+            return Err(Error::Corrupt {
+                path,
+                what: "tree file".into(),
+                message: format!("manifest lists {} trees, file holds {}", seg.trees.rows, out.len()),
+            });
+        }
+        Ok(out)
+    }
+
+    fn index(&self) -> Result<Arc<TreeIndex>> {
+        if let Some(ix) = self.index.get() {
+            return Ok(ix.clone());
+        }
+        let mut by_id = Vec::with_capacity(self.manifest.stats.trees as usize);
+        for i in 0..self.manifest.segments.len() {
+            by_id.extend(self.read_tree_table(i)?);
+        }
+        by_id.sort_unstable_by_key(|e| e.info.id);
+        let mut by_pixel: Vec<u32> = (0..by_id.len() as u32).collect();
+        by_pixel.sort_unstable_by_key(|&k| {
+            let i = &by_id[k as usize].info;
+            (i.pixel[1], i.pixel[0], i.sample, i.id)
+        });
+        let ix = Arc::new(TreeIndex { by_id, by_pixel });
+        let _ = self.index.set(ix.clone());
+        Ok(ix)
+    }
+
+    /// Number of trees.
+    pub fn tree_count(&self) -> u64 {
+        self.manifest.stats.trees
+    }
+
+    /// Number of rays.
+    pub fn ray_count(&self) -> u64 {
+        self.manifest.stats.rays
+    }
+
+    /// Every tree's metadata and location, sorted by id (loads the index on first use).
+    pub fn tree_entries(&self) -> Result<Vec<TreeEntry>> {
+        Ok(self.index()?.by_id.clone())
+    }
+
+    /// The `n`-th tree in id order.
+    pub fn tree_entry_at(&self, n: usize) -> Result<Option<TreeEntry>> {
+        Ok(self.index()?.by_id.get(n).copied())
+    }
+
+    /// Position of a tree in id order.
+    pub fn position_of(&self, id: TreeId) -> Result<Option<usize>> {
+        Ok(self.index()?.by_id.binary_search_by_key(&id, |e| e.info.id).ok())
+    }
+
+    /// Metadata of one tree.
+    pub fn tree_info(&self, id: TreeId) -> Result<TreeInfo> {
+        let ix = self.index()?;
+        let pos = ix
+            .by_id
+            .binary_search_by_key(&id, |e| e.info.id)
+            .map_err(|_| Error::NoSuchTree(id.0))?;
+        Ok(ix.by_id[pos].info)
+    }
+
+    /// One whole tree by id; reads only the pages that hold its rays.
+    pub fn tree(&self, id: TreeId) -> Result<Tree> {
+        let ix = self.index()?;
+        let pos = ix
+            .by_id
+            .binary_search_by_key(&id, |e| e.info.id)
+            .map_err(|_| Error::NoSuchTree(id.0))?;
+        self.load_tree(&ix.by_id[pos])
+    }
+
+    /// Every tree of a pixel (of one sample, or of all samples), ordered by sample then id.
+    pub fn trees_at_pixel(&self, x: u32, y: u32, sample: Option<u32>) -> Result<Vec<Tree>> {
+        let ix = self.index()?;
+        let key = |k: &u32| {
+            let i = &ix.by_id[*k as usize].info;
+            (i.pixel[1], i.pixel[0])
+        };
+        let start = ix.by_pixel.partition_point(|k| key(k) < (y, x));
+        let mut out = Vec::new();
+        for k in &ix.by_pixel[start..] {
+            if key(k) != (y, x) {
+                break;
+            }
+            let e = &ix.by_id[*k as usize];
+            if sample.is_none_or(|s| s == e.info.sample) {
+                out.push(self.load_tree(e)?);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Loads the tree an index entry points at.
+    pub fn load_tree(&self, e: &TreeEntry) -> Result<Tree> {
+        let batch = self.read_rows(e.segment as usize, e.first_row, u64::from(e.info.ray_count))?;
+        self.tree_from_rows(e.info, e.segment as usize, batch)
+    }
+
+    fn tree_from_rows(&self, info: TreeInfo, segment: usize, batch: RecordBatch) -> Result<Tree> {
+        let path = self.dir.join(&self.segment(segment).rays.path);
+        let rays = rays_from_batch(&batch, &self.kinds_by_name, &path)?;
+        let ids = tree_ids_of(&batch, &path)?;
+        validate_tree(&info, &ids, &rays).map_err(|message| Error::Corrupt {
+            path,
+            what: "ray file".into(),
+            message,
+        })?;
+        Ok(Tree { info, rays, batch })
+    }
+
+    /// Reads `count` rows from `first` of segment `i`'s ray file, touching only the pages needed.
+    pub fn read_rows(&self, i: usize, first: u64, count: u64) -> Result<RecordBatch> {
+        let meta = self.segment_meta(i)?;
+        let path = self.dir.join(&self.segment(i).rays.path);
+        if count == 0 {
+            return Ok(RecordBatch::new_empty(self.schema.clone()));
+        }
+        let end = first + count;
+        let mut groups = Vec::new();
+        let mut selectors = Vec::new();
+        for (g, rg) in meta.meta.metadata().row_groups().iter().enumerate() {
+            let start = meta.row_group_starts[g];
+            let n = rg.num_rows() as u64;
+            if start + n <= first || start >= end {
+                continue;
+            }
+            let lo = first.max(start) - start;
+            let hi = end.min(start + n) - start;
+            groups.push(g);
+            if lo > 0 {
+                selectors.push(RowSelector::skip(lo as usize));
+            }
+            selectors.push(RowSelector::select((hi - lo) as usize));
+            if hi < n {
+                selectors.push(RowSelector::skip((n - hi) as usize));
+            }
+        }
+        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
+        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
+            .with_row_groups(groups)
+            .with_row_selection(RowSelection::from(selectors))
+            .with_batch_size(count as usize)
+            .build()
+            .map_err(pq_err(&path))?;
+        let mut batches = Vec::new();
+        for b in reader {
+            batches.push(b.map_err(|e| Error::Parquet {
+                path: path.clone(),
+                source: e.into(),
+            })?);
+        }
+        let batch = if batches.len() == 1 {
+            batches.pop().unwrap_or_else(|| RecordBatch::new_empty(self.schema.clone()))
+        } else {
+            concat_batches(&self.schema, &batches).map_err(arrow_err(path.display().to_string()))?
+        };
+        if batch.num_rows() as u64 != count {
+            return Err(Error::Corrupt {
+                path,
+                what: "ray file".into(),
+                message: format!("expected {count} rows from row {first}, read {}", batch.num_rows()),
+            });
+        }
+        Ok(batch)
+    }
+
+    /// Every ray batch of segment `i`, in file order.
+    pub fn segment_batches(&self, i: usize) -> Result<impl Iterator<Item = Result<RecordBatch>> + use<>> {
+        let meta = self.segment_meta(i)?;
+        let path = self.dir.join(&self.segment(i).rays.path);
+        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
+        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
+            .with_batch_size(64 * 1024)
+            .build()
+            .map_err(pq_err(&path))?;
+        Ok(reader.map(move |b| {
+            b.map_err(|e| Error::Parquet {
+                path: path.clone(),
+                source: e.into(),
+            })
+        }))
+    }
+
+    /// Every tree, segment by segment in file order: a sequential scan that reads each page once.
+    pub fn trees(&self) -> TreeIter<'_> {
+        TreeIter {
+            ds: self,
+            segment: 0,
+            last_segment: self.manifest.segments.len(),
+            preloaded: None,
+            entries: Vec::new(),
+            next_entry: 0,
+            batches: None,
+            pending: None,
+            pending_start: 0,
+            failed: false,
+        }
+    }
+
+    /// Verifies every invariant of the dataset; problems are collected, not returned as errors.
+    pub fn check(&self) -> CheckReport {
+        crate::check::check(self)
+    }
+
+    /// Every tree of segment `i` in file order, given its tree table.
+    pub(crate) fn trees_of_segment(&self, i: usize, entries: Vec<TreeEntry>) -> TreeIter<'_> {
+        TreeIter {
+            ds: self,
+            segment: i,
+            last_segment: i + 1,
+            preloaded: Some(entries),
+            entries: Vec::new(),
+            next_entry: 0,
+            batches: None,
+            pending: None,
+            pending_start: 0,
+            failed: false,
+        }
+    }
+
+    pub(crate) fn segment_entries(&self, i: usize) -> Result<Vec<TreeEntry>> {
+        self.read_tree_table(i)
+    }
+
+    pub(crate) fn segment_meta_checked(&self, i: usize) -> Result<()> {
+        self.segment_meta(i).map(|_| ())
+    }
+}
+
+/// Sequential iterator over every tree of a dataset.
+pub struct TreeIter<'a> {
+    ds: &'a Dataset,
+    segment: usize,
+    last_segment: usize,
+    preloaded: Option<Vec<TreeEntry>>,
+    entries: Vec<TreeEntry>,
+    next_entry: usize,
+    batches: Option<Box<dyn Iterator<Item = Result<RecordBatch>> + 'a>>,
+    pending: Option<RecordBatch>,
+    pending_start: u64,
+    failed: bool,
+}
+
+impl TreeIter<'_> {
+    fn next_tree(&mut self) -> std::result::Result<Option<Tree>, ScanError> {
+        loop {
+            if self.batches.is_none() {
+                if self.segment >= self.last_segment {
+                    return Ok(None);
+                }
+                let mut entries = match self.preloaded.take() {
+                    Some(e) => e,
+                    None => self.ds.read_tree_table(self.segment)?,
+                };
+                entries.sort_unstable_by_key(|e| e.first_row);
+                self.entries = entries;
+                self.next_entry = 0;
+                self.batches = Some(Box::new(self.ds.segment_batches(self.segment)?));
+                self.pending = None;
+                self.pending_start = 0;
+            }
+            let Some(e) = self.entries.get(self.next_entry).copied() else {
+                self.batches = None;
+                self.segment += 1;
+                continue;
+            };
+            let need_end = e.first_row + u64::from(e.info.ray_count);
+            // Gather batches until the pending rows cover this tree.
+            loop {
+                let have_end = self.pending_start + self.pending.as_ref().map_or(0, |b| b.num_rows() as u64);
+                if have_end >= need_end {
+                    break;
+                }
+                let Some(next) = self.batches.as_mut().and_then(|b| b.next()) else {
+                    let path = self.ds.dir.join(&self.ds.segment(self.segment).rays.path);
+                    return Err(Error::Corrupt {
+                        path,
+                        what: "ray file".into(),
+                        message: format!("tree {} needs rows up to {need_end}, file ends at {have_end}", e.info.id),
+                    }
+                    .into());
+                };
+                let next = next?;
+                self.pending = Some(match self.pending.take() {
+                    None => next,
+                    Some(p) => {
+                        // Keep only rows not yet consumed.
+                        let skip = (e.first_row - self.pending_start) as usize;
+                        let p = p.slice(skip, p.num_rows() - skip);
+                        self.pending_start += skip as u64;
+                        concat_batches(&self.ds.schema, &[p, next]).map_err(arrow_err("tree scan"))?
+                    }
+                });
+            }
+            let pending = self.pending.as_ref().ok_or_else(|| Error::Corrupt {
+                path: self.ds.dir.clone(),
+                what: "tree scan".into(),
+                message: "no rows buffered".into(),
+            })?;
+            let off = (e.first_row - self.pending_start) as usize;
+            let rows = pending.slice(off, e.info.ray_count as usize);
+            self.next_entry += 1;
+            // A malformed tree is reported, and the scan can go on with the next one.
+            return Ok(Some(self.ds.tree_from_rows(e.info, self.segment, rows).map_err(TreeError)?));
+        }
+    }
+
+    /// True after an error the scan cannot continue past.
+    pub fn is_broken(&self) -> bool {
+        self.failed
+    }
+}
+
+/// Marks an error confined to one tree.
+struct TreeError(Error);
+
+enum ScanError {
+    Tree(Error),
+    Fatal(Error),
+}
+
+impl From<TreeError> for ScanError {
+    fn from(e: TreeError) -> Self {
+        ScanError::Tree(e.0)
+    }
+}
+
+impl From<Error> for ScanError {
+    fn from(e: Error) -> Self {
+        ScanError::Fatal(e)
+    }
+}
+
+impl Iterator for TreeIter<'_> {
+    type Item = Result<Tree>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.failed {
+            return None;
+        }
+        match self.next_tree() {
+            Ok(t) => t.map(Ok),
+            Err(ScanError::Tree(e)) => Some(Err(e)),
+            Err(ScanError::Fatal(e)) => {
+                self.failed = true;
+                Some(Err(e))
+            }
+        }
+    }
+}
+
+fn check_schema(found: &SchemaRef, expected: &SchemaRef, path: &Path) -> Result<()> {
+    for f in expected.fields() {
+        match found.field_with_name(f.name()) {
+            Ok(g) if g.data_type() == f.data_type() => {}
+            Ok(g) => {
+                return Err(Error::Schema {
+                    path: path.to_path_buf(),
+                    field: f.name().clone(),
+                    expected: f.data_type().to_string(),
+                    found: g.data_type().to_string(),
+                });
+            }
+            Err(_) => {
+                return Err(Error::Schema {
+                    path: path.to_path_buf(),
+                    field: f.name().clone(),
+                    expected: f.data_type().to_string(),
+                    found: "no such column".into(),
+                });
+            }
+        }
+    }
+    if found.fields().len() != expected.fields().len() {
+        let extra: Vec<_> = found
+            .fields()
+            .iter()
+            .filter(|f| expected.field_with_name(f.name()).is_err())
+            .map(|f| f.name().clone())
+            .collect();
+        return Err(Error::Schema {
+            path: path.to_path_buf(),
+            field: extra.join(", "),
+            expected: "only the columns the manifest declares".into(),
+            found: "undeclared columns".into(),
+        });
+    }
+    Ok(())
+}
+
+/// What `check` found.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct CheckReport {
+    pub segments: usize,
+    pub trees: u64,
+    pub rays: u64,
+    /// Broken invariants: the dataset is not as its manifest says.
+    pub errors: Vec<String>,
+    /// Harmless leftovers (for example temporary files of an interrupted recording).
+    pub warnings: Vec<String>,
+}
+
+impl CheckReport {
+    pub fn is_ok(&self) -> bool {
+        self.errors.is_empty()
+    }
+}
+
+pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
+    let mut f = File::open(path)?;
+    let mut h = crc32fast::Hasher::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut n = 0u64;
+    loop {
+        let k = f.read(&mut buf)?;
+        if k == 0 {
+            break;
+        }
+        h.update(&buf[..k]);
+        n += k as u64;
+    }
+    Ok((h.finalize(), n))
+}
+
+pub(crate) fn listed_files(m: &Manifest) -> HashSet<String> {
+    m.segments
+        .iter()
+        .flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()])
+        .collect()
+}

@@ -1,0 +1,35 @@
+//! The rtvtk trace dataset: ray and tree tables as plain Parquet (zstd, page statistics and page
+//! index), sealed in crash-safe segments listed by an atomically replaced manifest, with random
+//! access to any tree's metadata and rays. See `FORMAT.md` for the on-disk format.
+//!
+//! ```no_run
+//! let ds = store::Dataset::open("trace")?;
+//! println!("{} rays in {} trees", ds.ray_count(), ds.tree_count());
+//! let tree = ds.tree(store::TreeId(0))?;
+//! for ray in &tree.rays {
+//!     println!("{:?} depth {} parent {:?}", ray.kind, ray.depth, ray.parent);
+//! }
+//! # Ok::<(), store::Error>(())
+//! ```
+
+mod check;
+mod columns;
+mod dataset;
+mod error;
+mod manifest;
+mod schema;
+mod stats;
+mod tree;
+mod writer;
+
+pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
+pub use dataset::{CheckReport, Dataset, TreeEntry, TreeIter};
+pub use error::{Error, Result};
+pub use manifest::{FORMAT_NAME, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, PayloadColumnDecl, SegmentEntry};
+pub use schema::{
+    BUILTIN_KINDS, BytesPayload, CORE_COLUMN_COUNT, CORE_RAY_COLUMNS, Kind, KindTable, PayloadField, PayloadSchema,
+    Storage, kind_data_type, ray_schema, tree_schema,
+};
+pub use stats::{Bounds, Stats};
+pub use tree::{Ray, Tree, TreeId, TreeInfo, rays_from_batch, validate_tree};
+pub use writer::{CrcWriter, DatasetWriter, SegmentWriter, WriteOptions};

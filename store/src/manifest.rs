@@ -1,0 +1,216 @@
+//! The dataset manifest: the one file that says which segments are part of the trace.
+//!
+//! It is replaced atomically (write to a temporary file, fsync, rename, fsync the directory),
+//! so a reader sees either the old or the new list of segments, never a torn one.
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::io::Write;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::io_err;
+use crate::schema::{BytesPayload, KindTable, PayloadField, PayloadSchema};
+use crate::stats::Stats;
+use crate::{Error, Kind, Result};
+
+/// Name of the manifest file inside a dataset directory.
+pub const MANIFEST_FILE: &str = "manifest.json";
+/// Value of the manifest's `format` field.
+pub const FORMAT_NAME: &str = "rtvtk-trace";
+/// The format version this build writes and the newest it reads.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// A file of a segment, as the manifest records it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FileEntry {
+    /// Path relative to the dataset directory.
+    pub path: String,
+    pub bytes: u64,
+    pub crc32: u32,
+    pub rows: u64,
+}
+
+/// One sealed segment: a ray file and its tree file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SegmentEntry {
+    pub id: u32,
+    pub rays: FileEntry,
+    pub trees: FileEntry,
+    pub tree_id_min: u64,
+    pub tree_id_max: u64,
+    pub stats: Stats,
+}
+
+/// A typed payload column as the manifest records it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PayloadColumnDecl {
+    pub name: String,
+    #[serde(rename = "type")]
+    pub type_name: String,
+}
+
+/// The manifest of a dataset.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format: String,
+    pub format_version: u32,
+    pub created_by: String,
+    /// Typed payload columns (absent when there are none).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub payload: Vec<PayloadColumnDecl>,
+    /// The opaque bytes payload column, when declared.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bytes_payload: Option<BytesPayload>,
+    /// Kind codes by name: only the kinds the trace uses.
+    pub kinds: BTreeMap<String, u8>,
+    pub segments: Vec<SegmentEntry>,
+    /// Totals over all segments.
+    pub stats: Stats,
+    /// True once the recorder finished cleanly.
+    pub complete: bool,
+}
+
+impl Manifest {
+    /// An empty manifest for a new recording.
+    pub fn new(payload: &PayloadSchema) -> Self {
+        Self {
+            format: FORMAT_NAME.into(),
+            format_version: FORMAT_VERSION,
+            created_by: format!("rtvtk-store {}", env!("CARGO_PKG_VERSION")),
+            payload: payload
+                .fields
+                .iter()
+                .map(|f| PayloadColumnDecl {
+                    name: f.name.clone(),
+                    type_name: f.type_name(),
+                })
+                .collect(),
+            bytes_payload: payload.bytes,
+            kinds: BTreeMap::new(),
+            segments: Vec::new(),
+            stats: Stats::default(),
+            complete: false,
+        }
+    }
+
+    /// The payload schema the manifest declares.
+    pub fn payload_schema(&self, path: &Path) -> Result<PayloadSchema> {
+        let bad = |e: Error| Error::Manifest {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        };
+        let fields = self
+            .payload
+            .iter()
+            .map(|d| PayloadField::from_type_name(&d.name, &d.type_name))
+            .collect::<Result<Vec<_>>>()
+            .map_err(bad)?;
+        PayloadSchema::new(fields, self.bytes_payload).map_err(bad)
+    }
+
+    /// The kind table the manifest declares.
+    pub fn kind_table(&self) -> KindTable {
+        let mut t = KindTable::default();
+        for (name, code) in &self.kinds {
+            t.insert(Kind(*code), name);
+        }
+        t
+    }
+
+    /// Adds a sealed segment, updating totals and the used kinds.
+    pub fn add_segment(&mut self, seg: SegmentEntry, kinds: &KindTable) {
+        self.stats.merge(&seg.stats);
+        for name in seg.stats.rays_by_kind_depth.keys() {
+            if let Some(kind) = kinds.lookup(name) {
+                self.kinds.insert(name.clone(), kind.0);
+            }
+        }
+        self.segments.push(seg);
+    }
+
+    /// Reads and validates the manifest of the dataset at `dir`.
+    pub fn load(dir: &Path) -> Result<Manifest> {
+        let path = dir.join(MANIFEST_FILE);
+        let text = fs::read_to_string(&path).map_err(|e| {
+            if e.kind() == std::io::ErrorKind::NotFound {
+                Error::Manifest {
+                    path: path.clone(),
+                    message: "no manifest: expected a dataset directory written by rtvtk".into(),
+                }
+            } else {
+                Error::Io {
+                    action: "reading the manifest",
+                    path: path.clone(),
+                    source: e,
+                }
+            }
+        })?;
+        // Check the version before the full structure, so a newer format gets the right error.
+        let head: serde_json::Value = serde_json::from_str(&text).map_err(|e| Error::Manifest {
+            path: path.clone(),
+            message: format!("not valid JSON: {e}"),
+        })?;
+        if head.get("format").and_then(|v| v.as_str()) != Some(FORMAT_NAME) {
+            return Err(Error::Manifest {
+                path,
+                message: format!("field `format` must be {FORMAT_NAME:?}"),
+            });
+        }
+        let version = head
+            .get("format_version")
+            .and_then(|v| v.as_u64())
+            .ok_or_else(|| Error::Manifest {
+                path: path.clone(),
+                message: "field `format_version` must be a positive integer".into(),
+            })?;
+        if version > u64::from(FORMAT_VERSION) {
+            return Err(Error::NewerFormat {
+                path,
+                found: u32::try_from(version).unwrap_or(u32::MAX),
+                supported: FORMAT_VERSION,
+            });
+        }
+        serde_json::from_value(head).map_err(|e| Error::Manifest {
+            path,
+            message: e.to_string(),
+        })
+    }
+
+    /// Atomically replaces the manifest of the dataset at `dir`.
+    pub fn store(&self, dir: &Path, sync: bool) -> Result<()> {
+        let path = dir.join(MANIFEST_FILE);
+        let tmp = dir.join(format!("{MANIFEST_FILE}.tmp"));
+        let text = serde_json::to_vec_pretty(self).map_err(|e| Error::Manifest {
+            path: path.clone(),
+            message: format!("cannot serialize: {e}"),
+        })?;
+        write_atomic(&tmp, &path, &text, sync)
+    }
+}
+
+/// Writes `bytes` to `tmp`, syncs it, and renames it over `path` (then syncs the directory).
+pub(crate) fn write_atomic(tmp: &Path, path: &Path, bytes: &[u8], sync: bool) -> Result<()> {
+    let mut f = fs::File::create(tmp).map_err(io_err("creating a temporary file", tmp))?;
+    f.write_all(bytes).map_err(io_err("writing a temporary file", tmp))?;
+    if sync {
+        f.sync_all().map_err(io_err("syncing a temporary file", tmp))?;
+    }
+    drop(f);
+    fs::rename(tmp, path).map_err(io_err("renaming into place", path))?;
+    if sync {
+        sync_dir(path.parent().unwrap_or(Path::new(".")))?;
+    }
+    Ok(())
+}
+
+pub(crate) fn sync_dir(dir: &Path) -> Result<()> {
+    let d = fs::File::open(dir).map_err(io_err("opening the directory to sync it", dir))?;
+    d.sync_all().map_err(io_err("syncing the directory", dir))
+}
+
+/// Path of a segment's file relative to the dataset directory.
+pub fn segment_file(id: u32, table: &str) -> String {
+    format!("segments/{id:06}.{table}.parquet")
+}

@@ -1,0 +1,445 @@
+//! The Arrow schema of the ray and tree tables: the one place it is defined.
+//!
+//! Ray table (one row per ray, rays of one tree contiguous and in recording order):
+//! `tree_id, ray, parent, depth, kind, origin_{x,y,z}, dir_{x,y,z}, t, prim`, then the client's
+//! typed payload columns, then `payload` (opaque bytes) when the client declared one.
+//! Tree table (one row per tree, sorted by `tree_id`):
+//! `tree_id, pixel_x, pixel_y, sample, ray_count, max_depth, segment, first_row`.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use arrow::datatypes::{DataType, Field, Schema, SchemaRef, TimeUnit};
+use serde::{Deserialize, Serialize};
+
+use crate::{Error, Result};
+
+/// The kind of a ray: a built-in one or one a client registered by name.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct Kind(pub u8);
+
+impl Kind {
+    pub const CAMERA: Kind = Kind(0);
+    pub const SHADOW: Kind = Kind(1);
+    pub const DIFFUSE: Kind = Kind(2);
+    pub const SPECULAR: Kind = Kind(3);
+    pub const TRANSMISSION: Kind = Kind(4);
+    /// Codes from here on are handed out to kinds registered by name.
+    pub const FIRST_CUSTOM: u8 = 16;
+}
+
+/// Names of the built-in kinds, by code.
+pub const BUILTIN_KINDS: [(&str, Kind); 5] = [
+    ("camera", Kind::CAMERA),
+    ("shadow", Kind::SHADOW),
+    ("diffuse", Kind::DIFFUSE),
+    ("specular", Kind::SPECULAR),
+    ("transmission", Kind::TRANSMISSION),
+];
+
+/// Kind names by code: the built-ins plus the ones a client registered.
+#[derive(Clone, Debug)]
+pub struct KindTable {
+    names: Vec<Option<Arc<str>>>,
+    next_custom: u16,
+}
+
+impl Default for KindTable {
+    fn default() -> Self {
+        let mut names = vec![None; 256];
+        for (name, kind) in BUILTIN_KINDS {
+            names[kind.0 as usize] = Some(Arc::from(name));
+        }
+        Self {
+            names,
+            next_custom: u16::from(Kind::FIRST_CUSTOM),
+        }
+    }
+}
+
+impl KindTable {
+    /// The name of a kind code, if that code is known.
+    pub fn name(&self, kind: Kind) -> Option<&str> {
+        self.names[kind.0 as usize].as_deref()
+    }
+
+    /// The kind of a name, if known.
+    pub fn lookup(&self, name: &str) -> Option<Kind> {
+        self.names
+            .iter()
+            .position(|n| n.as_deref() == Some(name))
+            .map(|i| Kind(i as u8))
+    }
+
+    /// Registers a kind by name (or returns the existing one of that name).
+    pub fn register(&mut self, name: &str) -> Result<Kind> {
+        if let Some(kind) = self.lookup(name) {
+            return Ok(kind);
+        }
+        if name.is_empty() || name.len() > 64 {
+            return Err(Error::PayloadDecl(format!(
+                "kind name must be 1 to 64 bytes long, got {name:?}"
+            )));
+        }
+        if self.next_custom > 255 {
+            return Err(Error::PayloadDecl(format!(
+                "cannot register kind {name:?}: all {} custom kind codes are in use",
+                256 - u16::from(Kind::FIRST_CUSTOM)
+            )));
+        }
+        let code = self.next_custom as u8;
+        self.next_custom += 1;
+        self.names[code as usize] = Some(Arc::from(name));
+        Ok(Kind(code))
+    }
+
+    /// Sets a code's name (used when reading a manifest).
+    pub fn insert(&mut self, kind: Kind, name: &str) {
+        self.names[kind.0 as usize] = Some(Arc::from(name));
+        if u16::from(kind.0) >= self.next_custom {
+            self.next_custom = u16::from(kind.0) + 1;
+        }
+    }
+
+    /// Map from name to kind for every known code.
+    pub fn by_name(&self) -> HashMap<String, Kind> {
+        self.names
+            .iter()
+            .enumerate()
+            .filter_map(|(i, n)| n.as_ref().map(|n| (n.to_string(), Kind(i as u8))))
+            .collect()
+    }
+}
+
+/// Element types a typed payload column may hold (Arrow primitives and booleans).
+fn scalar_type_name(dt: &DataType) -> Option<String> {
+    let unit = |u: &TimeUnit| match u {
+        TimeUnit::Second => "s",
+        TimeUnit::Millisecond => "ms",
+        TimeUnit::Microsecond => "us",
+        TimeUnit::Nanosecond => "ns",
+    };
+    Some(match dt {
+        DataType::Boolean => "bool".into(),
+        DataType::Int8 => "int8".into(),
+        DataType::Int16 => "int16".into(),
+        DataType::Int32 => "int32".into(),
+        DataType::Int64 => "int64".into(),
+        DataType::UInt8 => "uint8".into(),
+        DataType::UInt16 => "uint16".into(),
+        DataType::UInt32 => "uint32".into(),
+        DataType::UInt64 => "uint64".into(),
+        DataType::Float16 => "float16".into(),
+        DataType::Float32 => "float32".into(),
+        DataType::Float64 => "float64".into(),
+        DataType::Date32 => "date32".into(),
+        DataType::Date64 => "date64".into(),
+        DataType::Timestamp(u, None) => format!("timestamp_{}", unit(u)),
+        DataType::Duration(u) => format!("duration_{}", unit(u)),
+        _ => return None,
+    })
+}
+
+fn parse_scalar_type(name: &str) -> Option<DataType> {
+    let unit = |s: &str| match s {
+        "s" => Some(TimeUnit::Second),
+        "ms" => Some(TimeUnit::Millisecond),
+        "us" => Some(TimeUnit::Microsecond),
+        "ns" => Some(TimeUnit::Nanosecond),
+        _ => None,
+    };
+    Some(match name {
+        "bool" => DataType::Boolean,
+        "int8" => DataType::Int8,
+        "int16" => DataType::Int16,
+        "int32" => DataType::Int32,
+        "int64" => DataType::Int64,
+        "uint8" => DataType::UInt8,
+        "uint16" => DataType::UInt16,
+        "uint32" => DataType::UInt32,
+        "uint64" => DataType::UInt64,
+        "float16" => DataType::Float16,
+        "float32" => DataType::Float32,
+        "float64" => DataType::Float64,
+        "date32" => DataType::Date32,
+        "date64" => DataType::Date64,
+        _ => {
+            if let Some(u) = name.strip_prefix("timestamp_") {
+                DataType::Timestamp(unit(u)?, None)
+            } else if let Some(u) = name.strip_prefix("duration_") {
+                DataType::Duration(unit(u)?)
+            } else {
+                return None;
+            }
+        }
+    })
+}
+
+/// How a payload scalar is held in memory while recording: width in bytes, or a boolean.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Storage {
+    Bool,
+    Int(u8),
+    UInt(u8),
+    Float(u8),
+}
+
+impl Storage {
+    pub fn of(dt: &DataType) -> Option<Storage> {
+        Some(match dt {
+            DataType::Boolean => Storage::Bool,
+            DataType::Int8 => Storage::Int(1),
+            DataType::Int16 => Storage::Int(2),
+            DataType::Int32 | DataType::Date32 => Storage::Int(4),
+            DataType::Int64 | DataType::Date64 | DataType::Timestamp(_, None) | DataType::Duration(_) => {
+                Storage::Int(8)
+            }
+            DataType::UInt8 => Storage::UInt(1),
+            DataType::UInt16 => Storage::UInt(2),
+            DataType::UInt32 => Storage::UInt(4),
+            DataType::UInt64 => Storage::UInt(8),
+            DataType::Float16 => Storage::Float(2),
+            DataType::Float32 => Storage::Float(4),
+            DataType::Float64 => Storage::Float(8),
+            _ => return None,
+        })
+    }
+
+    /// Bytes per element in the recording buffers (booleans take one byte there).
+    pub fn width(self) -> usize {
+        match self {
+            Storage::Bool => 1,
+            Storage::Int(w) | Storage::UInt(w) | Storage::Float(w) => w as usize,
+        }
+    }
+}
+
+/// One typed payload column a client declares when it creates a recorder.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PayloadField {
+    pub name: String,
+    /// Element type (an Arrow primitive or boolean).
+    pub element: DataType,
+    /// `Some(n)`: each ray holds a fixed-size list of `n` elements (e.g. RGB throughput, n = 3).
+    pub list_len: Option<usize>,
+}
+
+/// Column names the core ray table uses: payload fields may not take them.
+pub const CORE_RAY_COLUMNS: [&str; 14] = [
+    "tree_id", "ray", "parent", "depth", "kind", "origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z",
+    "t", "prim", "payload",
+];
+
+impl PayloadField {
+    /// A scalar column.
+    pub fn scalar(name: &str, element: DataType) -> Result<Self> {
+        Self::new(name, element, None)
+    }
+
+    /// A fixed-size list column (`len` elements per ray).
+    pub fn list(name: &str, element: DataType, len: usize) -> Result<Self> {
+        Self::new(name, element, Some(len))
+    }
+
+    fn new(name: &str, element: DataType, list_len: Option<usize>) -> Result<Self> {
+        if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+            return Err(Error::PayloadDecl(format!(
+                "payload column name must be non-empty ASCII letters, digits or '_', got {name:?}"
+            )));
+        }
+        if CORE_RAY_COLUMNS.contains(&name) {
+            return Err(Error::PayloadDecl(format!(
+                "payload column name {name:?} is taken by a core ray column"
+            )));
+        }
+        let storage = Storage::of(&element).ok_or_else(|| {
+            Error::PayloadDecl(format!(
+                "payload column {name:?}: type {element} is not supported; expected a boolean, integer, float, date, timestamp or duration"
+            ))
+        })?;
+        if let Some(n) = list_len {
+            if n == 0 || n > 4096 {
+                return Err(Error::PayloadDecl(format!(
+                    "payload column {name:?}: list length must be 1 to 4096, got {n}"
+                )));
+            }
+            if storage == Storage::Bool {
+                return Err(Error::PayloadDecl(format!(
+                    "payload column {name:?}: lists of booleans are not supported"
+                )));
+            }
+        }
+        Ok(Self {
+            name: name.to_string(),
+            element,
+            list_len,
+        })
+    }
+
+    pub fn storage(&self) -> Storage {
+        // Validated on construction.
+        Storage::of(&self.element).unwrap_or(Storage::UInt(1))
+    }
+
+    /// Bytes one ray takes in this column's recording buffer.
+    pub fn row_width(&self) -> usize {
+        self.storage().width() * self.list_len.unwrap_or(1)
+    }
+
+    /// The Arrow type of the column as stored.
+    pub fn data_type(&self) -> DataType {
+        match self.list_len {
+            None => self.element.clone(),
+            Some(n) => DataType::FixedSizeList(Arc::new(Field::new("item", self.element.clone(), false)), n as i32),
+        }
+    }
+
+    /// The type as written in the manifest, e.g. `float32` or `float32[3]`.
+    pub fn type_name(&self) -> String {
+        let base = scalar_type_name(&self.element).unwrap_or_else(|| "unknown".into());
+        match self.list_len {
+            None => base,
+            Some(n) => format!("{base}[{n}]"),
+        }
+    }
+
+    /// Parses [`PayloadField::type_name`] output.
+    pub fn from_type_name(name: &str, type_name: &str) -> Result<Self> {
+        let (base, len) = match type_name.split_once('[') {
+            Some((base, rest)) => {
+                let n = rest
+                    .strip_suffix(']')
+                    .and_then(|n| n.parse::<usize>().ok())
+                    .ok_or_else(|| Error::PayloadDecl(format!("bad list type {type_name:?} for column {name:?}")))?;
+                (base, Some(n))
+            }
+            None => (type_name, None),
+        };
+        let element = parse_scalar_type(base).ok_or_else(|| {
+            Error::PayloadDecl(format!("unknown payload type {type_name:?} for column {name:?}"))
+        })?;
+        Self::new(name, element, len)
+    }
+}
+
+/// The opaque bytes payload column, for clients that hand over `(&data, sizeof data)`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BytesPayload {
+    /// Every ray carries exactly this many bytes (stored as `FixedSizeBinary`).
+    Fixed(usize),
+    /// Each ray carries any number of bytes (stored as `Binary`).
+    Variable,
+}
+
+/// What a recording's ray table holds beyond the core columns.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PayloadSchema {
+    pub fields: Vec<PayloadField>,
+    pub bytes: Option<BytesPayload>,
+}
+
+impl PayloadSchema {
+    pub fn new(fields: Vec<PayloadField>, bytes: Option<BytesPayload>) -> Result<Self> {
+        for (i, f) in fields.iter().enumerate() {
+            if fields[..i].iter().any(|g| g.name == f.name) {
+                return Err(Error::PayloadDecl(format!("payload column {:?} is declared twice", f.name)));
+            }
+        }
+        if let Some(BytesPayload::Fixed(n)) = bytes {
+            if n == 0 || n > i32::MAX as usize {
+                return Err(Error::PayloadDecl(format!(
+                    "fixed bytes payload size must be 1 to {} bytes, got {n}",
+                    i32::MAX
+                )));
+            }
+        }
+        Ok(Self { fields, bytes })
+    }
+
+    pub fn index_of(&self, name: &str) -> Option<usize> {
+        self.fields.iter().position(|f| f.name == name)
+    }
+}
+
+fn meta(field: Field, pairs: &[(&str, &str)]) -> Field {
+    field.with_metadata(pairs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect())
+}
+
+/// The kind column type: dictionary-encoded names, so plain Parquet readers see `'shadow'`.
+pub fn kind_data_type() -> DataType {
+    DataType::Dictionary(Box::new(DataType::UInt8), Box::new(DataType::Utf8))
+}
+
+/// The Arrow schema of the ray table for a payload schema.
+pub fn ray_schema(payload: &PayloadSchema) -> SchemaRef {
+    let world = [("space", "world")];
+    let mut fields = vec![
+        meta(Field::new("tree_id", DataType::UInt64, false), &[("description", "id of the ray tree")]),
+        meta(
+            Field::new("ray", DataType::UInt32, false),
+            &[("description", "index of the ray within its tree, in recording order")],
+        ),
+        meta(
+            Field::new("parent", DataType::UInt32, true),
+            &[("description", "index of the parent ray within the tree; null for a root ray")],
+        ),
+        meta(Field::new("depth", DataType::UInt16, false), &[("description", "0 for root rays")]),
+        meta(Field::new("kind", kind_data_type(), false), &[("description", "ray kind name")]),
+        meta(Field::new("origin_x", DataType::Float32, false), &world),
+        meta(Field::new("origin_y", DataType::Float32, false), &world),
+        meta(Field::new("origin_z", DataType::Float32, false), &world),
+        meta(Field::new("dir_x", DataType::Float32, false), &world),
+        meta(Field::new("dir_y", DataType::Float32, false), &world),
+        meta(Field::new("dir_z", DataType::Float32, false), &world),
+        meta(
+            Field::new("t", DataType::Float32, true),
+            &[
+                ("unit", "multiples of the direction vector (world distance when it is unit length)"),
+                ("description", "hit distance; null when the ray missed"),
+            ],
+        ),
+        meta(
+            Field::new("prim", DataType::UInt32, true),
+            &[("description", "hit primitive; null when the ray missed or hit no primitive")],
+        ),
+    ];
+    for f in &payload.fields {
+        fields.push(meta(Field::new(&f.name, f.data_type(), true), &[("rtvtk.payload", "typed")]));
+    }
+    match payload.bytes {
+        Some(BytesPayload::Fixed(n)) => fields.push(meta(
+            Field::new("payload", DataType::FixedSizeBinary(n as i32), true),
+            &[("rtvtk.payload", "bytes")],
+        )),
+        Some(BytesPayload::Variable) => fields.push(meta(
+            Field::new("payload", DataType::Binary, true),
+            &[("rtvtk.payload", "bytes")],
+        )),
+        None => {}
+    }
+    Arc::new(Schema::new(fields))
+}
+
+/// The Arrow schema of the tree table.
+pub fn tree_schema() -> SchemaRef {
+    Arc::new(Schema::new(vec![
+        Field::new("tree_id", DataType::UInt64, false),
+        Field::new("pixel_x", DataType::UInt32, false),
+        Field::new("pixel_y", DataType::UInt32, false),
+        Field::new("sample", DataType::UInt32, false),
+        Field::new("ray_count", DataType::UInt32, false),
+        Field::new("max_depth", DataType::UInt16, false),
+        meta(
+            Field::new("segment", DataType::UInt32, false),
+            &[("description", "id of the segment whose ray file holds the tree")],
+        ),
+        meta(
+            Field::new("first_row", DataType::UInt64, false),
+            &[("description", "row of the tree's first ray in that segment's ray file")],
+        ),
+    ]))
+}
+
+/// Number of core ray columns before the payload columns.
+pub const CORE_COLUMN_COUNT: usize = 13;

@@ -1,0 +1,152 @@
+//! Statistics of a trace, computed as segments are sealed and kept in the manifest.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use crate::columns::RayColumns;
+use crate::schema::KindTable;
+use crate::Kind;
+
+/// An axis-aligned box; empty until a finite point is added.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Bounds {
+    pub min: [f32; 3],
+    pub max: [f32; 3],
+}
+
+impl Default for Bounds {
+    fn default() -> Self {
+        Self {
+            min: [f32::INFINITY; 3],
+            max: [f32::NEG_INFINITY; 3],
+        }
+    }
+}
+
+impl Bounds {
+    pub fn is_empty(&self) -> bool {
+        (0..3).any(|i| self.min[i] > self.max[i])
+    }
+
+    /// Grows the box to hold `p` if all its coordinates are finite.
+    #[inline]
+    pub fn add(&mut self, p: [f32; 3]) {
+        if p.iter().all(|c| c.is_finite()) {
+            for i in 0..3 {
+                self.min[i] = self.min[i].min(p[i]);
+                self.max[i] = self.max[i].max(p[i]);
+            }
+        }
+    }
+
+    pub fn merge(&mut self, other: &Bounds) {
+        if !other.is_empty() {
+            self.add(other.min);
+            self.add(other.max);
+        }
+    }
+}
+
+/// Ray and tree counts by kind and depth, and the scene bounds the rays span.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Stats {
+    pub rays: u64,
+    pub trees: u64,
+    /// Rays missing everything (no hit distance).
+    pub misses: u64,
+    /// Rays with a NaN or infinite origin or direction component.
+    pub non_finite: u64,
+    /// Ray counts per kind name, indexed by depth.
+    pub rays_by_kind_depth: BTreeMap<String, Vec<u64>>,
+    /// Tree counts indexed by the tree's deepest ray depth.
+    pub trees_by_max_depth: Vec<u64>,
+    /// Bounds of the finite ray origins.
+    pub origin_bounds: Bounds,
+    /// Bounds of the finite hit points (origin + t · direction).
+    pub hit_bounds: Bounds,
+}
+
+fn bump(v: &mut Vec<u64>, i: usize, by: u64) {
+    if v.len() <= i {
+        v.resize(i + 1, 0);
+    }
+    v[i] += by;
+}
+
+impl Stats {
+    /// Statistics of the rays and trees held in `cols`.
+    pub fn of_columns(cols: &RayColumns, kinds: &KindTable) -> Stats {
+        let mut s = Stats {
+            rays: cols.len() as u64,
+            trees: cols.trees.len() as u64,
+            ..Default::default()
+        };
+        let mut by_kind_depth: Vec<Vec<u64>> = vec![Vec::new(); 256];
+        for i in 0..cols.len() {
+            bump(&mut by_kind_depth[cols.kind[i] as usize], cols.depth[i] as usize, 1);
+            let o = [cols.origin[0][i], cols.origin[1][i], cols.origin[2][i]];
+            let d = [cols.direction[0][i], cols.direction[1][i], cols.direction[2][i]];
+            if !(o.iter().chain(d.iter()).all(|c| c.is_finite())) {
+                s.non_finite += 1;
+            }
+            s.origin_bounds.add(o);
+            if cols.hit[i] {
+                let t = cols.t[i];
+                s.hit_bounds.add([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
+            } else {
+                s.misses += 1;
+            }
+        }
+        for (code, counts) in by_kind_depth.into_iter().enumerate() {
+            if !counts.is_empty() {
+                let name = kinds
+                    .name(Kind(code as u8))
+                    .map_or_else(|| format!("kind{code}"), str::to_string);
+                s.rays_by_kind_depth.insert(name, counts);
+            }
+        }
+        for t in &cols.trees {
+            bump(&mut s.trees_by_max_depth, t.max_depth as usize, 1);
+        }
+        s
+    }
+
+    /// Adds another set of statistics into this one.
+    pub fn merge(&mut self, other: &Stats) {
+        self.rays += other.rays;
+        self.trees += other.trees;
+        self.misses += other.misses;
+        self.non_finite += other.non_finite;
+        for (k, v) in &other.rays_by_kind_depth {
+            let mine = self.rays_by_kind_depth.entry(k.clone()).or_default();
+            for (d, c) in v.iter().enumerate() {
+                bump(mine, d, *c);
+            }
+        }
+        for (d, c) in other.trees_by_max_depth.iter().enumerate() {
+            bump(&mut self.trees_by_max_depth, d, *c);
+        }
+        self.origin_bounds.merge(&other.origin_bounds);
+        self.hit_bounds.merge(&other.hit_bounds);
+    }
+
+    /// Ray counts per kind.
+    pub fn rays_by_kind(&self) -> BTreeMap<String, u64> {
+        self.rays_by_kind_depth
+            .iter()
+            .map(|(k, v)| (k.clone(), v.iter().sum()))
+            .collect()
+    }
+
+    /// Ray counts per depth.
+    pub fn rays_by_depth(&self) -> Vec<u64> {
+        let mut out = Vec::new();
+        for v in self.rays_by_kind_depth.values() {
+            for (d, c) in v.iter().enumerate() {
+                bump(&mut out, d, *c);
+            }
+        }
+        out
+    }
+}

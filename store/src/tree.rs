@@ -1,0 +1,226 @@
+//! Trees and rays as readers see them.
+
+use std::collections::HashMap;
+use std::fmt;
+use std::path::Path;
+
+use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
+use arrow::datatypes::{DataType, Float32Type, UInt8Type, UInt16Type, UInt32Type, UInt64Type};
+
+use crate::{Error, Kind, Result};
+
+/// Id of a ray tree, unique within a recording.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize, serde::Deserialize)]
+pub struct TreeId(pub u64);
+
+impl fmt::Display for TreeId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}", self.0)
+    }
+}
+
+/// Metadata of one tree (one row of the tree table).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct TreeInfo {
+    pub id: TreeId,
+    pub pixel: [u32; 2],
+    pub sample: u32,
+    pub ray_count: u32,
+    pub max_depth: u16,
+}
+
+/// One recorded ray.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct Ray {
+    /// Index within the tree (recording order).
+    pub index: u32,
+    /// Index of the parent ray; `None` for a root ray.
+    pub parent: Option<u32>,
+    pub depth: u16,
+    #[serde(serialize_with = "ser_kind")]
+    pub kind: Kind,
+    pub origin: [f32; 3],
+    pub direction: [f32; 3],
+    /// Hit distance; `None` for a miss.
+    pub t: Option<f32>,
+    pub prim: Option<u32>,
+}
+
+fn ser_kind<S: serde::Serializer>(k: &Kind, s: S) -> std::result::Result<S::Ok, S::Error> {
+    s.serialize_u8(k.0)
+}
+
+impl Ray {
+    /// The hit point, if the ray hit something.
+    pub fn hit_point(&self) -> Option<[f32; 3]> {
+        self.t
+            .map(|t| std::array::from_fn(|i| self.origin[i] + t * self.direction[i]))
+    }
+}
+
+/// A whole ray tree: its metadata, its rays, and all its columns (payload included).
+#[derive(Clone, Debug)]
+pub struct Tree {
+    pub info: TreeInfo,
+    pub rays: Vec<Ray>,
+    /// The tree's rows of the ray table, every column.
+    pub batch: RecordBatch,
+}
+
+impl Tree {
+    /// The rays whose parent is `index`.
+    pub fn children(&self, index: u32) -> impl Iterator<Item = &Ray> + '_ {
+        self.rays.iter().filter(move |r| r.parent == Some(index))
+    }
+
+    /// The root rays (normally one: the camera ray).
+    pub fn roots(&self) -> impl Iterator<Item = &Ray> + '_ {
+        self.rays.iter().filter(|r| r.parent.is_none())
+    }
+
+    /// Indices from `index` up to its root, `index` first. Empty if `index` is out of range.
+    pub fn path_to_root(&self, index: u32) -> Vec<u32> {
+        let mut path = Vec::new();
+        let mut cur = Some(index);
+        while let Some(i) = cur {
+            let Some(ray) = self.rays.get(i as usize) else { break };
+            path.push(i);
+            if path.len() > self.rays.len() {
+                break; // a cycle: only possible in corrupt data, which `check` reports
+            }
+            cur = ray.parent;
+        }
+        path
+    }
+
+    /// A payload column (or any column) of this tree's rays by name.
+    pub fn column(&self, name: &str) -> Option<&ArrayRef> {
+        self.batch.column_by_name(name)
+    }
+}
+
+fn col<'a>(batch: &'a RecordBatch, name: &str, path: &Path) -> Result<&'a ArrayRef> {
+    batch.column_by_name(name).ok_or_else(|| Error::Schema {
+        path: path.to_path_buf(),
+        field: name.into(),
+        expected: "a column of the ray table".into(),
+        found: "no such column".into(),
+    })
+}
+
+macro_rules! typed {
+    ($batch:expr, $name:expr, $path:expr, $t:ty, $dt:expr) => {{
+        let c = col($batch, $name, $path)?;
+        c.as_primitive_opt::<$t>().ok_or_else(|| Error::Schema {
+            path: $path.to_path_buf(),
+            field: $name.into(),
+            expected: format!("{}", $dt),
+            found: format!("{}", c.data_type()),
+        })?
+    }};
+}
+
+/// Decodes the core columns of ray-table rows into [`Ray`]s (kinds mapped through `kinds`).
+pub fn rays_from_batch(batch: &RecordBatch, kinds: &HashMap<String, Kind>, path: &Path) -> Result<Vec<Ray>> {
+    let ray = typed!(batch, "ray", path, UInt32Type, DataType::UInt32);
+    let parent = typed!(batch, "parent", path, UInt32Type, DataType::UInt32);
+    let depth = typed!(batch, "depth", path, UInt16Type, DataType::UInt16);
+    let f = |n: &str| -> Result<&arrow::array::Float32Array> { Ok(typed!(batch, n, path, Float32Type, DataType::Float32)) };
+    let (ox, oy, oz) = (f("origin_x")?, f("origin_y")?, f("origin_z")?);
+    let (dx, dy, dz) = (f("dir_x")?, f("dir_y")?, f("dir_z")?);
+    let t = f("t")?;
+    let prim = typed!(batch, "prim", path, UInt32Type, DataType::UInt32);
+    let kind_col = col(batch, "kind", path)?;
+    let kind_dict = kind_col.as_dictionary_opt::<UInt8Type>().ok_or_else(|| Error::Schema {
+        path: path.to_path_buf(),
+        field: "kind".into(),
+        expected: "Dictionary(UInt8, Utf8)".into(),
+        found: format!("{}", kind_col.data_type()),
+    })?;
+    let names = kind_dict.values().as_string_opt::<i32>().ok_or_else(|| Error::Schema {
+        path: path.to_path_buf(),
+        field: "kind".into(),
+        expected: "Dictionary(UInt8, Utf8)".into(),
+        found: format!("{}", kind_col.data_type()),
+    })?;
+    let mut key_to_kind = Vec::with_capacity(names.len());
+    for i in 0..names.len() {
+        let name = names.value(i);
+        let kind = kinds.get(name).copied().ok_or_else(|| Error::Corrupt {
+            path: path.to_path_buf(),
+            what: "column `kind`".into(),
+            message: format!("kind {name:?} is not declared in the manifest"),
+        })?;
+        key_to_kind.push(kind);
+    }
+    let keys = kind_dict.keys();
+    let mut out = Vec::with_capacity(batch.num_rows());
+    for i in 0..batch.num_rows() {
+        let key = keys.value(i) as usize;
+        let kind = *key_to_kind.get(key).ok_or_else(|| Error::Corrupt {
+            path: path.to_path_buf(),
+            what: "column `kind`".into(),
+            message: format!("dictionary key {key} out of range"),
+        })?;
+        out.push(Ray {
+            index: ray.value(i),
+            parent: parent.is_valid(i).then(|| parent.value(i)),
+            depth: depth.value(i),
+            kind,
+            origin: [ox.value(i), oy.value(i), oz.value(i)],
+            direction: [dx.value(i), dy.value(i), dz.value(i)],
+            t: t.is_valid(i).then(|| t.value(i)),
+            prim: prim.is_valid(i).then(|| prim.value(i)),
+        });
+    }
+    Ok(out)
+}
+
+/// Tree ids of ray-table rows.
+pub fn tree_ids_of(batch: &RecordBatch, path: &Path) -> Result<Vec<u64>> {
+    Ok(typed!(batch, "tree_id", path, UInt64Type, DataType::UInt64).values().to_vec())
+}
+
+/// Checks that `rays` form the tree `info`: ids, order, parents one level up.
+pub fn validate_tree(info: &TreeInfo, tree_ids: &[u64], rays: &[Ray]) -> std::result::Result<(), String> {
+    if rays.len() != info.ray_count as usize {
+        return Err(format!(
+            "tree {} lists {} rays, found {}",
+            info.id,
+            info.ray_count,
+            rays.len()
+        ));
+    }
+    let mut max_depth = 0;
+    for (i, r) in rays.iter().enumerate() {
+        if tree_ids[i] != info.id.0 {
+            return Err(format!("tree {}: row {i} belongs to tree {}", info.id, tree_ids[i]));
+        }
+        if r.index as usize != i {
+            return Err(format!("tree {}: ray at position {i} has index {}", info.id, r.index));
+        }
+        match r.parent {
+            None if r.depth != 0 => {
+                return Err(format!("tree {}: root ray {i} has depth {}, expected 0", info.id, r.depth));
+            }
+            Some(p) if p as usize >= i => {
+                return Err(format!("tree {}: ray {i} has parent {p}, expected an earlier ray", info.id));
+            }
+            Some(p) if rays[p as usize].depth + 1 != r.depth => {
+                return Err(format!(
+                    "tree {}: ray {i} at depth {} has parent {p} at depth {}, expected one level up",
+                    info.id, r.depth, rays[p as usize].depth
+                ));
+            }
+            _ => {}
+        }
+        max_depth = max_depth.max(r.depth);
+    }
+    if !rays.is_empty() && max_depth != info.max_depth {
+        return Err(format!(
+            "tree {}: tree table says max depth {}, rays reach {max_depth}",
+            info.id, info.max_depth
+        ));
+    }
+    Ok(())
+}

@@ -1,0 +1,310 @@
+//! Writing a dataset: segments sealed atomically, the manifest replaced atomically after each.
+//!
+//! A segment is written to `segments/NNNNNN.{rays,trees}.parquet.tmp`, synced, renamed into place,
+//! and only then listed in the manifest. A process killed at any moment therefore leaves a dataset
+//! whose manifest lists only whole segments; leftover `.tmp` files are ignored by readers and
+//! reported by `check`.
+
+use std::fs::{self, File};
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU32, Ordering};
+
+use parquet::arrow::ArrowWriter;
+use parquet::basic::{Compression, ZstdLevel};
+use parquet::file::metadata::KeyValue;
+use parquet::file::properties::{EnabledStatistics, WriterProperties};
+use parquet::schema::types::ColumnPath;
+
+use crate::columns::{RayColumns, TreeRow};
+use crate::error::{io_err, pq_err};
+use crate::manifest::{FileEntry, Manifest, SegmentEntry, segment_file, sync_dir};
+use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
+use crate::stats::Stats;
+use crate::{Error, FORMAT_VERSION, Result};
+
+/// How a dataset is written.
+#[derive(Clone, Debug)]
+pub struct WriteOptions {
+    /// Rows per Parquet row group in a ray file.
+    pub row_group_rows: usize,
+    /// Rows per data page: the unit a one-tree fetch reads and decompresses.
+    pub page_rows: usize,
+    /// zstd level of every column.
+    pub zstd_level: i32,
+    /// fsync files and directories when sealing (needed for power-loss safety; a SIGKILL is
+    /// survived either way).
+    pub sync: bool,
+}
+
+impl Default for WriteOptions {
+    fn default() -> Self {
+        Self {
+            row_group_rows: 128 * 1024,
+            page_rows: 4096,
+            zstd_level: 1,
+            sync: true,
+        }
+    }
+}
+
+/// Writes `Write` through while computing the CRC32 and length of what passed.
+pub struct CrcWriter<W: Write> {
+    inner: W,
+    hasher: crc32fast::Hasher,
+    bytes: u64,
+}
+
+impl<W: Write> CrcWriter<W> {
+    pub fn new(inner: W) -> Self {
+        Self {
+            inner,
+            hasher: crc32fast::Hasher::new(),
+            bytes: 0,
+        }
+    }
+
+    pub fn finish(self) -> (W, u32, u64) {
+        (self.inner, self.hasher.finalize(), self.bytes)
+    }
+}
+
+impl<W: Write> Write for CrcWriter<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.hasher.update(&buf[..n]);
+        self.bytes += n as u64;
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
+}
+
+type FileSink = CrcWriter<BufWriter<File>>;
+
+/// A dataset being written. Shared by the workers that write its segments.
+pub struct DatasetWriter {
+    dir: PathBuf,
+    payload: PayloadSchema,
+    options: WriteOptions,
+    manifest: Mutex<Manifest>,
+    next_segment: AtomicU32,
+}
+
+impl DatasetWriter {
+    /// Creates a new dataset at `dir` (which must not exist or be empty) with an empty manifest.
+    pub fn create(dir: &Path, payload: PayloadSchema, options: WriteOptions) -> Result<Self> {
+        if dir.exists() {
+            let mut entries = fs::read_dir(dir).map_err(io_err("listing the dataset directory", dir))?;
+            if entries.next().is_some() {
+                return Err(Error::NotEmpty { path: dir.to_path_buf() });
+            }
+        }
+        let segments = dir.join("segments");
+        fs::create_dir_all(&segments).map_err(io_err("creating the dataset directory", &segments))?;
+        let manifest = Manifest::new(&payload);
+        manifest.store(dir, options.sync)?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            payload,
+            options,
+            manifest: Mutex::new(manifest),
+            next_segment: AtomicU32::new(1),
+        })
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn payload(&self) -> &PayloadSchema {
+        &self.payload
+    }
+
+    /// A copy of the manifest as last committed.
+    pub fn manifest(&self) -> Manifest {
+        self.manifest.lock().map(|m| m.clone()).unwrap_or_else(|p| p.into_inner().clone())
+    }
+
+    fn ray_properties(&self) -> Result<WriterProperties> {
+        let level = ZstdLevel::try_new(self.options.zstd_level).map_err(pq_err(&self.dir))?;
+        Ok(WriterProperties::builder()
+            .set_compression(Compression::ZSTD(level))
+            .set_dictionary_enabled(false)
+            .set_column_dictionary_enabled(ColumnPath::from("kind"), true)
+            .set_statistics_enabled(EnabledStatistics::Page)
+            .set_max_row_group_row_count(Some(self.options.row_group_rows.max(1)))
+            .set_data_page_row_count_limit(self.options.page_rows.max(1))
+            .set_key_value_metadata(Some(vec![
+                KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
+                KeyValue::new("rtvtk.table".into(), "rays".to_string()),
+            ]))
+            .build())
+    }
+
+    /// Opens a new segment for one worker to fill.
+    pub fn open_segment(&self) -> Result<SegmentWriter> {
+        let id = self.next_segment.fetch_add(1, Ordering::Relaxed);
+        let rel = segment_file(id, "rays");
+        let tmp = self.dir.join(format!("{rel}.tmp"));
+        let file = File::create(&tmp).map_err(io_err("creating a segment file", &tmp))?;
+        let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
+        let writer = ArrowWriter::try_new(sink, ray_schema(&self.payload), Some(self.ray_properties()?))
+            .map_err(pq_err(&tmp))?;
+        Ok(SegmentWriter {
+            id,
+            tmp,
+            writer: Some(writer),
+            trees: Vec::new(),
+            rows: 0,
+            stats: Stats::default(),
+        })
+    }
+
+    /// Marks the recording as finished cleanly.
+    pub fn mark_complete(&self) -> Result<()> {
+        let mut m = self.manifest.lock().unwrap_or_else(|p| p.into_inner());
+        m.complete = true;
+        m.store(&self.dir, self.options.sync)
+    }
+
+    fn commit(&self, seg: SegmentEntry, kinds: &KindTable) -> Result<()> {
+        let mut m = self.manifest.lock().unwrap_or_else(|p| p.into_inner());
+        let mut next = m.clone();
+        next.add_segment(seg, kinds);
+        next.store(&self.dir, self.options.sync)?;
+        *m = next;
+        Ok(())
+    }
+}
+
+/// One segment being filled by one worker.
+pub struct SegmentWriter {
+    id: u32,
+    tmp: PathBuf,
+    writer: Option<ArrowWriter<FileSink>>,
+    trees: Vec<TreeRow>,
+    rows: u64,
+    stats: Stats,
+}
+
+impl SegmentWriter {
+    pub fn id(&self) -> u32 {
+        self.id
+    }
+
+    /// Rays written so far.
+    pub fn rows(&self) -> u64 {
+        self.rows
+    }
+
+    /// Appends whole trees to the segment.
+    pub fn write(&mut self, cols: RayColumns, payload: &PayloadSchema, kinds: &KindTable) -> Result<()> {
+        let n = cols.len() as u64;
+        if n == 0 && cols.trees.is_empty() {
+            return Ok(());
+        }
+        self.stats.merge(&Stats::of_columns(&cols, kinds));
+        let base = self.rows;
+        self.trees.extend(cols.trees.iter().map(|t| TreeRow {
+            first_row: t.first_row + base,
+            ..*t
+        }));
+        let batch = cols.into_ray_batch(payload, kinds)?;
+        let writer = self.writer.as_mut().ok_or_else(|| Error::Corrupt {
+            path: self.tmp.clone(),
+            what: "segment writer".into(),
+            message: "write after seal".into(),
+        })?;
+        writer.write(&batch).map_err(pq_err(&self.tmp))?;
+        self.rows += n;
+        Ok(())
+    }
+
+    /// Finishes the files, moves them into place and lists the segment in the manifest.
+    /// An empty segment is discarded instead. Returns the segment entry when one was committed.
+    pub fn seal(mut self, ds: &DatasetWriter, kinds: &KindTable) -> Result<Option<SegmentEntry>> {
+        let Some(writer) = self.writer.take() else {
+            return Ok(None);
+        };
+        if self.trees.is_empty() {
+            drop(writer);
+            let _ = fs::remove_file(&self.tmp);
+            return Ok(None);
+        }
+        let sink = writer.into_inner().map_err(pq_err(&self.tmp))?;
+        let rays = finish_file(sink, &self.tmp, ds.options.sync)?;
+
+        let rays_rel = segment_file(self.id, "rays");
+        let trees_rel = segment_file(self.id, "trees");
+        let trees_tmp = ds.dir.join(format!("{trees_rel}.tmp"));
+        self.trees.sort_unstable_by_key(|t| t.tree_id);
+        let batch = RayColumns::to_tree_batch(&self.trees, self.id)?;
+        let file = File::create(&trees_tmp).map_err(io_err("creating a segment file", &trees_tmp))?;
+        let props = WriterProperties::builder()
+            .set_compression(Compression::ZSTD(ZstdLevel::default()))
+            .set_statistics_enabled(EnabledStatistics::Page)
+            .set_key_value_metadata(Some(vec![
+                KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
+                KeyValue::new("rtvtk.table".into(), "trees".to_string()),
+            ]))
+            .build();
+        let mut w = ArrowWriter::try_new(CrcWriter::new(BufWriter::new(file)), tree_schema(), Some(props))
+            .map_err(pq_err(&trees_tmp))?;
+        w.write(&batch).map_err(pq_err(&trees_tmp))?;
+        let sink = w.into_inner().map_err(pq_err(&trees_tmp))?;
+        let trees = finish_file(sink, &trees_tmp, ds.options.sync)?;
+
+        let rays_path = ds.dir.join(&rays_rel);
+        let trees_path = ds.dir.join(&trees_rel);
+        fs::rename(&self.tmp, &rays_path).map_err(io_err("moving a sealed segment into place", &rays_path))?;
+        fs::rename(&trees_tmp, &trees_path).map_err(io_err("moving a sealed segment into place", &trees_path))?;
+        if ds.options.sync {
+            sync_dir(&ds.dir.join("segments"))?;
+        }
+        let entry = SegmentEntry {
+            id: self.id,
+            rays: FileEntry {
+                path: rays_rel,
+                bytes: rays.1,
+                crc32: rays.0,
+                rows: self.rows,
+            },
+            trees: FileEntry {
+                path: trees_rel,
+                bytes: trees.1,
+                crc32: trees.0,
+                rows: self.trees.len() as u64,
+            },
+            tree_id_min: self.trees.first().map_or(0, |t| t.tree_id),
+            tree_id_max: self.trees.last().map_or(0, |t| t.tree_id),
+            stats: std::mem::take(&mut self.stats),
+        };
+        ds.commit(entry.clone(), kinds)?;
+        Ok(Some(entry))
+    }
+
+    /// Drops the segment without sealing it (its temporary file is removed).
+    pub fn abandon(mut self) {
+        self.writer.take();
+        let _ = fs::remove_file(&self.tmp);
+    }
+}
+
+fn finish_file(sink: FileSink, path: &Path, sync: bool) -> Result<(u32, u64)> {
+    let (buf, crc, bytes) = sink.finish();
+    let file = buf
+        .into_inner()
+        .map_err(|e| Error::Io {
+            action: "flushing a segment file",
+            path: path.to_path_buf(),
+            source: e.into_error(),
+        })?;
+    if sync {
+        file.sync_all().map_err(io_err("syncing a segment file", path))?;
+    }
+    Ok((crc, bytes))
+}
