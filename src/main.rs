@@ -1,1 +1,96 @@
-fn main() {}
+//! `rtvtk`: the command line of the ray tracing visualization toolkit.
+
+mod bench;
+mod commands;
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "rtvtk", version, about = "Record, store, query and visualize the rays a renderer traces")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Record a small trace of the built-in demo scene and print its summary.
+    Demo {
+        /// Dataset directory to write (default: a fresh temporary directory).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Image size, WxH.
+        #[arg(long, default_value = "64x48", value_parser = commands::parse_size)]
+        size: (u32, u32),
+        /// Samples per pixel.
+        #[arg(long, default_value_t = 4)]
+        spp: u32,
+        /// Tracing threads.
+        #[arg(long, default_value_t = 2)]
+        threads: usize,
+    },
+    /// Counts, bytes per ray, kinds, payload schema and format version of a dataset.
+    Info {
+        dataset: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print one ray tree as an indented hierarchy.
+    Tree {
+        dataset: PathBuf,
+        /// The pixel whose trees to print, X,Y.
+        #[arg(long, value_parser = commands::parse_pixel, conflicts_with = "tree", required_unless_present = "tree")]
+        pixel: Option<(u32, u32)>,
+        /// Only this sample of the pixel.
+        #[arg(long, requires = "pixel")]
+        sample: Option<u32>,
+        /// The tree with this id.
+        #[arg(long)]
+        tree: Option<u64>,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Verify every invariant of a dataset (exit status 1 when one is broken).
+    Check {
+        dataset: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+    /// Benchmarks, each against a baseline in the same run.
+    Bench {
+        #[command(subcommand)]
+        what: bench::BenchCommand,
+    },
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result: Result<i32> = match cli.command {
+        Command::Demo {
+            out,
+            size,
+            spp,
+            threads,
+        } => commands::demo(out, size, spp, threads).map(|_| 0),
+        Command::Info { dataset, json } => commands::info(&dataset, json).map(|_| 0),
+        Command::Tree {
+            dataset,
+            pixel,
+            sample,
+            tree,
+            json,
+        } => commands::tree(&dataset, pixel, sample, tree, json).map(|_| 0),
+        Command::Check { dataset, json } => commands::check(&dataset, json),
+        Command::Bench { what } => bench::run(what).map(|_| 0),
+    };
+    match result {
+        Ok(code) => std::process::exit(code),
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::exit(2);
+        }
+    }
+}

@@ -61,9 +61,11 @@ pub struct Stats {
     pub rays_by_kind_depth: BTreeMap<String, Vec<u64>>,
     /// Tree counts indexed by the tree's deepest ray depth.
     pub trees_by_max_depth: Vec<u64>,
-    /// Bounds of the finite ray origins.
+    /// Bounds of the finite ray origins (absent while empty).
+    #[serde(default, skip_serializing_if = "Bounds::is_empty")]
     pub origin_bounds: Bounds,
-    /// Bounds of the finite hit points (origin + t · direction).
+    /// Bounds of the finite hit points (origin + t · direction; absent while empty).
+    #[serde(default, skip_serializing_if = "Bounds::is_empty")]
     pub hit_bounds: Bounds,
 }
 

@@ -1,0 +1,271 @@
+//! The dataset subcommands: demo, info, tree, check.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use rl::{Dataset, Recorder, RecorderOptions, Tree, TreeId};
+use serde_json::json;
+
+pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or("expected WxH, e.g. 64x48")?;
+    let w: u32 = w.trim().parse().map_err(|_| format!("bad width {w:?}: expected a positive integer"))?;
+    let h: u32 = h.trim().parse().map_err(|_| format!("bad height {h:?}: expected a positive integer"))?;
+    if w == 0 || h == 0 {
+        return Err("width and height must be positive".into());
+    }
+    Ok((w, h))
+}
+
+pub fn parse_pixel(s: &str) -> Result<(u32, u32), String> {
+    let (x, y) = s.split_once(',').ok_or("expected X,Y, e.g. 10,20")?;
+    let x = x.trim().parse().map_err(|_| format!("bad x {x:?}: expected a non-negative integer"))?;
+    let y = y.trim().parse().map_err(|_| format!("bad y {y:?}: expected a non-negative integer"))?;
+    Ok((x, y))
+}
+
+/// Records the demo scene depth-first from `threads` threads.
+pub fn demo(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) -> Result<()> {
+    let (dir, _keep) = match out {
+        Some(d) => (d, None),
+        None => {
+            let t = std::env::temp_dir().join(format!("rtvtk-demo-{}", std::process::id()));
+            (t.clone(), Some(t))
+        }
+    };
+    let start = Instant::now();
+    let rec = Recorder::create(&dir, RecorderOptions::default()).with_context(|| format!("creating {}", dir.display()))?;
+    let threads = threads.max(1) as u32;
+    std::thread::scope(|s| {
+        for t in 0..threads {
+            let rec = rec.clone();
+            s.spawn(move || {
+                for y in (t..h).step_by(threads as usize) {
+                    for x in 0..w {
+                        for sample in 0..spp {
+                            let mut tree = rec.begin_tree(x, y, sample);
+                            rl::demo::trace_pixel(&mut tree, x, y, sample, w, h);
+                            tree.end();
+                        }
+                    }
+                }
+            });
+        }
+    });
+    let summary = rec.finish()?;
+    println!(
+        "recorded {} trees, {} rays of the demo scene ({w}x{h}, {spp} spp) in {:.2} s into {}",
+        summary.trees,
+        summary.rays,
+        start.elapsed().as_secs_f64(),
+        dir.display()
+    );
+    println!();
+    info(&dir, false)?;
+    println!();
+    let ds = Dataset::open(&dir)?;
+    let trees = ds.trees_at_pixel(w / 2, h * 3 / 4, Some(0))?;
+    if let Some(t) = trees.first() {
+        println!("the tree of pixel ({}, {}), sample 0:", w / 2, h * 3 / 4);
+        print_tree(&ds, t);
+    }
+    println!();
+    println!("try: rtvtk tree {} --pixel {},{}", dir.display(), w / 2, h / 2);
+    println!("     rtvtk check {}", dir.display());
+    Ok(())
+}
+
+fn dataset_bytes(ds: &Dataset) -> u64 {
+    ds.manifest().segments.iter().map(|s| s.rays.bytes + s.trees.bytes).sum()
+}
+
+pub fn info(dir: &Path, as_json: bool) -> Result<()> {
+    let ds = Dataset::open(dir)?;
+    let m = ds.manifest();
+    let s = ds.stats();
+    let bytes = dataset_bytes(&ds);
+    let per_ray = if s.rays > 0 { bytes as f64 / s.rays as f64 } else { 0.0 };
+    let payload: Vec<_> = m
+        .payload
+        .iter()
+        .map(|p| json!({"name": p.name, "type": p.type_name}))
+        .collect();
+    if as_json {
+        let v = json!({
+            "path": dir,
+            "format": m.format,
+            "format_version": m.format_version,
+            "complete": m.complete,
+            "segments": m.segments.len(),
+            "trees": s.trees,
+            "rays": s.rays,
+            "bytes": bytes,
+            "bytes_per_ray": per_ray,
+            "misses": s.misses,
+            "non_finite_rays": s.non_finite,
+            "rays_by_kind": s.rays_by_kind(),
+            "rays_by_depth": s.rays_by_depth(),
+            "rays_by_kind_and_depth": s.rays_by_kind_depth,
+            "trees_by_max_depth": s.trees_by_max_depth,
+            "kinds": m.kinds,
+            "payload": payload,
+            "bytes_payload": m.bytes_payload,
+            "origin_bounds": (!s.origin_bounds.is_empty()).then_some(s.origin_bounds),
+            "hit_bounds": (!s.hit_bounds.is_empty()).then_some(s.hit_bounds),
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    println!("dataset        {}", dir.display());
+    println!("format         {} v{}{}", m.format, m.format_version, if m.complete { "" } else { " (recording did not finish cleanly)" });
+    println!("segments       {}", m.segments.len());
+    println!("trees          {}", s.trees);
+    println!("rays           {}  ({} misses, {} with NaN/Inf)", s.rays, s.misses, s.non_finite);
+    println!("bytes          {bytes}  ({per_ray:.2} B/ray)");
+    println!("rays by kind");
+    for (k, n) in s.rays_by_kind() {
+        println!("  {k:<14} {n:>12}  {:5.1}%", 100.0 * n as f64 / s.rays.max(1) as f64);
+    }
+    println!("rays by depth");
+    for (d, n) in s.rays_by_depth().iter().enumerate() {
+        println!("  {d:<14} {n:>12}");
+    }
+    if m.payload.is_empty() && m.bytes_payload.is_none() {
+        println!("payload        none");
+    } else {
+        println!("payload");
+        for p in &m.payload {
+            println!("  {:<14} {}", p.name, p.type_name);
+        }
+        if let Some(b) = m.bytes_payload {
+            println!("  {:<14} bytes ({})", "payload", match b {
+                rl::BytesPayload::Fixed(n) => format!("{n} per ray"),
+                rl::BytesPayload::Variable => "variable".into(),
+            });
+        }
+    }
+    let b = |bb: &store::Bounds| {
+        if bb.is_empty() {
+            "empty".to_string()
+        } else {
+            format!("{:?} .. {:?}", bb.min, bb.max)
+        }
+    };
+    println!("origin bounds  {}", b(&s.origin_bounds));
+    println!("hit bounds     {}", b(&s.hit_bounds));
+    Ok(())
+}
+
+fn ray_line(ds: &Dataset, r: &rl::Ray) -> String {
+    let kind = ds.kinds().name(r.kind).unwrap_or("?");
+    let hit = match (r.t, r.prim) {
+        (Some(t), Some(p)) => format!("t={t} prim {p}"),
+        (Some(t), None) => format!("t={t}"),
+        (None, _) => "miss".into(),
+    };
+    format!(
+        "#{} {kind} o=({}, {}, {}) d=({}, {}, {}) {hit}",
+        r.index, r.origin[0], r.origin[1], r.origin[2], r.direction[0], r.direction[1], r.direction[2]
+    )
+}
+
+fn print_tree(ds: &Dataset, t: &Tree) {
+    let i = &t.info;
+    println!(
+        "tree {}  pixel ({}, {})  sample {}  {} rays  max depth {}",
+        i.id, i.pixel[0], i.pixel[1], i.sample, i.ray_count, i.max_depth
+    );
+    fn walk(ds: &Dataset, t: &Tree, idx: u32, prefix: &str, last: bool) {
+        let Some(r) = t.rays.get(idx as usize) else { return };
+        println!("{prefix}{}{}", if last { "└─ " } else { "├─ " }, ray_line(ds, r));
+        let kids: Vec<u32> = t.children(idx).map(|c| c.index).collect();
+        let next = format!("{prefix}{}", if last { "   " } else { "│  " });
+        for (k, c) in kids.iter().enumerate() {
+            walk(ds, t, *c, &next, k + 1 == kids.len());
+        }
+    }
+    let roots: Vec<u32> = t.roots().map(|r| r.index).collect();
+    for (k, r) in roots.iter().enumerate() {
+        walk(ds, t, *r, "", k + 1 == roots.len());
+    }
+}
+
+fn tree_json(ds: &Dataset, t: &Tree) -> serde_json::Value {
+    let rays: Vec<_> = t
+        .rays
+        .iter()
+        .map(|r| {
+            json!({
+                "index": r.index,
+                "parent": r.parent,
+                "depth": r.depth,
+                "kind": ds.kinds().name(r.kind),
+                "origin": r.origin.map(f64::from),
+                "direction": r.direction.map(f64::from),
+                "t": r.t,
+                "prim": r.prim,
+            })
+        })
+        .collect();
+    json!({
+        "tree_id": t.info.id.0,
+        "pixel": t.info.pixel,
+        "sample": t.info.sample,
+        "ray_count": t.info.ray_count,
+        "max_depth": t.info.max_depth,
+        "rays": rays,
+    })
+}
+
+pub fn tree(dir: &Path, pixel: Option<(u32, u32)>, sample: Option<u32>, id: Option<u64>, as_json: bool) -> Result<()> {
+    let ds = Dataset::open(dir)?;
+    let trees = match (pixel, id) {
+        (_, Some(id)) => vec![ds.tree(TreeId(id))?],
+        (Some((x, y)), None) => {
+            let t = ds.trees_at_pixel(x, y, sample)?;
+            if t.is_empty() {
+                bail!(
+                    "no tree at pixel ({x}, {y}){} in {}",
+                    sample.map(|s| format!(" sample {s}")).unwrap_or_default(),
+                    dir.display()
+                );
+            }
+            t
+        }
+        (None, None) => bail!("give --pixel X,Y or --tree ID"),
+    };
+    if as_json {
+        let v: Vec<_> = trees.iter().map(|t| tree_json(&ds, t)).collect();
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        for t in &trees {
+            print_tree(&ds, t);
+        }
+    }
+    Ok(())
+}
+
+pub fn check(dir: &Path, as_json: bool) -> Result<i32> {
+    let ds = Dataset::open(dir)?;
+    let r = ds.check();
+    if as_json {
+        println!("{}", serde_json::to_string_pretty(&json!({"ok": r.is_ok(), "report": r}))?);
+    } else {
+        for e in &r.errors {
+            println!("error: {e}");
+        }
+        for w in &r.warnings {
+            println!("warning: {w}");
+        }
+        println!(
+            "{}: {} segments, {} trees, {} rays checked; {} errors, {} warnings",
+            if r.is_ok() { "ok" } else { "FAILED" },
+            r.segments,
+            r.trees,
+            r.rays,
+            r.errors.len(),
+            r.warnings.len()
+        );
+    }
+    Ok(if r.is_ok() { 0 } else { 1 })
+}

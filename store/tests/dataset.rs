@@ -1,0 +1,352 @@
+#![allow(clippy::unwrap_used)]
+//! Store-level tests: round trips, bit-exact floats, payload types, and bad input.
+
+use std::fs;
+use std::path::Path;
+
+use arrow::array::{Array, AsArray};
+use arrow::datatypes::{DataType, Float32Type, Int64Type};
+use store::{
+    BytesPayload, Dataset, DatasetWriter, Error, Kind, KindTable, ListValue, PayloadField, PayloadSchema, RayColumns,
+    RayFields, TreeId, TreeRow, Value, WriteOptions,
+};
+
+fn ray(o: [f32; 3], d: [f32; 3], t: Option<f32>, kind: Kind) -> RayFields {
+    RayFields {
+        origin: o,
+        direction: d,
+        t,
+        kind,
+        prim: t.map(|_| 3),
+    }
+}
+
+/// Appends a tree of `n` rays (a chain: each ray the child of the previous) to `cols`.
+fn chain(cols: &mut RayColumns, schema: &PayloadSchema, id: u64, n: u32, pixel: [u32; 2]) {
+    let first = cols.len() as u64;
+    let mut mism = Vec::new();
+    for i in 0..n {
+        let parent = if i == 0 { store::NONE_U32 } else { i - 1 };
+        let kind = if i == 0 { Kind::CAMERA } else { Kind::DIFFUSE };
+        let f = ray([i as f32, id as f32, 0.5], [0.0, 0.0, -1.0], Some(1.5 + i as f32), kind);
+        cols.push_core(id, i, parent, i as u16, &f);
+        if !schema.fields.is_empty() || schema.bytes.is_some() {
+            let rgb = [i as f32, 0.25, 0.5];
+            let vals = [Value::List(ListValue::F32(&rgb)), Value::I64(id as i64 * 100 + i as i64)];
+            let n = schema.fields.len();
+            cols.push_payload(schema, &vals[..n], Some(&(id as u32).to_le_bytes()), &mut mism);
+        }
+    }
+    assert!(mism.is_empty(), "{mism:?}");
+    cols.trees.push(TreeRow {
+        tree_id: id,
+        pixel_x: pixel[0],
+        pixel_y: pixel[1],
+        sample: 0,
+        ray_count: n,
+        max_depth: n.saturating_sub(1) as u16,
+        first_row: first,
+    });
+}
+
+fn write_dataset(dir: &Path, schema: PayloadSchema, trees_per_segment: &[u64]) {
+    let w = DatasetWriter::create(dir, schema.clone(), WriteOptions::default()).unwrap();
+    let kinds = KindTable::default();
+    let mut id = 0;
+    for &n in trees_per_segment {
+        let mut seg = w.open_segment().unwrap();
+        let mut cols = RayColumns::new(&schema);
+        for _ in 0..n {
+            chain(&mut cols, &schema, id, (id % 5 + 1) as u32, [(id % 7) as u32, (id % 3) as u32]);
+            id += 1;
+        }
+        seg.write(cols, &schema, &kinds).unwrap();
+        seg.seal(&w, &kinds).unwrap();
+    }
+    w.mark_complete().unwrap();
+}
+
+fn payload_schema() -> PayloadSchema {
+    PayloadSchema::new(
+        vec![
+            PayloadField::list("throughput", DataType::Float32, 3).unwrap(),
+            PayloadField::scalar("tag", DataType::Int64).unwrap(),
+        ],
+        Some(BytesPayload::Fixed(4)),
+    )
+    .unwrap()
+}
+
+#[test]
+fn round_trip_with_payload_and_random_access() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    write_dataset(&path, payload_schema(), &[50, 70]);
+    let ds = Dataset::open(&path).unwrap();
+    assert_eq!(ds.tree_count(), 120);
+    assert_eq!(ds.manifest().segments.len(), 2);
+    let expected_rays: u64 = (0..120u64).map(|i| i % 5 + 1).sum();
+    assert_eq!(ds.ray_count(), expected_rays);
+
+    let t = ds.tree(TreeId(77)).unwrap();
+    assert_eq!(t.rays.len(), 3);
+    assert_eq!(t.info.pixel, [77 % 7, 77 % 3]);
+    assert_eq!(t.rays[2].parent, Some(1));
+    assert_eq!(t.rays[2].depth, 2);
+    assert_eq!(t.path_to_root(2), vec![2, 1, 0]);
+    assert_eq!(t.children(0).count(), 1);
+    let tp = t.column("throughput").unwrap().as_fixed_size_list();
+    assert_eq!(tp.value(2).as_primitive::<Float32Type>().values().to_vec(), vec![2.0, 0.25, 0.5]);
+    assert_eq!(t.column("tag").unwrap().as_primitive::<Int64Type>().value(1), 7701);
+    assert_eq!(t.column("payload").unwrap().as_fixed_size_binary().value(0), 77u32.to_le_bytes());
+
+    // All trees of a pixel, and a sequential scan that sees every tree once.
+    let at = ds.trees_at_pixel(3, 1, None).unwrap();
+    assert!(!at.is_empty());
+    assert!(at.iter().all(|t| t.info.pixel == [3, 1]));
+    let n = (0..120u64).filter(|i| i % 7 == 3 && i % 3 == 1).count();
+    assert_eq!(at.len(), n);
+    let mut seen: Vec<u64> = ds.trees().map(|t| t.unwrap().info.id.0).collect();
+    seen.sort_unstable();
+    assert_eq!(seen, (0..120).collect::<Vec<_>>());
+    assert!(matches!(ds.tree(TreeId(5000)), Err(Error::NoSuchTree(5000))));
+    let report = ds.check();
+    assert!(report.is_ok(), "{:?}", report.errors);
+    assert_eq!(report.rays, expected_rays);
+}
+
+#[test]
+fn nan_and_infinities_round_trip_bit_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    let schema = PayloadSchema::default();
+    let w = DatasetWriter::create(&path, schema.clone(), WriteOptions::default()).unwrap();
+    let weird = [
+        f32::NAN,
+        f32::from_bits(0x7fc0_1234),
+        f32::from_bits(0xffff_ffff),
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        -0.0,
+        f32::MIN_POSITIVE / 2.0,
+        f32::MAX,
+    ];
+    let mut cols = RayColumns::new(&schema);
+    for (i, &v) in weird.iter().enumerate() {
+        let f = ray([v, -v, 1.0], [v, 0.0, v], Some(v), Kind::SHADOW);
+        cols.push_core(0, i as u32, if i == 0 { store::NONE_U32 } else { 0 }, u16::from(i > 0), &f);
+    }
+    cols.trees.push(TreeRow {
+        tree_id: 0,
+        pixel_x: 0,
+        pixel_y: 0,
+        sample: 0,
+        ray_count: weird.len() as u32,
+        max_depth: 1,
+        first_row: 0,
+    });
+    let kinds = KindTable::default();
+    let mut seg = w.open_segment().unwrap();
+    seg.write(cols, &schema, &kinds).unwrap();
+    seg.seal(&w, &kinds).unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    let t = ds.tree(TreeId(0)).unwrap();
+    for (i, &v) in weird.iter().enumerate() {
+        let r = t.rays[i];
+        assert_eq!(r.origin[0].to_bits(), v.to_bits(), "origin_x of ray {i}");
+        assert_eq!(r.origin[1].to_bits(), (-v).to_bits(), "origin_y of ray {i}");
+        assert_eq!(r.direction[2].to_bits(), v.to_bits(), "dir_z of ray {i}");
+        assert_eq!(r.t.unwrap().to_bits(), v.to_bits(), "t of ray {i}");
+    }
+    assert_eq!(ds.stats().non_finite, 5, "NaN/Inf rays are counted, not dropped");
+    assert!(ds.check().is_ok());
+}
+
+#[test]
+fn unused_things_are_left_out() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    write_dataset(&path, PayloadSchema::default(), &[10]);
+    let ds = Dataset::open(&path).unwrap();
+    let names: Vec<String> = ds.ray_schema().fields().iter().map(|f| f.name().clone()).collect();
+    assert!(!names.contains(&"payload".to_string()));
+    assert_eq!(names.len(), store::CORE_COLUMN_COUNT);
+    // Only camera and diffuse rays were recorded: only those kinds exist.
+    let kinds: Vec<&String> = ds.manifest().kinds.keys().collect();
+    assert_eq!(kinds, vec!["camera", "diffuse"]);
+    let text = fs::read_to_string(path.join("manifest.json")).unwrap();
+    assert!(!text.contains("\"payload\""), "{text}");
+}
+
+fn sample_dataset() -> (tempfile::TempDir, std::path::PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    write_dataset(&path, payload_schema(), &[40, 40]);
+    (dir, path)
+}
+
+#[test]
+fn truncated_segment_is_named() {
+    let (_d, path) = sample_dataset();
+    let f = path.join("segments/000002.rays.parquet");
+    let len = fs::metadata(&f).unwrap().len();
+    fs::OpenOptions::new().write(true).open(&f).unwrap().set_len(len / 2).unwrap();
+    let err = Dataset::open(&path).err().unwrap();
+    assert!(matches!(err, Error::SizeMismatch { segment: 2, .. }), "{err}");
+    assert!(err.to_string().contains("000002.rays.parquet"), "{err}");
+}
+
+#[test]
+fn missing_segment_is_named() {
+    let (_d, path) = sample_dataset();
+    fs::remove_file(path.join("segments/000001.trees.parquet")).unwrap();
+    let err = Dataset::open(&path).err().unwrap();
+    assert!(matches!(err, Error::MissingFile { segment: 1, .. }), "{err}");
+    assert!(err.to_string().contains("000001.trees.parquet"), "{err}");
+}
+
+#[test]
+fn corrupted_segment_is_detected_without_panic() {
+    let (_d, path) = sample_dataset();
+    let f = path.join("segments/000001.rays.parquet");
+    let mut bytes = fs::read(&f).unwrap();
+    // Flip bytes in the middle of the data pages (same size, so open succeeds).
+    let mid = bytes.len() / 3;
+    for b in &mut bytes[mid..mid + 64] {
+        *b ^= 0x5a;
+    }
+    fs::write(&f, &bytes).unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    let report = ds.check();
+    assert!(!report.is_ok());
+    assert!(report.errors[0].contains("CRC32") && report.errors[0].contains("000001.rays.parquet"), "{:?}", report.errors);
+    // Reading every tree either fails with an error naming the file or returns data: never a panic.
+    for t in ds.trees() {
+        if let Err(e) = t {
+            assert!(e.to_string().contains("segments/"), "{e}");
+        }
+    }
+    // Footer destroyed: the error names the file.
+    let len = bytes.len();
+    for b in &mut bytes[len - 12..len - 4] {
+        *b = 0xff;
+    }
+    fs::write(&f, &bytes).unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    let err = ds.tree(TreeId(3)).err().unwrap();
+    assert!(err.to_string().contains("000001.rays.parquet"), "{err}");
+}
+
+#[test]
+fn newer_format_version_is_refused() {
+    let (_d, path) = sample_dataset();
+    let m = path.join("manifest.json");
+    let text = fs::read_to_string(&m).unwrap().replace("\"format_version\": 1", "\"format_version\": 99");
+    fs::write(&m, text).unwrap();
+    let err = Dataset::open(&path).err().unwrap();
+    assert!(matches!(err, Error::NewerFormat { found: 99, supported: 1, .. }), "{err}");
+    assert!(err.to_string().contains("manifest.json"));
+}
+
+#[test]
+fn malformed_manifest_is_named() {
+    let (_d, path) = sample_dataset();
+    fs::write(path.join("manifest.json"), "{\"format\": \"rtvtk-trace\", \"format_version\": 1, \"segm").unwrap();
+    let err = Dataset::open(&path).err().unwrap();
+    assert!(matches!(err, Error::Manifest { .. }), "{err}");
+    assert!(err.to_string().contains("manifest.json"), "{err}");
+    fs::write(path.join("manifest.json"), "{\"format\": \"something-else\"}").unwrap();
+    assert!(Dataset::open(&path).err().unwrap().to_string().contains("format"));
+}
+
+#[test]
+fn payload_type_that_does_not_match_the_file_is_named() {
+    let (_d, path) = sample_dataset();
+    let m = path.join("manifest.json");
+    let text = fs::read_to_string(&m).unwrap().replace("\"int64\"", "\"float64\"");
+    fs::write(&m, text).unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    let err = ds.tree(TreeId(0)).err().unwrap();
+    assert!(matches!(&err, Error::Schema { field, .. } if field == "tag"), "{err}");
+    assert!(err.to_string().contains("Float64") && err.to_string().contains("Int64"), "{err}");
+}
+
+#[test]
+fn payload_values_that_do_not_match_are_reported_and_stored_as_null() {
+    let schema = payload_schema();
+    let mut cols = RayColumns::new(&schema);
+    let f = ray([0.0; 3], [0.0, 0.0, 1.0], None, Kind::CAMERA);
+    cols.push_core(0, 0, store::NONE_U32, 0, &f);
+    let mut mism = Vec::new();
+    let short = [1.0f32, 2.0];
+    cols.push_payload(
+        &schema,
+        &[Value::List(ListValue::F32(&short)), Value::F32(1.0)],
+        Some(&[1, 2, 3]),
+        &mut mism,
+    );
+    assert_eq!(mism.len(), 3, "{mism:?}");
+    assert_eq!(mism[0].column, "throughput");
+    assert_eq!(mism[1].column, "tag");
+    assert_eq!(mism[2].column, "payload");
+    let batch = cols.to_ray_batch(&schema, &KindTable::default()).unwrap();
+    assert!(batch.column_by_name("throughput").unwrap().is_null(0));
+    assert!(batch.column_by_name("tag").unwrap().is_null(0));
+    assert!(batch.column_by_name("payload").unwrap().is_null(0));
+}
+
+#[test]
+fn bad_payload_declarations_are_refused() {
+    assert!(PayloadField::scalar("t", DataType::Float32).is_err(), "core column name");
+    assert!(PayloadField::scalar("bad name", DataType::Float32).is_err());
+    assert!(PayloadField::scalar("s", DataType::Utf8).is_err());
+    assert!(PayloadField::list("l", DataType::Boolean, 3).is_err());
+    assert!(PayloadField::list("l", DataType::Float32, 0).is_err());
+    let f = PayloadField::scalar("a", DataType::Float32).unwrap();
+    assert!(PayloadSchema::new(vec![f.clone(), f], None).is_err());
+    assert!(PayloadSchema::new(vec![], Some(BytesPayload::Fixed(0))).is_err());
+    for ty in [DataType::Float16, DataType::UInt8, DataType::Boolean, DataType::Date32] {
+        let f = PayloadField::scalar("x", ty).unwrap();
+        assert_eq!(PayloadField::from_type_name("x", &f.type_name()).unwrap(), f);
+    }
+}
+
+#[test]
+fn creating_over_an_existing_dataset_is_refused() {
+    let (_d, path) = sample_dataset();
+    let err = DatasetWriter::create(&path, PayloadSchema::default(), WriteOptions::default()).err().unwrap();
+    assert!(matches!(err, Error::NotEmpty { .. }), "{err}");
+    // ... and the existing data is untouched.
+    assert_eq!(Dataset::open(&path).unwrap().tree_count(), 80);
+}
+
+#[test]
+fn one_tree_fetch_reads_few_pages() {
+    // Many trees across several row groups: a fetch must see exactly its own rows.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    let schema = PayloadSchema::default();
+    let opts = WriteOptions {
+        row_group_rows: 1000,
+        page_rows: 100,
+        ..Default::default()
+    };
+    let w = DatasetWriter::create(&path, schema.clone(), opts).unwrap();
+    let kinds = KindTable::default();
+    let mut seg = w.open_segment().unwrap();
+    let mut cols = RayColumns::new(&schema);
+    for id in 0..2000u64 {
+        chain(&mut cols, &schema, id, (id % 5 + 1) as u32, [id as u32, 0]);
+    }
+    seg.write(cols, &schema, &kinds).unwrap();
+    seg.seal(&w, &kinds).unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    for id in (0..2000u64).step_by(37) {
+        let t = ds.tree(TreeId(id)).unwrap();
+        assert_eq!(t.rays.len() as u64, id % 5 + 1);
+        assert!(t.rays.iter().all(|r| r.origin[1] == id as f32));
+    }
+    let tree_ids = ds.tree(TreeId(1999)).unwrap().batch.column_by_name("tree_id").unwrap().as_primitive::<arrow::datatypes::UInt64Type>().values().to_vec();
+    assert!(tree_ids.iter().all(|&i| i == 1999));
+    assert!(ds.check().is_ok());
+}
