@@ -38,13 +38,9 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
-        BenchCommand::Store {
-            rays,
-            threads,
-            workers,
-            fetches,
-            dir,
-        } => store_bench(rays, threads.max(1), workers.max(1), fetches, dir),
+        BenchCommand::Store { rays, threads, workers, fetches, dir } => {
+            store_bench(rays, threads.max(1), workers.max(1), fetches, dir)
+        }
     }
 }
 
@@ -101,11 +97,7 @@ fn dir_bytes(dir: &std::path::Path) -> u64 {
                 rd.filter_map(|e| e.ok())
                     .map(|e| {
                         let m = e.metadata().ok();
-                        if m.as_ref().is_some_and(|m| m.is_dir()) {
-                            walk(&e.path())
-                        } else {
-                            m.map_or(0, |m| m.len())
-                        }
+                        if m.as_ref().is_some_and(|m| m.is_dir()) { walk(&e.path()) } else { m.map_or(0, |m| m.len()) }
                     })
                     .sum()
             })
@@ -165,9 +157,7 @@ fn store_bench(min_rays: u64, threads: usize, workers: usize, fetches: usize, di
     let base_path = root.join("baseline.parquet");
     let t = Instant::now();
     {
-        let props = WriterProperties::builder()
-            .set_compression(Compression::ZSTD(ZstdLevel::try_new(1)?))
-            .build();
+        let props = WriterProperties::builder().set_compression(Compression::ZSTD(ZstdLevel::try_new(1)?)).build();
         let file = File::create(&base_path)?;
         let mut w = ArrowWriter::try_new(file, batches[0].schema(), Some(props))?;
         for b in &batches {
@@ -181,10 +171,7 @@ fn store_bench(min_rays: u64, threads: usize, workers: usize, fetches: usize, di
 
     // rtvtk: the recording API from `threads` threads, encoding on `workers` background threads.
     let ds_path = root.join("trace");
-    let options = RecorderOptions {
-        workers,
-        ..Default::default()
-    };
+    let options = RecorderOptions { workers, ..Default::default() };
     let t = Instant::now();
     let rec = Recorder::create(&ds_path, options)?;
     let trees = Arc::new(trace.trees);

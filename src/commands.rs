@@ -34,7 +34,8 @@ pub fn demo(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) 
         }
     };
     let start = Instant::now();
-    let rec = Recorder::create(&dir, RecorderOptions::default()).with_context(|| format!("creating {}", dir.display()))?;
+    let rec =
+        Recorder::create(&dir, RecorderOptions::default()).with_context(|| format!("creating {}", dir.display()))?;
     let threads = threads.max(1) as u32;
     std::thread::scope(|s| {
         for t in 0..threads {
@@ -85,11 +86,7 @@ pub fn info(dir: &Path, as_json: bool) -> Result<()> {
     let s = ds.stats();
     let bytes = dataset_bytes(&ds);
     let per_ray = if s.rays > 0 { bytes as f64 / s.rays as f64 } else { 0.0 };
-    let payload: Vec<_> = m
-        .payload
-        .iter()
-        .map(|p| json!({"name": p.name, "type": p.type_name}))
-        .collect();
+    let payload: Vec<_> = m.payload.iter().map(|p| json!({"name": p.name, "type": p.type_name})).collect();
     if as_json {
         let v = json!({
             "path": dir,
@@ -117,7 +114,12 @@ pub fn info(dir: &Path, as_json: bool) -> Result<()> {
         return Ok(());
     }
     println!("dataset        {}", dir.display());
-    println!("format         {} v{}{}", m.format, m.format_version, if m.complete { "" } else { " (recording did not finish cleanly)" });
+    println!(
+        "format         {} v{}{}",
+        m.format,
+        m.format_version,
+        if m.complete { "" } else { " (recording did not finish cleanly)" }
+    );
     println!("segments       {}", m.segments.len());
     println!("trees          {}", s.trees);
     println!("rays           {}  ({} misses, {} with NaN/Inf)", s.rays, s.misses, s.non_finite);
@@ -138,18 +140,18 @@ pub fn info(dir: &Path, as_json: bool) -> Result<()> {
             println!("  {:<14} {}", p.name, p.type_name);
         }
         if let Some(b) = m.bytes_payload {
-            println!("  {:<14} bytes ({})", "payload", match b {
-                rl::BytesPayload::Fixed(n) => format!("{n} per ray"),
-                rl::BytesPayload::Variable => "variable".into(),
-            });
+            println!(
+                "  {:<14} bytes ({})",
+                "payload",
+                match b {
+                    rl::BytesPayload::Fixed(n) => format!("{n} per ray"),
+                    rl::BytesPayload::Variable => "variable".into(),
+                }
+            );
         }
     }
     let b = |bb: &store::Bounds| {
-        if bb.is_empty() {
-            "empty".to_string()
-        } else {
-            format!("{:?} .. {:?}", bb.min, bb.max)
-        }
+        if bb.is_empty() { "empty".to_string() } else { format!("{:?} .. {:?}", bb.min, bb.max) }
     };
     println!("origin bounds  {}", b(&s.origin_bounds));
     println!("hit bounds     {}", b(&s.hit_bounds));

@@ -69,20 +69,11 @@ enum Command {
 fn main() {
     let cli = Cli::parse();
     let result: Result<i32> = match cli.command {
-        Command::Demo {
-            out,
-            size,
-            spp,
-            threads,
-        } => commands::demo(out, size, spp, threads).map(|_| 0),
+        Command::Demo { out, size, spp, threads } => commands::demo(out, size, spp, threads).map(|_| 0),
         Command::Info { dataset, json } => commands::info(&dataset, json).map(|_| 0),
-        Command::Tree {
-            dataset,
-            pixel,
-            sample,
-            tree,
-            json,
-        } => commands::tree(&dataset, pixel, sample, tree, json).map(|_| 0),
+        Command::Tree { dataset, pixel, sample, tree, json } => {
+            commands::tree(&dataset, pixel, sample, tree, json).map(|_| 0)
+        }
         Command::Check { dataset, json } => commands::check(&dataset, json),
         Command::Bench { what } => bench::run(what).map(|_| 0),
     };

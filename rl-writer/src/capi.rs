@@ -78,9 +78,7 @@ unsafe fn path_arg(path: *const c_char) -> Result<String, String> {
     }
     // SAFETY: the caller passes a NUL-terminated string.
     let s = unsafe { CStr::from_ptr(path) };
-    s.to_str()
-        .map(str::to_string)
-        .map_err(|_| "path is not valid UTF-8".into())
+    s.to_str().map(str::to_string).map_err(|_| "path is not valid UTF-8".into())
 }
 
 unsafe fn rec_arg<'a>(rec: *mut RlRecorder) -> Result<&'a RlRecorder, String> {
@@ -105,10 +103,7 @@ pub unsafe extern "C" fn rlInit(path: *const c_char, payload_size: usize) -> *mu
         let path = unsafe { path_arg(path) }?;
         let bytes = (payload_size > 0).then_some(BytesPayload::Fixed(payload_size));
         let payload = PayloadSchema::new(Vec::new(), bytes).map_err(|e| e.to_string())?;
-        let options = RecorderOptions {
-            payload,
-            ..Default::default()
-        };
+        let options = RecorderOptions { payload, ..Default::default() };
         let rec = Recorder::create(&path, options).map_err(|e| e.to_string())?;
         let boxed = Box::new(RlRecorder { rec, id: 0 });
         let ptr = Box::into_raw(boxed);
@@ -246,11 +241,7 @@ pub unsafe extern "C" fn rlOpen(path: *const c_char) -> *mut RlReader {
         let path = unsafe { path_arg(path) }?;
         let ds = crate::Dataset::open(&path).map_err(|e| e.to_string())?;
         let (trees, rays) = (ds.tree_count(), ds.ray_count());
-        Ok(Box::into_raw(Box::new(RlReader {
-            reader: Reader::new(Box::new(ds)),
-            trees,
-            rays,
-        })))
+        Ok(Box::into_raw(Box::new(RlReader { reader: Reader::new(Box::new(ds)), trees, rays })))
     })
 }
 
@@ -306,7 +297,12 @@ pub unsafe extern "C" fn rlReadTree(reader: *mut RlReader, out: *mut RlTree) -> 
 }
 
 #[unsafe(no_mangle)]
-pub unsafe extern "C" fn rlReadRay(reader: *mut RlReader, out: *mut RlRay, payload: *mut c_void, capacity: usize) -> i32 {
+pub unsafe extern "C" fn rlReadRay(
+    reader: *mut RlReader,
+    out: *mut RlRay,
+    payload: *mut c_void,
+    capacity: usize,
+) -> i32 {
     guard(-1, || {
         // SAFETY: forwarded caller contract.
         let r = unsafe { reader_arg(reader) }?;

@@ -89,10 +89,8 @@ struct Hit {
     mat: Mat,
 }
 
-const SPHERES: [(V, f32, Mat, u32); 2] = [
-    ([-0.4, -0.6, -0.3], 0.4, Mat::Mirror, 100),
-    ([0.45, -0.65, 0.3], 0.35, Mat::Diffuse, 101),
-];
+const SPHERES: [(V, f32, Mat, u32); 2] =
+    [([-0.4, -0.6, -0.3], 0.4, Mat::Mirror, 100), ([0.45, -0.65, 0.3], 0.35, Mat::Diffuse, 101)];
 const LIGHT_Y: f32 = 0.999;
 const LIGHT_HALF: f32 = 0.25;
 
@@ -140,13 +138,7 @@ fn intersect(o: V, d: V) -> Option<Hit> {
 }
 
 fn fields(o: V, d: V, hit: &Option<Hit>, kind: Kind) -> RayFields {
-    RayFields {
-        origin: o,
-        direction: d,
-        t: hit.as_ref().map(|h| h.t),
-        kind,
-        prim: hit.as_ref().map(|h| h.prim),
-    }
+    RayFields { origin: o, direction: d, t: hit.as_ref().map(|h| h.t), kind, prim: hit.as_ref().map(|h| h.prim) }
 }
 
 fn trace(e: &mut impl Emit, rng: &mut Rng, o: V, d: V, kind: Kind, depth: u32) {

@@ -7,7 +7,9 @@ pub enum Error {
     Store(#[from] store::Error),
 
     /// Writing failed (disk full, permission denied, ...). Trees sealed before it stay intact.
-    #[error("writing the trace failed: {source}; {lost_trees} trees could not be written (trees sealed before the failure are intact)")]
+    #[error(
+        "writing the trace failed: {source}; {lost_trees} trees could not be written (trees sealed before the failure are intact)"
+    )]
     Write {
         #[source]
         source: store::Error,
@@ -22,11 +24,7 @@ pub enum Error {
     WorkerPanicked,
 
     #[error("this recorder is in {mode} mode; {what} needs {needed} mode")]
-    WrongMode {
-        mode: &'static str,
-        what: &'static str,
-        needed: &'static str,
-    },
+    WrongMode { mode: &'static str, what: &'static str, needed: &'static str },
 
     #[error("invalid argument: {0}")]
     InvalidArgument(String),

@@ -52,15 +52,8 @@ pub struct MemoryTrace {
 
 impl ImmediateSink {
     pub(crate) fn new(payload: PayloadSchema, budget: usize) -> (Self, MemoryTrace) {
-        let shared = Arc::new(MemShared {
-            payload,
-            budget,
-            state: RwLock::new(MemState::default()),
-        });
-        (
-            Self { shared: shared.clone() },
-            MemoryTrace { shared },
-        )
+        let shared = Arc::new(MemShared { payload, budget, state: RwLock::new(MemState::default()) });
+        (Self { shared: shared.clone() }, MemoryTrace { shared })
     }
 }
 
@@ -86,13 +79,7 @@ impl Sink for ImmediateSink {
         }
         st.stats.merge(&stats);
         st.bytes += bytes;
-        st.chunks.push_back(Arc::new(MemChunk {
-            seq,
-            batch,
-            trees,
-            kinds: kinds.by_name(),
-            bytes,
-        }));
+        st.chunks.push_back(Arc::new(MemChunk { seq, batch, trees, kinds: kinds.by_name(), bytes }));
         // Evict the oldest trees to stay within the budget (always keep the newest chunk).
         while st.bytes > self.shared.budget && st.chunks.len() > 1 {
             let Some(old) = st.chunks.pop_front() else { break };
@@ -151,10 +138,7 @@ impl MemoryTrace {
     /// Ids of the trees held, in recording order.
     pub fn tree_ids(&self) -> Vec<TreeId> {
         let st = self.shared.state.read().unwrap_or_else(|p| p.into_inner());
-        st.chunks
-            .iter()
-            .flat_map(|c| c.trees.iter().map(|t| TreeId(t.tree_id)))
-            .collect()
+        st.chunks.iter().flat_map(|c| c.trees.iter().map(|t| TreeId(t.tree_id))).collect()
     }
 
     fn extract(chunk: &MemChunk, pos: usize) -> Result<Tree> {

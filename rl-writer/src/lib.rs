@@ -40,6 +40,6 @@ pub use immediate::MemoryTrace;
 pub use reader::{Reader, TraceSource};
 pub use recorder::{Payload, RayId, Recorder, RecorderOptions, Sink, Summary, TreeBuilder};
 pub use store::{
-    BytesPayload, Dataset, Kind, ListValue, PayloadField, PayloadSchema, Ray, RayFields, Stats, Tree, TreeId,
-    TreeInfo, Value, WriteOptions,
+    BytesPayload, Dataset, Kind, ListValue, PayloadField, PayloadSchema, Ray, RayFields, Stats, Tree, TreeId, TreeInfo,
+    Value, WriteOptions,
 };

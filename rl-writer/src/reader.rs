@@ -83,12 +83,7 @@ impl Reader {
 
     /// A cursor over any trace source.
     pub fn new(source: Box<dyn TraceSource>) -> Reader {
-        Reader {
-            source,
-            tree_pos: 0,
-            current: None,
-            ray_pos: 0,
-        }
+        Reader { source, tree_pos: 0, current: None, ray_pos: 0 }
     }
 
     pub fn source(&self) -> &dyn TraceSource {
@@ -133,10 +128,7 @@ impl Reader {
 
     /// Moves to the tree with id `id`.
     pub fn seek_tree_id(&mut self, id: TreeId) -> Result<()> {
-        let pos = self
-            .source
-            .position_of(id)?
-            .ok_or(Error::Store(store::Error::NoSuchTree(id.0)))?;
+        let pos = self.source.position_of(id)?.ok_or(Error::Store(store::Error::NoSuchTree(id.0)))?;
         self.seek_tree(pos)?;
         Ok(())
     }

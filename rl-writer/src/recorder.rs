@@ -26,10 +26,7 @@ pub struct Payload<'a> {
 
 impl<'a> Payload<'a> {
     /// No payload.
-    pub const NONE: Payload<'static> = Payload {
-        values: &[],
-        bytes: None,
-    };
+    pub const NONE: Payload<'static> = Payload { values: &[], bytes: None };
 
     /// Typed values only.
     pub fn values(values: &'a [Value<'a>]) -> Self {
@@ -38,10 +35,7 @@ impl<'a> Payload<'a> {
 
     /// Opaque bytes only.
     pub fn bytes(bytes: &'a [u8]) -> Self {
-        Self {
-            values: &[],
-            bytes: Some(bytes),
-        }
+        Self { values: &[], bytes: Some(bytes) }
     }
 }
 
@@ -261,15 +255,11 @@ impl Recorder {
         let summary = self.inner.sink.finish(&self.inner.kinds())?;
         let open = self.inner.open_trees.load(Ordering::Relaxed);
         if open > 0 {
-            self.inner
-                .mistake(format!("{open} trees were begun and never ended (they are not in the trace)"));
+            self.inner.mistake(format!("{open} trees were begun and never ended (they are not in the trace)"));
         }
         let m = self.inner.mistakes.lock().unwrap_or_else(|p| p.into_inner());
         if m.count > 0 {
-            return Err(Error::Misuse {
-                count: m.count,
-                first: m.first.clone(),
-            });
+            return Err(Error::Misuse { count: m.count, first: m.first.clone() });
         }
         Ok(summary)
     }
@@ -366,11 +356,13 @@ impl TreeBuilder {
         let index = self.cols.len() as u32;
         let depth = parent.map_or(0, |p| self.cols.depth[p as usize] + 1);
         self.max_depth = self.max_depth.max(depth);
-        self.cols
-            .push_core(self.id, index, parent.unwrap_or(store::NONE_U32), depth, ray);
-        if !self.rec.payload.fields.is_empty() || self.rec.payload.bytes.is_some() || payload.bytes.is_some() || !payload.values.is_empty() {
-            self.cols
-                .push_payload(&self.rec.payload, payload.values, payload.bytes, &mut self.mismatches);
+        self.cols.push_core(self.id, index, parent.unwrap_or(store::NONE_U32), depth, ray);
+        if !self.rec.payload.fields.is_empty()
+            || self.rec.payload.bytes.is_some()
+            || payload.bytes.is_some()
+            || !payload.values.is_empty()
+        {
+            self.cols.push_payload(&self.rec.payload, payload.values, payload.bytes, &mut self.mismatches);
         }
         self.last = Some(index);
         RayId(index)
@@ -380,10 +372,7 @@ impl TreeBuilder {
     pub fn descend(&mut self) {
         match self.last {
             Some(l) if self.stack.last() != Some(&l) => self.stack.push(l),
-            _ => self.rec.mistake(format!(
-                "tree {}: descend without a new ray to descend into; ignored",
-                self.id
-            )),
+            _ => self.rec.mistake(format!("tree {}: descend without a new ray to descend into; ignored", self.id)),
         }
     }
 

@@ -14,7 +14,7 @@ use crate::recorder::{RecorderOptions, Sink, Summary};
 use crate::{Error, Result};
 
 enum Msg {
-    Chunk(RayColumns, Arc<KindTable>, usize),
+    Chunk(Box<RayColumns>, Arc<KindTable>, usize),
     Flush(Arc<KindTable>, Sender<()>),
 }
 
@@ -73,28 +73,17 @@ impl WriteSink {
                 segment: None,
                 kinds: Arc::new(KindTable::default()),
             };
-            let join = std::thread::Builder::new()
-                .name(format!("rl-writer-{i}"))
-                .spawn(move || ctx.run(rx))
-                .map_err(|e| {
+            let join =
+                std::thread::Builder::new().name(format!("rl-writer-{i}")).spawn(move || ctx.run(rx)).map_err(|e| {
                     Error::Store(store::Error::Io {
                         action: "starting a writer thread",
                         path: dir.to_path_buf(),
                         source: e,
                     })
                 })?;
-            workers.push(Worker {
-                tx: Some(tx),
-                join: Some(join),
-            });
+            workers.push(Worker { tx: Some(tx), join: Some(join) });
         }
-        Ok(Self {
-            ds,
-            workers: Mutex::new(workers),
-            next: AtomicUsize::new(0),
-            budget,
-            shared,
-        })
+        Ok(Self { ds, workers: Mutex::new(workers), next: AtomicUsize::new(0), budget, shared })
     }
 
     fn send_all(&self, kinds: &Arc<KindTable>) -> Vec<mpsc::Receiver<()>> {
@@ -123,10 +112,7 @@ impl WriteSink {
                     what: "recording".into(),
                     message: format!("an earlier write failed: {source}"),
                 });
-                Err(Error::Write {
-                    source,
-                    lost_trees: lost,
-                })
+                Err(Error::Write { source, lost_trees: lost })
             }
         }
     }
@@ -143,7 +129,7 @@ impl Sink for WriteSink {
         let sent = workers
             .get(i)
             .and_then(|w| w.tx.as_ref())
-            .map(|tx| tx.send(Msg::Chunk(chunk, kinds.clone(), bytes)).is_ok())
+            .map(|tx| tx.send(Msg::Chunk(Box::new(chunk), kinds.clone(), bytes)).is_ok())
             .unwrap_or(false);
         if !sent {
             self.budget.release(bytes);
@@ -218,7 +204,7 @@ impl WorkerCtx {
             match rx.recv_timeout(timeout) {
                 Ok(Msg::Chunk(chunk, kinds, bytes)) => {
                     self.kinds = kinds;
-                    self.write(chunk);
+                    self.write(*chunk);
                     self.budget.release(bytes);
                     if self.segment.as_ref().is_some_and(|(s, _, _)| s.rows() >= self.segment_rays) {
                         self.seal();
@@ -276,9 +262,7 @@ impl WorkerCtx {
                 self.shared.trees.fetch_add(entry.trees.rows, Ordering::Relaxed);
                 self.shared.rays.fetch_add(entry.rays.rows, Ordering::Relaxed);
                 self.shared.segments.fetch_add(1, Ordering::Relaxed);
-                self.shared
-                    .bytes
-                    .fetch_add(entry.rays.bytes + entry.trees.bytes, Ordering::Relaxed);
+                self.shared.bytes.fetch_add(entry.rays.bytes + entry.trees.bytes, Ordering::Relaxed);
             }
             Ok(None) => {}
             Err(e) => self.shared.fail(e, seg_trees),

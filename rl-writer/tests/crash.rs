@@ -5,8 +5,8 @@
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Command, Stdio};
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use rl::{Dataset, Recorder, RecorderOptions, TreeId};
@@ -48,7 +48,8 @@ fn crash_child_helper() {
 }
 
 fn verify(dir: &Path, sealed: u64) -> u64 {
-    let ds = Dataset::open(dir).unwrap_or_else(|e| panic!("dataset killed after {sealed} sealed trees does not open: {e}"));
+    let ds =
+        Dataset::open(dir).unwrap_or_else(|e| panic!("dataset killed after {sealed} sealed trees does not open: {e}"));
     let entries = ds.tree_entries().unwrap();
     let ids: std::collections::HashSet<u64> = entries.iter().map(|e| e.info.id.0).collect();
     for id in 0..sealed {
@@ -74,11 +75,7 @@ fn verify(dir: &Path, sealed: u64) -> u64 {
 fn sigkill_at_random_moments_loses_no_sealed_tree() {
     let exe = std::env::current_exe().unwrap();
     let root = tempfile::tempdir().unwrap();
-    let mut seed = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .unwrap()
-        .as_nanos() as u64
-        | 1;
+    let mut seed = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64 | 1;
     let rounds = 30;
     let mut total_present = 0;
     for round in 0..rounds {

@@ -12,13 +12,7 @@ use rl::{
 };
 
 fn f(kind: Kind, t: Option<f32>) -> RayFields {
-    RayFields {
-        origin: [1.0, 2.0, 3.0],
-        direction: [0.0, 1.0, 0.0],
-        t,
-        kind,
-        prim: t.map(|_| 9),
-    }
+    RayFields { origin: [1.0, 2.0, 3.0], direction: [0.0, 1.0, 0.0], t, kind, prim: t.map(|_| 9) }
 }
 
 #[test]
@@ -81,12 +75,7 @@ fn breadth_first_with_explicit_parents_and_interleaved_trees() {
 fn many_threads_many_trees() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("trace");
-    let options = RecorderOptions {
-        chunk_rays: 500,
-        segment_rays: 3000,
-        workers: 2,
-        ..Default::default()
-    };
+    let options = RecorderOptions { chunk_rays: 500, segment_rays: 3000, workers: 2, ..Default::default() };
     let rec = Recorder::create(&path, options).unwrap();
     let (w, h, spp) = (40u32, 30u32, 2u32);
     std::thread::scope(|s| {
@@ -151,11 +140,7 @@ fn typed_and_bytes_payloads_and_custom_kinds() {
         Some(BytesPayload::Variable),
     )
     .unwrap();
-    let options = RecorderOptions {
-        payload,
-        kinds: vec!["photon".into()],
-        ..Default::default()
-    };
+    let options = RecorderOptions { payload, kinds: vec!["photon".into()], ..Default::default() };
     let rec = Recorder::create(&path, options).unwrap();
     let photon = rec.register_kind("photon").unwrap();
     let probe = rec.register_kind("probe").unwrap();
@@ -249,11 +234,7 @@ fn memory_budget_bounds_what_waits_for_the_workers() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("trace");
     let budget = 1 << 20;
-    let options = RecorderOptions {
-        memory_budget: budget,
-        chunk_rays: 4096,
-        ..Default::default()
-    };
+    let options = RecorderOptions { memory_budget: budget, chunk_rays: 4096, ..Default::default() };
     let rec = Recorder::create(&path, options).unwrap();
     for i in 0..20_000u32 {
         let mut t = rec.begin_tree(i % 100, i / 100, 0);
@@ -306,10 +287,7 @@ fn immediate_mode_is_readable_while_recording() {
 
 #[test]
 fn immediate_mode_evicts_oldest_trees_over_budget() {
-    let options = RecorderOptions {
-        memory_budget: 64 * 1024,
-        ..Default::default()
-    };
+    let options = RecorderOptions { memory_budget: 64 * 1024, ..Default::default() };
     let (rec, trace) = Recorder::immediate(options).unwrap();
     let mut ids = Vec::new();
     for i in 0..3000u32 {
@@ -369,10 +347,7 @@ fn read_mode_cursor() {
 fn big_trees_and_empty_recordings() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("trace");
-    let options = RecorderOptions {
-        chunk_rays: 1000,
-        ..Default::default()
-    };
+    let options = RecorderOptions { chunk_rays: 1000, ..Default::default() };
     let rec = Recorder::create(&path, options).unwrap();
     let mut t = rec.begin_tree(0, 0, 0);
     for _ in 0..5000 {

@@ -10,10 +10,7 @@ const MAX_PER_SEGMENT: usize = 20;
 
 pub(crate) fn check(ds: &Dataset) -> CheckReport {
     let m = ds.manifest();
-    let mut r = CheckReport {
-        segments: m.segments.len(),
-        ..Default::default()
-    };
+    let mut r = CheckReport { segments: m.segments.len(), ..Default::default() };
     let mut all_ids: HashSet<u64> = HashSet::new();
     let mut total = Stats::default();
     for (i, seg) in m.segments.iter().enumerate() {
@@ -146,7 +143,9 @@ pub(crate) fn check(ds: &Dataset) -> CheckReport {
         }
     }
     if !m.complete {
-        r.warnings.push("the recording did not finish cleanly: the dataset holds the segments sealed before it stopped".into());
+        r.warnings.push(
+            "the recording did not finish cleanly: the dataset holds the segments sealed before it stopped".into(),
+        );
     }
     r
 }

@@ -4,7 +4,7 @@ use std::sync::Arc;
 
 use arrow::array::{
     Array, ArrayRef, BinaryArray, BooleanArray, DictionaryArray, FixedSizeBinaryArray, FixedSizeListArray,
-    Float32Array, RecordBatch, StringArray, UInt16Array, UInt32Array, UInt64Array, UInt8Array, make_array,
+    Float32Array, RecordBatch, StringArray, UInt8Array, UInt16Array, UInt32Array, UInt64Array, make_array,
 };
 use arrow::buffer::{BooleanBuffer, Buffer, NullBuffer, OffsetBuffer, ScalarBuffer};
 use arrow::datatypes::{Field, SchemaRef, UInt8Type};
@@ -164,11 +164,7 @@ pub struct BytesBuf {
 
 impl Default for BytesBuf {
     fn default() -> Self {
-        Self {
-            offsets: vec![0],
-            data: Vec::new(),
-            valid: Vec::new(),
-        }
+        Self { offsets: vec![0], data: Vec::new(), valid: Vec::new() }
     }
 }
 
@@ -252,10 +248,7 @@ impl RayColumns {
             payload: schema
                 .fields
                 .iter()
-                .map(|f| PayloadBuf {
-                    bytes: Vec::with_capacity(rays * f.row_width()),
-                    valid: v(rays),
-                })
+                .map(|f| PayloadBuf { bytes: Vec::with_capacity(rays * f.row_width()), valid: v(rays) })
                 .collect(),
             bytes: schema.bytes.map(|_| BytesBuf::default()),
             trees: Vec::with_capacity(rays / 4 + 1),
@@ -444,10 +437,7 @@ impl RayColumns {
             b.offsets.extend(o.offsets[1..].iter().map(|x| x + shift));
             b.valid.extend_from_slice(&o.valid);
         }
-        self.trees.extend(other.trees.iter().map(|t| TreeRow {
-            first_row: t.first_row + base,
-            ..*t
-        }));
+        self.trees.extend(other.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
     }
 
     /// The rays as an Arrow record batch of the ray table schema.
@@ -524,7 +514,8 @@ impl RayColumns {
 
     /// The tree rows as an Arrow record batch of the tree table schema, for segment `segment`.
     pub fn to_tree_batch(trees: &[TreeRow], segment: u32) -> Result<RecordBatch> {
-        let col32 = |f: fn(&TreeRow) -> u32| -> ArrayRef { Arc::new(UInt32Array::from_iter_values(trees.iter().map(f))) };
+        let col32 =
+            |f: fn(&TreeRow) -> u32| -> ArrayRef { Arc::new(UInt32Array::from_iter_values(trees.iter().map(f))) };
         RecordBatch::try_new(
             tree_schema(),
             vec![
@@ -543,11 +534,7 @@ impl RayColumns {
 }
 
 fn nullable(valid: &[bool]) -> Option<NullBuffer> {
-    if valid.iter().all(|&v| v) {
-        None
-    } else {
-        Some(NullBuffer::new(BooleanBuffer::from(valid.to_vec())))
-    }
+    if valid.iter().all(|&v| v) { None } else { Some(NullBuffer::new(BooleanBuffer::from(valid.to_vec()))) }
 }
 
 fn payload_array(field: &crate::PayloadField, buf: PayloadBuf, n: usize) -> Result<ArrayRef> {

@@ -10,10 +10,10 @@ use std::sync::{Arc, OnceLock};
 use arrow::array::{AsArray, RecordBatch};
 use arrow::compute::concat_batches;
 use arrow::datatypes::{SchemaRef, UInt16Type, UInt32Type, UInt64Type};
-use parquet::file::metadata::PageIndexPolicy;
 use parquet::arrow::arrow_reader::{
     ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector,
 };
+use parquet::file::metadata::PageIndexPolicy;
 
 use crate::error::{arrow_err, io_err, pq_err};
 use crate::manifest::{MANIFEST_FILE, Manifest, SegmentEntry};
@@ -73,20 +73,11 @@ impl Dataset {
                         return Err(Error::MissingFile { segment: seg.id, path });
                     }
                     Err(e) => {
-                        return Err(Error::Io {
-                            action: "reading segment file metadata",
-                            path,
-                            source: e,
-                        });
+                        return Err(Error::Io { action: "reading segment file metadata", path, source: e });
                     }
                 };
                 if len != file.bytes {
-                    return Err(Error::SizeMismatch {
-                        segment: seg.id,
-                        path,
-                        expected: file.bytes,
-                        found: len,
-                    });
+                    return Err(Error::SizeMismatch { segment: seg.id, path, expected: file.bytes, found: len });
                 }
             }
         }
@@ -150,8 +141,11 @@ impl Dataset {
         }
         let path = self.dir.join(&self.segment(i).rays.path);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let meta = ArrowReaderMetadata::load(&file, ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required))
-            .map_err(pq_err(&path))?;
+        let meta = ArrowReaderMetadata::load(
+            &file,
+            ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required),
+        )
+        .map_err(pq_err(&path))?;
         check_schema(meta.schema(), &self.schema, &path)?;
         let mut starts = Vec::with_capacity(meta.metadata().num_row_groups());
         let mut row = 0u64;
@@ -166,10 +160,7 @@ impl Dataset {
                 message: format!("manifest lists {} rows, file holds {row}", self.segment(i).rays.rows),
             });
         }
-        let m = Arc::new(SegmentMeta {
-            meta,
-            row_group_starts: starts,
-        });
+        let m = Arc::new(SegmentMeta { meta, row_group_starts: starts });
         let _ = self.metas[i].set(m.clone());
         Ok(m)
     }
@@ -184,10 +175,7 @@ impl Dataset {
         let reader = builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?;
         let mut out = Vec::with_capacity(seg.trees.rows as usize);
         for batch in reader {
-            let b = batch.map_err(|e| Error::Parquet {
-                path: path.clone(),
-                source: e.into(),
-            })?;
+            let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
             let c = |j: usize| b.column(j);
             let (id, px, py, s) = (
                 c(0).as_primitive::<UInt64Type>(),
@@ -271,20 +259,14 @@ impl Dataset {
     /// Metadata of one tree.
     pub fn tree_info(&self, id: TreeId) -> Result<TreeInfo> {
         let ix = self.index()?;
-        let pos = ix
-            .by_id
-            .binary_search_by_key(&id, |e| e.info.id)
-            .map_err(|_| Error::NoSuchTree(id.0))?;
+        let pos = ix.by_id.binary_search_by_key(&id, |e| e.info.id).map_err(|_| Error::NoSuchTree(id.0))?;
         Ok(ix.by_id[pos].info)
     }
 
     /// One whole tree by id; reads only the pages that hold its rays.
     pub fn tree(&self, id: TreeId) -> Result<Tree> {
         let ix = self.index()?;
-        let pos = ix
-            .by_id
-            .binary_search_by_key(&id, |e| e.info.id)
-            .map_err(|_| Error::NoSuchTree(id.0))?;
+        let pos = ix.by_id.binary_search_by_key(&id, |e| e.info.id).map_err(|_| Error::NoSuchTree(id.0))?;
         self.load_tree(&ix.by_id[pos])
     }
 
@@ -363,10 +345,7 @@ impl Dataset {
             .map_err(pq_err(&path))?;
         let mut batches = Vec::new();
         for b in reader {
-            batches.push(b.map_err(|e| Error::Parquet {
-                path: path.clone(),
-                source: e.into(),
-            })?);
+            batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
         }
         let batch = if batches.len() == 1 {
             batches.pop().unwrap_or_else(|| RecordBatch::new_empty(self.schema.clone()))
@@ -392,12 +371,7 @@ impl Dataset {
             .with_batch_size(64 * 1024)
             .build()
             .map_err(pq_err(&path))?;
-        Ok(reader.map(move |b| {
-            b.map_err(|e| Error::Parquet {
-                path: path.clone(),
-                source: e.into(),
-            })
-        }))
+        Ok(reader.map(move |b| b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })))
     }
 
     /// Every tree, segment by segment in file order: a sequential scan that reads each page once.
@@ -642,8 +616,5 @@ pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
 }
 
 pub(crate) fn listed_files(m: &Manifest) -> HashSet<String> {
-    m.segments
-        .iter()
-        .flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()])
-        .collect()
+    m.segments.iter().flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()]).collect()
 }

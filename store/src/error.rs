@@ -21,30 +21,16 @@ pub enum Error {
     #[error(
         "dataset format version {found} is newer than this build supports (up to {supported}); upgrade rtvtk ({path})"
     )]
-    NewerFormat {
-        path: PathBuf,
-        found: u32,
-        supported: u32,
-    },
+    NewerFormat { path: PathBuf, found: u32, supported: u32 },
 
     #[error("segment {segment} file is missing: expected it to exist as the manifest lists it ({path})")]
     MissingFile { segment: u32, path: PathBuf },
 
     #[error("segment {segment} file is truncated or was changed: expected {expected} bytes, found {found} ({path})")]
-    SizeMismatch {
-        segment: u32,
-        path: PathBuf,
-        expected: u64,
-        found: u64,
-    },
+    SizeMismatch { segment: u32, path: PathBuf, expected: u64, found: u64 },
 
     #[error("segment {segment} file is corrupted: expected CRC32 {expected:08x}, computed {found:08x} ({path})")]
-    Checksum {
-        segment: u32,
-        path: PathBuf,
-        expected: u32,
-        found: u32,
-    },
+    Checksum { segment: u32, path: PathBuf, expected: u32, found: u32 },
 
     #[error("cannot decode Parquet: {source} ({path})")]
     Parquet {
@@ -61,19 +47,10 @@ pub enum Error {
     },
 
     #[error("column `{field}` does not match the declared schema: expected {expected}, found {found} ({path})")]
-    Schema {
-        path: PathBuf,
-        field: String,
-        expected: String,
-        found: String,
-    },
+    Schema { path: PathBuf, field: String, expected: String, found: String },
 
     #[error("inconsistent data in {what}: {message} ({path})")]
-    Corrupt {
-        path: PathBuf,
-        what: String,
-        message: String,
-    },
+    Corrupt { path: PathBuf, what: String, message: String },
 
     #[error("invalid payload declaration: {0}")]
     PayloadDecl(String),
@@ -90,11 +67,7 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 
 pub(crate) fn io_err(action: &'static str, path: impl Into<PathBuf>) -> impl FnOnce(std::io::Error) -> Error {
     let path = path.into();
-    move |source| Error::Io {
-        action,
-        path,
-        source,
-    }
+    move |source| Error::Io { action, path, source }
 }
 
 pub(crate) fn pq_err(path: impl Into<PathBuf>) -> impl FnOnce(parquet::errors::ParquetError) -> Error {

@@ -82,10 +82,7 @@ impl Manifest {
             payload: payload
                 .fields
                 .iter()
-                .map(|f| PayloadColumnDecl {
-                    name: f.name.clone(),
-                    type_name: f.type_name(),
-                })
+                .map(|f| PayloadColumnDecl { name: f.name.clone(), type_name: f.type_name() })
                 .collect(),
             bytes_payload: payload.bytes,
             kinds: BTreeMap::new(),
@@ -97,10 +94,7 @@ impl Manifest {
 
     /// The payload schema the manifest declares.
     pub fn payload_schema(&self, path: &Path) -> Result<PayloadSchema> {
-        let bad = |e: Error| Error::Manifest {
-            path: path.to_path_buf(),
-            message: e.to_string(),
-        };
+        let bad = |e: Error| Error::Manifest { path: path.to_path_buf(), message: e.to_string() };
         let fields = self
             .payload
             .iter()
@@ -140,31 +134,19 @@ impl Manifest {
                     message: "no manifest: expected a dataset directory written by rtvtk".into(),
                 }
             } else {
-                Error::Io {
-                    action: "reading the manifest",
-                    path: path.clone(),
-                    source: e,
-                }
+                Error::Io { action: "reading the manifest", path: path.clone(), source: e }
             }
         })?;
         // Check the version before the full structure, so a newer format gets the right error.
-        let head: serde_json::Value = serde_json::from_str(&text).map_err(|e| Error::Manifest {
-            path: path.clone(),
-            message: format!("not valid JSON: {e}"),
-        })?;
+        let head: serde_json::Value = serde_json::from_str(&text)
+            .map_err(|e| Error::Manifest { path: path.clone(), message: format!("not valid JSON: {e}") })?;
         if head.get("format").and_then(|v| v.as_str()) != Some(FORMAT_NAME) {
-            return Err(Error::Manifest {
-                path,
-                message: format!("field `format` must be {FORMAT_NAME:?}"),
-            });
+            return Err(Error::Manifest { path, message: format!("field `format` must be {FORMAT_NAME:?}") });
         }
-        let version = head
-            .get("format_version")
-            .and_then(|v| v.as_u64())
-            .ok_or_else(|| Error::Manifest {
-                path: path.clone(),
-                message: "field `format_version` must be a positive integer".into(),
-            })?;
+        let version = head.get("format_version").and_then(|v| v.as_u64()).ok_or_else(|| Error::Manifest {
+            path: path.clone(),
+            message: "field `format_version` must be a positive integer".into(),
+        })?;
         if version > u64::from(FORMAT_VERSION) {
             return Err(Error::NewerFormat {
                 path,
@@ -172,20 +154,15 @@ impl Manifest {
                 supported: FORMAT_VERSION,
             });
         }
-        serde_json::from_value(head).map_err(|e| Error::Manifest {
-            path,
-            message: e.to_string(),
-        })
+        serde_json::from_value(head).map_err(|e| Error::Manifest { path, message: e.to_string() })
     }
 
     /// Atomically replaces the manifest of the dataset at `dir`.
     pub fn store(&self, dir: &Path, sync: bool) -> Result<()> {
         let path = dir.join(MANIFEST_FILE);
         let tmp = dir.join(format!("{MANIFEST_FILE}.tmp"));
-        let text = serde_json::to_vec_pretty(self).map_err(|e| Error::Manifest {
-            path: path.clone(),
-            message: format!("cannot serialize: {e}"),
-        })?;
+        let text = serde_json::to_vec_pretty(self)
+            .map_err(|e| Error::Manifest { path: path.clone(), message: format!("cannot serialize: {e}") })?;
         write_atomic(&tmp, &path, &text, sync)
     }
 }

@@ -50,10 +50,7 @@ impl Default for KindTable {
         for (name, kind) in BUILTIN_KINDS {
             names[kind.0 as usize] = Some(Arc::from(name));
         }
-        Self {
-            names,
-            next_custom: u16::from(Kind::FIRST_CUSTOM),
-        }
+        Self { names, next_custom: u16::from(Kind::FIRST_CUSTOM) }
     }
 }
 
@@ -65,10 +62,7 @@ impl KindTable {
 
     /// The kind of a name, if known.
     pub fn lookup(&self, name: &str) -> Option<Kind> {
-        self.names
-            .iter()
-            .position(|n| n.as_deref() == Some(name))
-            .map(|i| Kind(i as u8))
+        self.names.iter().position(|n| n.as_deref() == Some(name)).map(|i| Kind(i as u8))
     }
 
     /// Registers a kind by name (or returns the existing one of that name).
@@ -77,9 +71,7 @@ impl KindTable {
             return Ok(kind);
         }
         if name.is_empty() || name.len() > 64 {
-            return Err(Error::PayloadDecl(format!(
-                "kind name must be 1 to 64 bytes long, got {name:?}"
-            )));
+            return Err(Error::PayloadDecl(format!("kind name must be 1 to 64 bytes long, got {name:?}")));
         }
         if self.next_custom > 255 {
             return Err(Error::PayloadDecl(format!(
@@ -103,11 +95,7 @@ impl KindTable {
 
     /// Map from name to kind for every known code.
     pub fn by_name(&self) -> HashMap<String, Kind> {
-        self.names
-            .iter()
-            .enumerate()
-            .filter_map(|(i, n)| n.as_ref().map(|n| (n.to_string(), Kind(i as u8))))
-            .collect()
+        self.names.iter().enumerate().filter_map(|(i, n)| n.as_ref().map(|n| (n.to_string(), Kind(i as u8)))).collect()
     }
 }
 
@@ -226,8 +214,8 @@ pub struct PayloadField {
 
 /// Column names the core ray table uses: payload fields may not take them.
 pub const CORE_RAY_COLUMNS: [&str; 14] = [
-    "tree_id", "ray", "parent", "depth", "kind", "origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z",
-    "t", "prim", "payload",
+    "tree_id", "ray", "parent", "depth", "kind", "origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t",
+    "prim", "payload",
 ];
 
 impl PayloadField {
@@ -248,9 +236,7 @@ impl PayloadField {
             )));
         }
         if CORE_RAY_COLUMNS.contains(&name) {
-            return Err(Error::PayloadDecl(format!(
-                "payload column name {name:?} is taken by a core ray column"
-            )));
+            return Err(Error::PayloadDecl(format!("payload column name {name:?} is taken by a core ray column")));
         }
         let storage = Storage::of(&element).ok_or_else(|| {
             Error::PayloadDecl(format!(
@@ -269,11 +255,7 @@ impl PayloadField {
                 )));
             }
         }
-        Ok(Self {
-            name: name.to_string(),
-            element,
-            list_len,
-        })
+        Ok(Self { name: name.to_string(), element, list_len })
     }
 
     pub fn storage(&self) -> Storage {
@@ -315,9 +297,8 @@ impl PayloadField {
             }
             None => (type_name, None),
         };
-        let element = parse_scalar_type(base).ok_or_else(|| {
-            Error::PayloadDecl(format!("unknown payload type {type_name:?} for column {name:?}"))
-        })?;
+        let element = parse_scalar_type(base)
+            .ok_or_else(|| Error::PayloadDecl(format!("unknown payload type {type_name:?} for column {name:?}")))?;
         Self::new(name, element, len)
     }
 }
@@ -346,13 +327,13 @@ impl PayloadSchema {
                 return Err(Error::PayloadDecl(format!("payload column {:?} is declared twice", f.name)));
             }
         }
-        if let Some(BytesPayload::Fixed(n)) = bytes {
-            if n == 0 || n > i32::MAX as usize {
-                return Err(Error::PayloadDecl(format!(
-                    "fixed bytes payload size must be 1 to {} bytes, got {n}",
-                    i32::MAX
-                )));
-            }
+        if let Some(BytesPayload::Fixed(n)) = bytes
+            && (n == 0 || n > i32::MAX as usize)
+        {
+            return Err(Error::PayloadDecl(format!(
+                "fixed bytes payload size must be 1 to {} bytes, got {n}",
+                i32::MAX
+            )));
         }
         Ok(Self { fields, bytes })
     }
@@ -412,10 +393,9 @@ pub fn ray_schema(payload: &PayloadSchema) -> SchemaRef {
             Field::new("payload", DataType::FixedSizeBinary(n as i32), true),
             &[("rtvtk.payload", "bytes")],
         )),
-        Some(BytesPayload::Variable) => fields.push(meta(
-            Field::new("payload", DataType::Binary, true),
-            &[("rtvtk.payload", "bytes")],
-        )),
+        Some(BytesPayload::Variable) => {
+            fields.push(meta(Field::new("payload", DataType::Binary, true), &[("rtvtk.payload", "bytes")]))
+        }
         None => {}
     }
     Arc::new(Schema::new(fields))

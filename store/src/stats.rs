@@ -4,9 +4,9 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
+use crate::Kind;
 use crate::columns::RayColumns;
 use crate::schema::KindTable;
-use crate::Kind;
 
 /// An axis-aligned box; empty until a finite point is added.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -17,10 +17,7 @@ pub struct Bounds {
 
 impl Default for Bounds {
     fn default() -> Self {
-        Self {
-            min: [f32::INFINITY; 3],
-            max: [f32::NEG_INFINITY; 3],
-        }
+        Self { min: [f32::INFINITY; 3], max: [f32::NEG_INFINITY; 3] }
     }
 }
 
@@ -33,9 +30,9 @@ impl Bounds {
     #[inline]
     pub fn add(&mut self, p: [f32; 3]) {
         if p.iter().all(|c| c.is_finite()) {
-            for i in 0..3 {
-                self.min[i] = self.min[i].min(p[i]);
-                self.max[i] = self.max[i].max(p[i]);
+            for (i, c) in p.into_iter().enumerate() {
+                self.min[i] = self.min[i].min(c);
+                self.max[i] = self.max[i].max(c);
             }
         }
     }
@@ -79,11 +76,7 @@ fn bump(v: &mut Vec<u64>, i: usize, by: u64) {
 impl Stats {
     /// Statistics of the rays and trees held in `cols`.
     pub fn of_columns(cols: &RayColumns, kinds: &KindTable) -> Stats {
-        let mut s = Stats {
-            rays: cols.len() as u64,
-            trees: cols.trees.len() as u64,
-            ..Default::default()
-        };
+        let mut s = Stats { rays: cols.len() as u64, trees: cols.trees.len() as u64, ..Default::default() };
         let mut by_kind_depth: Vec<Vec<u64>> = vec![Vec::new(); 256];
         for i in 0..cols.len() {
             bump(&mut by_kind_depth[cols.kind[i] as usize], cols.depth[i] as usize, 1);
@@ -102,9 +95,7 @@ impl Stats {
         }
         for (code, counts) in by_kind_depth.into_iter().enumerate() {
             if !counts.is_empty() {
-                let name = kinds
-                    .name(Kind(code as u8))
-                    .map_or_else(|| format!("kind{code}"), str::to_string);
+                let name = kinds.name(Kind(code as u8)).map_or_else(|| format!("kind{code}"), str::to_string);
                 s.rays_by_kind_depth.insert(name, counts);
             }
         }
@@ -135,10 +126,7 @@ impl Stats {
 
     /// Ray counts per kind.
     pub fn rays_by_kind(&self) -> BTreeMap<String, u64> {
-        self.rays_by_kind_depth
-            .iter()
-            .map(|(k, v)| (k.clone(), v.iter().sum()))
-            .collect()
+        self.rays_by_kind_depth.iter().map(|(k, v)| (k.clone(), v.iter().sum())).collect()
     }
 
     /// Ray counts per depth.

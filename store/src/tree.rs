@@ -53,8 +53,7 @@ fn ser_kind<S: serde::Serializer>(k: &Kind, s: S) -> std::result::Result<S::Ok, 
 impl Ray {
     /// The hit point, if the ray hit something.
     pub fn hit_point(&self) -> Option<[f32; 3]> {
-        self.t
-            .map(|t| std::array::from_fn(|i| self.origin[i] + t * self.direction[i]))
+        self.t.map(|t| std::array::from_fn(|i| self.origin[i] + t * self.direction[i]))
     }
 }
 
@@ -125,7 +124,8 @@ pub fn rays_from_batch(batch: &RecordBatch, kinds: &HashMap<String, Kind>, path:
     let ray = typed!(batch, "ray", path, UInt32Type, DataType::UInt32);
     let parent = typed!(batch, "parent", path, UInt32Type, DataType::UInt32);
     let depth = typed!(batch, "depth", path, UInt16Type, DataType::UInt16);
-    let f = |n: &str| -> Result<&arrow::array::Float32Array> { Ok(typed!(batch, n, path, Float32Type, DataType::Float32)) };
+    let f =
+        |n: &str| -> Result<&arrow::array::Float32Array> { Ok(typed!(batch, n, path, Float32Type, DataType::Float32)) };
     let (ox, oy, oz) = (f("origin_x")?, f("origin_y")?, f("origin_z")?);
     let (dx, dy, dz) = (f("dir_x")?, f("dir_y")?, f("dir_z")?);
     let t = f("t")?;
@@ -184,12 +184,7 @@ pub fn tree_ids_of(batch: &RecordBatch, path: &Path) -> Result<Vec<u64>> {
 /// Checks that `rays` form the tree `info`: ids, order, parents one level up.
 pub fn validate_tree(info: &TreeInfo, tree_ids: &[u64], rays: &[Ray]) -> std::result::Result<(), String> {
     if rays.len() != info.ray_count as usize {
-        return Err(format!(
-            "tree {} lists {} rays, found {}",
-            info.id,
-            info.ray_count,
-            rays.len()
-        ));
+        return Err(format!("tree {} lists {} rays, found {}", info.id, info.ray_count, rays.len()));
     }
     let mut max_depth = 0;
     for (i, r) in rays.iter().enumerate() {
@@ -217,10 +212,7 @@ pub fn validate_tree(info: &TreeInfo, tree_ids: &[u64], rays: &[Ray]) -> std::re
         max_depth = max_depth.max(r.depth);
     }
     if !rays.is_empty() && max_depth != info.max_depth {
-        return Err(format!(
-            "tree {}: tree table says max depth {}, rays reach {max_depth}",
-            info.id, info.max_depth
-        ));
+        return Err(format!("tree {}: tree table says max depth {}, rays reach {max_depth}", info.id, info.max_depth));
     }
     Ok(())
 }

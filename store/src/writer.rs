@@ -40,12 +40,7 @@ pub struct WriteOptions {
 
 impl Default for WriteOptions {
     fn default() -> Self {
-        Self {
-            row_group_rows: 128 * 1024,
-            page_rows: 4096,
-            zstd_level: 1,
-            sync: true,
-        }
+        Self { row_group_rows: 128 * 1024, page_rows: 4096, zstd_level: 1, sync: true }
     }
 }
 
@@ -58,11 +53,7 @@ pub struct CrcWriter<W: Write> {
 
 impl<W: Write> CrcWriter<W> {
     pub fn new(inner: W) -> Self {
-        Self {
-            inner,
-            hasher: crc32fast::Hasher::new(),
-            bytes: 0,
-        }
+        Self { inner, hasher: crc32fast::Hasher::new(), bytes: 0 }
     }
 
     pub fn finish(self) -> (W, u32, u64) {
@@ -154,14 +145,7 @@ impl DatasetWriter {
         let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
         let writer = ArrowWriter::try_new(sink, ray_schema(&self.payload), Some(self.ray_properties()?))
             .map_err(pq_err(&tmp))?;
-        Ok(SegmentWriter {
-            id,
-            tmp,
-            writer: Some(writer),
-            trees: Vec::new(),
-            rows: 0,
-            stats: Stats::default(),
-        })
+        Ok(SegmentWriter { id, tmp, writer: Some(writer), trees: Vec::new(), rows: 0, stats: Stats::default() })
     }
 
     /// Marks the recording as finished cleanly.
@@ -209,10 +193,7 @@ impl SegmentWriter {
         }
         self.stats.merge(&Stats::of_columns(&cols, kinds));
         let base = self.rows;
-        self.trees.extend(cols.trees.iter().map(|t| TreeRow {
-            first_row: t.first_row + base,
-            ..*t
-        }));
+        self.trees.extend(cols.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
         let batch = cols.into_ray_batch(payload, kinds)?;
         let writer = self.writer.as_mut().ok_or_else(|| Error::Corrupt {
             path: self.tmp.clone(),
@@ -267,18 +248,8 @@ impl SegmentWriter {
         }
         let entry = SegmentEntry {
             id: self.id,
-            rays: FileEntry {
-                path: rays_rel,
-                bytes: rays.1,
-                crc32: rays.0,
-                rows: self.rows,
-            },
-            trees: FileEntry {
-                path: trees_rel,
-                bytes: trees.1,
-                crc32: trees.0,
-                rows: self.trees.len() as u64,
-            },
+            rays: FileEntry { path: rays_rel, bytes: rays.1, crc32: rays.0, rows: self.rows },
+            trees: FileEntry { path: trees_rel, bytes: trees.1, crc32: trees.0, rows: self.trees.len() as u64 },
             tree_id_min: self.trees.first().map_or(0, |t| t.tree_id),
             tree_id_max: self.trees.last().map_or(0, |t| t.tree_id),
             stats: std::mem::take(&mut self.stats),
@@ -296,13 +267,11 @@ impl SegmentWriter {
 
 fn finish_file(sink: FileSink, path: &Path, sync: bool) -> Result<(u32, u64)> {
     let (buf, crc, bytes) = sink.finish();
-    let file = buf
-        .into_inner()
-        .map_err(|e| Error::Io {
-            action: "flushing a segment file",
-            path: path.to_path_buf(),
-            source: e.into_error(),
-        })?;
+    let file = buf.into_inner().map_err(|e| Error::Io {
+        action: "flushing a segment file",
+        path: path.to_path_buf(),
+        source: e.into_error(),
+    })?;
     if sync {
         file.sync_all().map_err(io_err("syncing a segment file", path))?;
     }

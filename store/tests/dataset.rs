@@ -12,13 +12,7 @@ use store::{
 };
 
 fn ray(o: [f32; 3], d: [f32; 3], t: Option<f32>, kind: Kind) -> RayFields {
-    RayFields {
-        origin: o,
-        direction: d,
-        t,
-        kind,
-        prim: t.map(|_| 3),
-    }
+    RayFields { origin: o, direction: d, t, kind, prim: t.map(|_| 3) }
 }
 
 /// Appends a tree of `n` rays (a chain: each ray the child of the previous) to `cols`.
@@ -219,7 +213,11 @@ fn corrupted_segment_is_detected_without_panic() {
     let ds = Dataset::open(&path).unwrap();
     let report = ds.check();
     assert!(!report.is_ok());
-    assert!(report.errors[0].contains("CRC32") && report.errors[0].contains("000001.rays.parquet"), "{:?}", report.errors);
+    assert!(
+        report.errors[0].contains("CRC32") && report.errors[0].contains("000001.rays.parquet"),
+        "{:?}",
+        report.errors
+    );
     // Reading every tree either fails with an error naming the file or returns data: never a panic.
     for t in ds.trees() {
         if let Err(e) = t {
@@ -279,12 +277,7 @@ fn payload_values_that_do_not_match_are_reported_and_stored_as_null() {
     cols.push_core(0, 0, store::NONE_U32, 0, &f);
     let mut mism = Vec::new();
     let short = [1.0f32, 2.0];
-    cols.push_payload(
-        &schema,
-        &[Value::List(ListValue::F32(&short)), Value::F32(1.0)],
-        Some(&[1, 2, 3]),
-        &mut mism,
-    );
+    cols.push_payload(&schema, &[Value::List(ListValue::F32(&short)), Value::F32(1.0)], Some(&[1, 2, 3]), &mut mism);
     assert_eq!(mism.len(), 3, "{mism:?}");
     assert_eq!(mism[0].column, "throughput");
     assert_eq!(mism[1].column, "tag");
@@ -326,11 +319,7 @@ fn one_tree_fetch_reads_few_pages() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("ds");
     let schema = PayloadSchema::default();
-    let opts = WriteOptions {
-        row_group_rows: 1000,
-        page_rows: 100,
-        ..Default::default()
-    };
+    let opts = WriteOptions { row_group_rows: 1000, page_rows: 100, ..Default::default() };
     let w = DatasetWriter::create(&path, schema.clone(), opts).unwrap();
     let kinds = KindTable::default();
     let mut seg = w.open_segment().unwrap();
@@ -346,7 +335,15 @@ fn one_tree_fetch_reads_few_pages() {
         assert_eq!(t.rays.len() as u64, id % 5 + 1);
         assert!(t.rays.iter().all(|r| r.origin[1] == id as f32));
     }
-    let tree_ids = ds.tree(TreeId(1999)).unwrap().batch.column_by_name("tree_id").unwrap().as_primitive::<arrow::datatypes::UInt64Type>().values().to_vec();
+    let tree_ids = ds
+        .tree(TreeId(1999))
+        .unwrap()
+        .batch
+        .column_by_name("tree_id")
+        .unwrap()
+        .as_primitive::<arrow::datatypes::UInt64Type>()
+        .values()
+        .to_vec();
     assert!(tree_ids.iter().all(|&i| i == 1999));
     assert!(ds.check().is_ok());
 }

@@ -1,0 +1,127 @@
+#![allow(clippy::unwrap_used)]
+//! The `rtvtk` command line end to end, and plain-Parquet readers (DuckDB from PyPI) on its output.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use serde_json::Value;
+
+fn rtvtk(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap()
+}
+
+fn demo(dir: &Path) {
+    let out = rtvtk(&["demo", "--out", dir.to_str().unwrap(), "--size", "32x24", "--spp", "2"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let s = String::from_utf8_lossy(&out.stdout);
+    assert!(s.contains("recorded 1536 trees"), "{s}");
+    assert!(s.contains("rays by kind") && s.contains("shadow"), "{s}");
+}
+
+#[test]
+fn demo_info_tree_check() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("t");
+    demo(&dir);
+    let d = dir.to_str().unwrap();
+
+    let out = rtvtk(&["info", d, "--json"]);
+    assert!(out.status.success());
+    let info: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(info["trees"], 1536);
+    assert_eq!(info["format_version"], 1);
+    let rays = info["rays"].as_u64().unwrap();
+    let by_kind: u64 = info["rays_by_kind"].as_object().unwrap().values().map(|v| v.as_u64().unwrap()).sum();
+    assert_eq!(by_kind, rays);
+    assert!(info["bytes_per_ray"].as_f64().unwrap() > 1.0);
+    assert!(info["payload"].as_array().unwrap().is_empty());
+
+    let out = rtvtk(&["tree", d, "--pixel", "16,18", "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let trees: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(trees.as_array().unwrap().len(), 2, "two samples");
+    assert_eq!(trees[0]["rays"][0]["kind"], "camera");
+    let text = String::from_utf8_lossy(&rtvtk(&["tree", d, "--tree", "7"]).stdout).to_string();
+    assert!(text.starts_with("tree 7 ") && text.contains("└─ #0 camera"), "{text}");
+
+    let out = rtvtk(&["check", d, "--json"]);
+    assert!(out.status.success());
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["ok"], true);
+    assert_eq!(r["report"]["rays"].as_u64().unwrap(), rays);
+}
+
+#[test]
+fn bad_input_gets_clear_errors_and_exit_codes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = rtvtk(&["info", tmp.path().join("nope").to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(2));
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("no manifest") && e.contains("nope"), "{e}");
+
+    let dir = tmp.path().join("t");
+    demo(&dir);
+    let d = dir.to_str().unwrap();
+    let out = rtvtk(&["tree", d, "--tree", "999999"]);
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("no tree with id 999999"));
+    let out = rtvtk(&["tree", d, "--pixel", "12"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("X,Y"));
+
+    // A corrupted segment: `check` names it and fails.
+    let seg = dir.join("segments/000001.rays.parquet");
+    let mut bytes = std::fs::read(&seg).unwrap();
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 0xff;
+    std::fs::write(&seg, bytes).unwrap();
+    let out = rtvtk(&["check", d]);
+    assert_eq!(out.status.code(), Some(1));
+    let s = String::from_utf8_lossy(&out.stdout);
+    assert!(s.contains("CRC32") && s.contains("000001.rays.parquet"), "{s}");
+}
+
+/// DuckDB (from PyPI; `.ci/run` installs it) reads the ray and tree tables as plain Parquet and
+/// counts what rtvtk counts.
+#[test]
+fn duckdb_reads_the_dataset_as_plain_parquet() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("t");
+    demo(&dir);
+    let info: Value = serde_json::from_slice(&rtvtk(&["info", dir.to_str().unwrap(), "--json"]).stdout).unwrap();
+    let script = r#"
+import sys, duckdb
+d = sys.argv[1]
+rays = f"read_parquet('{d}/segments/*.rays.parquet')"
+trees = f"read_parquet('{d}/segments/*.trees.parquet')"
+q = lambda s: duckdb.sql(s).fetchall()[0][0]
+print("rays", q(f"select count(*) from {rays}"))
+print("trees", q(f"select count(*) from {trees}"))
+print("shadow", q(f"select count(*) from {rays} where kind = 'shadow'"))
+print("misses", q(f"select count(*) from {rays} where t is null"))
+print("joined", q(f"select count(*) from {rays} r join {trees} t using (tree_id) where t.pixel_x = 3"))
+"#;
+    let out = Command::new("python3")
+        .args(["-c", script, dir.to_str().unwrap()])
+        .output()
+        .expect("python3 is needed for this test");
+    assert!(
+        out.status.success(),
+        "DuckDB could not read the dataset (install it with `pip install duckdb`):\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let s = String::from_utf8_lossy(&out.stdout);
+    let get =
+        |k: &str| -> u64 { s.lines().find_map(|l| l.strip_prefix(&format!("{k} "))).unwrap().trim().parse().unwrap() };
+    assert_eq!(get("rays"), info["rays"].as_u64().unwrap());
+    assert_eq!(get("trees"), info["trees"].as_u64().unwrap());
+    assert_eq!(get("shadow"), info["rays_by_kind"]["shadow"].as_u64().unwrap());
+    assert_eq!(get("misses"), info["misses"].as_u64().unwrap());
+    // Pixel column x = 3 holds 24 rows x 2 samples of trees; their rays, counted by rtvtk.
+    let ds = rl::Dataset::open(&dir).unwrap();
+    let mut want = 0;
+    for y in 0..24 {
+        want += ds.trees_at_pixel(3, y, None).unwrap().iter().map(|t| t.rays.len() as u64).sum::<u64>();
+    }
+    assert_eq!(get("joined"), want);
+}
