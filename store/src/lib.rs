@@ -1,16 +1,4 @@
-//! The rtvtk trace dataset: ray and tree tables as plain Parquet (zstd, page statistics and page
-//! index), sealed in crash-safe segments listed by an atomically replaced manifest, with random
-//! access to any tree's metadata and rays. See `FORMAT.md` for the on-disk format.
-//!
-//! ```no_run
-//! let ds = store::Dataset::open("trace")?;
-//! println!("{} rays in {} trees", ds.ray_count(), ds.tree_count());
-//! let tree = ds.tree(store::TreeId(0))?;
-//! for ray in &tree.rays {
-//!     println!("{:?} depth {} parent {:?}", ray.kind, ray.depth, ray.parent);
-//! }
-//! # Ok::<(), store::Error>(())
-//! ```
+#![doc = include_str!("../README.md")]
 
 mod check;
 mod columns;

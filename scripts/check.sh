@@ -1,0 +1,19 @@
+#!/usr/bin/env bash
+# The one check script, for developers and CI: formatting, lints, every test, doc tests.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+if ! python3 -c "import duckdb" 2>/dev/null; then
+  echo "installing duckdb (PyPI) for the plain-Parquet reader test"
+  python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore duckdb ||
+    python3 -m pip install --quiet --disable-pip-version-check --break-system-packages duckdb
+fi
+command -v cc >/dev/null || { echo "a C compiler (cc) is needed for the C ABI test" >&2; exit 1; }
+if ! command -v cargo-nextest >/dev/null; then
+  cargo install --locked cargo-nextest
+fi
+
+cargo fmt --all --check
+cargo clippy --workspace --all-targets --locked -- -D warnings
+cargo nextest run --workspace --locked --no-fail-fast
+cargo test --workspace --doc --locked
