@@ -349,6 +349,9 @@ fn big_trees_and_empty_recordings() {
     let path = dir.path().join("trace");
     let options = RecorderOptions { chunk_rays: 1000, ..Default::default() };
     let rec = Recorder::create(&path, options).unwrap();
+    // An empty tree first, so it opens the segment.
+    rec.begin_tree(9, 9, 0).end();
+    rec.flush().unwrap();
     let mut t = rec.begin_tree(0, 0, 0);
     for _ in 0..5000 {
         t.add_ray(&f(Kind::DIFFUSE, Some(1.0)), Payload::NONE);
@@ -358,9 +361,13 @@ fn big_trees_and_empty_recordings() {
     empty.end();
     rec.finish().unwrap();
     let ds = Dataset::open(&path).unwrap();
-    assert_eq!(ds.tree(TreeId(0)).unwrap().rays.len(), 5000);
-    assert_eq!(ds.tree(TreeId(1)).unwrap().rays.len(), 0);
-    assert!(ds.check().is_ok());
+    assert_eq!(ds.tree(TreeId(0)).unwrap().rays.len(), 0);
+    assert_eq!(ds.tree(TreeId(1)).unwrap().rays.len(), 5000);
+    assert_eq!(ds.tree(TreeId(2)).unwrap().rays.len(), 0);
+    assert_eq!(ds.trees().map(|t| t.unwrap().rays.len()).sum::<usize>(), 5000);
+    let report = ds.check();
+    assert!(report.is_ok(), "{:?}", report.errors);
+    assert_eq!(report.trees, 3);
 
     let path2 = dir.path().join("empty");
     Recorder::create(&path2, RecorderOptions::default()).unwrap().finish().unwrap();

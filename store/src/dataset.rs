@@ -457,6 +457,11 @@ impl TreeIter<'_> {
                 self.segment += 1;
                 continue;
             };
+            if e.info.ray_count == 0 {
+                self.next_entry += 1;
+                let empty = RecordBatch::new_empty(self.ds.schema.clone());
+                return Ok(Some(self.ds.tree_from_rows(e.info, self.segment, empty).map_err(TreeError)?));
+            }
             let need_end = e.first_row + u64::from(e.info.ray_count);
             // Gather batches until the pending rows cover this tree.
             loop {
