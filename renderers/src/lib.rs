@@ -1,1 +1,18 @@
-//! Placeholder: filled by a later issue (see README.md).
+#![doc = include_str!("../README.md")]
+
+pub mod bvh;
+mod error;
+pub mod film;
+pub mod geometry;
+pub mod material;
+pub mod render;
+pub mod sampling;
+pub mod scene;
+pub mod tracer;
+
+pub use bvh::{Bvh, Hit, TraversalStats};
+pub use error::{Error, Result};
+pub use film::Film;
+pub use render::{RenderOptions, RenderStats, TracerKind, describe_recording, payload_schema, render};
+pub use scene::{BuiltinScene, Camera, LoadReport, Material, MaterialKind, Scene, load_obj};
+pub use tracer::Bug;

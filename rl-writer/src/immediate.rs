@@ -31,6 +31,8 @@ struct MemState {
     evicted_trees: u64,
     stats: Stats,
     error: Option<String>,
+    tables: HashMap<String, RecordBatch>,
+    attributes: HashMap<String, String>,
 }
 
 struct MemShared {
@@ -58,6 +60,18 @@ impl ImmediateSink {
 }
 
 impl Sink for ImmediateSink {
+    fn write_table(&self, name: &str, batch: RecordBatch) -> Result<()> {
+        let mut st = self.shared.state.write().unwrap_or_else(|p| p.into_inner());
+        st.tables.insert(name.to_string(), batch);
+        Ok(())
+    }
+
+    fn set_attributes(&self, attributes: Vec<(String, String)>) -> Result<()> {
+        let mut st = self.shared.state.write().unwrap_or_else(|p| p.into_inner());
+        st.attributes.extend(attributes);
+        Ok(())
+    }
+
     fn submit(&self, chunk: RayColumns, kinds: &Arc<KindTable>) {
         let stats = Stats::of_columns(&chunk, kinds);
         let trees = chunk.trees.clone();
@@ -128,6 +142,16 @@ impl MemoryTrace {
     /// Statistics of everything recorded so far (evicted trees included).
     pub fn stats(&self) -> Stats {
         self.shared.state.read().unwrap_or_else(|p| p.into_inner()).stats.clone()
+    }
+
+    /// An optional whole-recording table (`bvh_nodes`, `lights`, ...), if one was written.
+    pub fn table(&self, name: &str) -> Option<RecordBatch> {
+        self.shared.state.read().unwrap_or_else(|p| p.into_inner()).tables.get(name).cloned()
+    }
+
+    /// A recording attribute (scene, tracer, seed, ...).
+    pub fn attribute(&self, key: &str) -> Option<String> {
+        self.shared.state.read().unwrap_or_else(|p| p.into_inner()).attributes.get(key).cloned()
     }
 
     /// Trees evicted to stay within the memory budget.

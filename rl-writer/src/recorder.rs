@@ -98,6 +98,10 @@ pub trait Sink: Send + Sync {
     fn flush(&self, kinds: &Arc<KindTable>) -> Result<()>;
     /// Flushes, stops background work and reports what was recorded.
     fn finish(&self, kinds: &Arc<KindTable>) -> Result<Summary>;
+    /// Stores an optional whole-recording table (`bvh_nodes`, `lights`, ...).
+    fn write_table(&self, name: &str, batch: arrow::array::RecordBatch) -> Result<()>;
+    /// Records free-form facts about the recording (scene, tracer, seed, ...).
+    fn set_attributes(&self, attributes: Vec<(String, String)>) -> Result<()>;
 }
 
 #[derive(Default)]
@@ -188,6 +192,19 @@ impl Recorder {
 
     pub fn payload_schema(&self) -> &PayloadSchema {
         &self.inner.payload
+    }
+
+    /// Stores an optional whole-recording table, e.g. the BVH's nodes (`bvh_nodes`).
+    pub fn write_table(&self, name: &str, batch: arrow::array::RecordBatch) -> Result<()> {
+        self.inner.sink.write_table(name, batch)
+    }
+
+    /// Records free-form facts about the recording (scene, tracer, seed, image size, ...).
+    pub fn set_attributes<K: Into<String>, V: Into<String>>(
+        &self,
+        attributes: impl IntoIterator<Item = (K, V)>,
+    ) -> Result<()> {
+        self.inner.sink.set_attributes(attributes.into_iter().map(|(k, v)| (k.into(), v.into())).collect())
     }
 
     /// Registers a ray kind by name (or returns the kind already registered under it).

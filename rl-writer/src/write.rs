@@ -119,6 +119,14 @@ impl WriteSink {
 }
 
 impl Sink for WriteSink {
+    fn write_table(&self, name: &str, batch: arrow::array::RecordBatch) -> Result<()> {
+        Ok(self.ds.write_table(name, &batch)?)
+    }
+
+    fn set_attributes(&self, attributes: Vec<(String, String)>) -> Result<()> {
+        Ok(self.ds.set_attributes(attributes)?)
+    }
+
     fn submit(&self, chunk: RayColumns, kinds: &Arc<KindTable>) {
         let bytes = chunk.heap_bytes();
         self.budget.acquire(bytes);

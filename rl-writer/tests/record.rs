@@ -318,8 +318,7 @@ fn read_mode_cursor() {
     let mut r = Reader::open(&path).unwrap();
     let mut trees = 0;
     let mut rays = 0;
-    loop {
-        let Some(t) = r.read_tree().unwrap() else { break };
+    while let Some(t) = r.read_tree().unwrap() {
         let n = t.rays.len();
         trees += 1;
         let mut k = 0;

@@ -125,6 +125,19 @@ pub(crate) fn check(ds: &Dataset) -> CheckReport {
             m.stats.rays, m.stats.trees, total.rays, total.trees
         ));
     }
+    for (name, f) in &m.tables {
+        let path = ds.dir().join(&f.path);
+        match crc_of(&path) {
+            Ok((crc, n)) if n != f.bytes || crc != f.crc32 => r.errors.push(format!(
+                "table `{name}`: expected {} bytes with CRC32 {:08x}, found {n} bytes with CRC32 {crc:08x} ({})",
+                f.bytes,
+                f.crc32,
+                path.display()
+            )),
+            Ok(_) => {}
+            Err(e) => r.errors.push(format!("table `{name}`: cannot read: {e} ({})", path.display())),
+        }
+    }
     // Leftovers not listed in the manifest.
     let listed = listed_files(m);
     if let Ok(dir) = fs::read_dir(ds.dir().join("segments")) {

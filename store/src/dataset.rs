@@ -81,6 +81,21 @@ impl Dataset {
                 }
             }
         }
+        for (name, file) in &manifest.tables {
+            let path = dir.join(&file.path);
+            match fs::metadata(&path) {
+                Ok(m) if m.len() == file.bytes => {}
+                Ok(m) => {
+                    return Err(Error::SizeMismatch { segment: 0, path, expected: file.bytes, found: m.len() });
+                }
+                Err(_) => {
+                    return Err(Error::Manifest {
+                        path,
+                        message: format!("table `{name}` is listed in the manifest but its file is missing"),
+                    });
+                }
+            }
+        }
         let kinds = manifest.kind_table();
         let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();
         let metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
@@ -129,6 +144,26 @@ impl Dataset {
     /// Paths of the tree files, in segment order.
     pub fn tree_files(&self) -> Vec<PathBuf> {
         self.manifest.segments.iter().map(|s| self.dir.join(&s.trees.path)).collect()
+    }
+
+    /// An optional whole-dataset table (`bvh_nodes`, `lights`, ...), if the recording wrote it.
+    pub fn table(&self, name: &str) -> Result<Option<RecordBatch>> {
+        let Some(file) = self.manifest.tables.get(name) else { return Ok(None) };
+        let path = self.dir.join(&file.path);
+        let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
+        let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
+        let schema = builder.schema().clone();
+        let reader = builder.build().map_err(pq_err(&path))?;
+        let mut batches = Vec::new();
+        for b in reader {
+            batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
+        }
+        concat_batches(&schema, &batches).map(Some).map_err(arrow_err(path.display().to_string()))
+    }
+
+    /// Path of an optional table's Parquet file, if the recording wrote it.
+    pub fn table_path(&self, name: &str) -> Option<PathBuf> {
+        self.manifest.tables.get(name).map(|f| self.dir.join(&f.path))
     }
 
     fn segment(&self, i: usize) -> &SegmentEntry {

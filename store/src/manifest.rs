@@ -70,6 +70,12 @@ pub struct Manifest {
     pub stats: Stats,
     /// True once the recorder finished cleanly.
     pub complete: bool,
+    /// Optional whole-dataset tables by name (`bvh_nodes`, `lights`, ...), absent when unused.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub tables: BTreeMap<String, FileEntry>,
+    /// Free-form facts about the recording (scene, tracer, seed, image size, ...).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub attributes: BTreeMap<String, String>,
 }
 
 impl Manifest {
@@ -89,6 +95,8 @@ impl Manifest {
             segments: Vec::new(),
             stats: Stats::default(),
             complete: false,
+            tables: BTreeMap::new(),
+            attributes: BTreeMap::new(),
         }
     }
 

@@ -155,6 +155,53 @@ impl DatasetWriter {
         m.store(&self.dir, self.options.sync)
     }
 
+    /// Sets free-form attributes of the recording (scene, tracer, seed, ...), committed at once.
+    pub fn set_attributes(&self, attributes: impl IntoIterator<Item = (String, String)>) -> Result<()> {
+        let mut m = self.manifest.lock().unwrap_or_else(|p| p.into_inner());
+        let mut next = m.clone();
+        next.attributes.extend(attributes);
+        next.store(&self.dir, self.options.sync)?;
+        *m = next;
+        Ok(())
+    }
+
+    /// Writes an optional whole-dataset table (`tables/NAME.parquet`) atomically and lists it in
+    /// the manifest. Replaces an earlier table of that name.
+    pub fn write_table(&self, name: &str, batch: &arrow::array::RecordBatch) -> Result<()> {
+        if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+            return Err(Error::PayloadDecl(format!("table name must be ASCII letters, digits or '_', got {name:?}")));
+        }
+        let rel = format!("tables/{name}.parquet");
+        let dir = self.dir.join("tables");
+        fs::create_dir_all(&dir).map_err(io_err("creating the tables directory", &dir))?;
+        let tmp = self.dir.join(format!("{rel}.tmp"));
+        let file = File::create(&tmp).map_err(io_err("creating a table file", &tmp))?;
+        let props = WriterProperties::builder()
+            .set_compression(Compression::ZSTD(ZstdLevel::default()))
+            .set_statistics_enabled(EnabledStatistics::Page)
+            .set_key_value_metadata(Some(vec![
+                KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
+                KeyValue::new("rtvtk.table".into(), name.to_string()),
+            ]))
+            .build();
+        let mut w = ArrowWriter::try_new(CrcWriter::new(BufWriter::new(file)), batch.schema(), Some(props))
+            .map_err(pq_err(&tmp))?;
+        w.write(batch).map_err(pq_err(&tmp))?;
+        let sink = w.into_inner().map_err(pq_err(&tmp))?;
+        let (crc, bytes) = finish_file(sink, &tmp, self.options.sync)?;
+        let path = self.dir.join(&rel);
+        fs::rename(&tmp, &path).map_err(io_err("moving a table into place", &path))?;
+        if self.options.sync {
+            sync_dir(&dir)?;
+        }
+        let mut m = self.manifest.lock().unwrap_or_else(|p| p.into_inner());
+        let mut next = m.clone();
+        next.tables.insert(name.to_string(), FileEntry { path: rel, bytes, crc32: crc, rows: batch.num_rows() as u64 });
+        next.store(&self.dir, self.options.sync)?;
+        *m = next;
+        Ok(())
+    }
+
     fn commit(&self, seg: SegmentEntry, kinds: &KindTable) -> Result<()> {
         let mut m = self.manifest.lock().unwrap_or_else(|p| p.into_inner());
         let mut next = m.clone();

@@ -1,0 +1,390 @@
+//! The tracers: a Kajiya-style path tracer with next-event estimation and a recursive Whitted
+//! tracer. Both describe every ray they trace in a [`SampleRecord`], which the render driver
+//! hands to `rl` (rays, kinds, parents, hit primitives, traversal counts, throughput, radiance).
+
+use glam::Vec3A;
+use rl::Kind;
+
+use crate::bvh::{Bvh, Hit, TraversalStats};
+use crate::geometry::{Ray, offset_point};
+use crate::material::{self, Lobe, fresnel, reflect};
+use crate::sampling::{Rng, triangle_point};
+use crate::scene::{MaterialKind, Scene};
+
+/// A bug to inject on purpose, to be found with the toolkit.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Bug {
+    /// The paper's Figure 1: shadow rays leaving diffuse surfaces after the first bounce are
+    /// mirrored about the vertical axis, so many are aimed at no light. Visibility comes from the
+    /// wrong direction, shading from the right one: the image still looks plausible.
+    ShadowDir,
+}
+
+/// One traced ray as recorded.
+#[derive(Clone, Copy, Debug)]
+pub struct RecRay {
+    pub parent: Option<u32>,
+    pub origin: Vec3A,
+    pub dir: Vec3A,
+    pub t: Option<f32>,
+    pub prim: Option<u32>,
+    pub kind: Kind,
+    /// The weight of what this ray carries in the pixel estimate.
+    pub throughput: Vec3A,
+    /// The radiance this ray carries back to its origin.
+    pub radiance: Vec3A,
+    pub material: Option<u32>,
+    pub stats: TraversalStats,
+    /// Range in `SampleRecord::visits` of the nodes this ray visited (when recording visits).
+    pub visits: (u32, u32),
+}
+
+/// The rays of one pixel sample (kept only when `keep` is set; always counted by kind).
+#[derive(Clone, Debug)]
+pub struct SampleRecord {
+    pub keep: bool,
+    pub rays: Vec<RecRay>,
+    pub visits: Vec<u32>,
+    pub counts: [u64; 256],
+}
+
+impl SampleRecord {
+    pub fn new(keep: bool) -> Self {
+        Self { keep, rays: Vec::new(), visits: Vec::new(), counts: [0; 256] }
+    }
+
+    /// Forgets the rays of the last sample (counts go on).
+    pub fn clear(&mut self) {
+        self.rays.clear();
+        self.visits.clear();
+    }
+}
+
+/// What the tracers share.
+pub struct TraceCtx<'a> {
+    pub scene: &'a Scene,
+    pub bvh: &'a Bvh,
+    pub max_depth: u32,
+    pub bug: Option<Bug>,
+    pub record_visits: bool,
+}
+
+impl TraceCtx<'_> {
+    fn closest(&self, ray: &Ray, rec: &mut Option<&mut SampleRecord>) -> (Option<Hit>, TraversalStats, (u32, u32)) {
+        let mut st = TraversalStats::default();
+        match rec {
+            Some(r) if self.record_visits && r.keep => {
+                let start = r.visits.len() as u32;
+                let h = self.bvh.intersect(ray, 0.0, f32::INFINITY, &mut st, Some(&mut r.visits));
+                (h, st, (start, r.visits.len() as u32))
+            }
+            _ => (self.bvh.intersect(ray, 0.0, f32::INFINITY, &mut st, None), st, (0, 0)),
+        }
+    }
+
+    fn hit_point(&self, h: &Hit) -> Vec3A {
+        // From barycentrics: more accurate than origin + t·direction far from the origin.
+        let [v0, v1, v2] = self.scene.tris[h.prim as usize];
+        v0 * (1.0 - h.u - h.v) + v1 * h.u + v2 * h.v
+    }
+
+    /// Samples a point on an emitter: (point, normal, triangle, pdf per unit area).
+    fn sample_light(&self, rng: &mut Rng) -> Option<(Vec3A, Vec3A, u32, f32)> {
+        let s = self.scene;
+        if s.lights.is_empty() || s.light_area <= 0.0 {
+            return None;
+        }
+        let u = rng.next_f32() * s.light_area;
+        let i = s.light_cdf.partition_point(|&c| c <= u).min(s.lights.len() - 1);
+        let prim = s.lights[i];
+        let [v0, v1, v2] = s.tris[prim as usize];
+        let (b1, b2) = triangle_point(rng.next_f32(), rng.next_f32());
+        let p = v0 * (1.0 - b1 - b2) + v1 * b1 + v2 * b2;
+        Some((p, s.normals[prim as usize], prim, 1.0 / s.light_area))
+    }
+}
+
+fn push(rec: &mut Option<&mut SampleRecord>, r: RecRay) -> u32 {
+    match rec {
+        Some(out) => {
+            out.counts[r.kind.0 as usize] += 1;
+            if out.keep {
+                out.rays.push(r);
+                out.rays.len() as u32 - 1
+            } else {
+                0
+            }
+        }
+        None => 0,
+    }
+}
+
+/// Traces one path-tracer sample through film position (fx, fy); returns its radiance estimate.
+pub fn path_sample(
+    ctx: &TraceCtx<'_>,
+    fx: f32,
+    fy: f32,
+    w: u32,
+    h: u32,
+    rng: &mut Rng,
+    mut rec: Option<&mut SampleRecord>,
+) -> Vec3A {
+    let scene = ctx.scene;
+    let cam = &scene.camera;
+    let mut ray = Ray::new(cam.position, cam.direction(fx, fy, w, h));
+    let mut kind = Kind::CAMERA;
+    let mut parent: Option<u32> = None;
+    let mut beta = Vec3A::ONE;
+    let mut l = Vec3A::ZERO;
+    let mut count_emission = true;
+    // (ray index, throughput when spawned, radiance gathered before it) along the path.
+    let mut chain: [(u32, Vec3A, Vec3A); 64] = [(0, Vec3A::ZERO, Vec3A::ZERO); 64];
+    let mut chain_len = 0usize;
+    let mut depth = 0u32;
+    loop {
+        let (hit, st, vis) = ctx.closest(&ray, &mut rec);
+        let idx = push(
+            &mut rec,
+            RecRay {
+                parent,
+                origin: ray.origin,
+                dir: ray.dir,
+                t: hit.map(|h| h.t),
+                prim: hit.map(|h| h.prim),
+                kind,
+                throughput: beta,
+                radiance: Vec3A::ZERO,
+                material: hit.map(|h| scene.tri_material[h.prim as usize]),
+                stats: st,
+                visits: vis,
+            },
+        );
+        if chain_len < chain.len() {
+            chain[chain_len] = (idx, beta, l);
+            chain_len += 1;
+        }
+        let Some(hit) = hit else { break };
+        let m = scene.material_of(hit.prim);
+        let ng = scene.normals[hit.prim as usize];
+        if count_emission && m.is_emissive() {
+            l += beta * m.emission;
+        }
+        if depth >= ctx.max_depth {
+            break;
+        }
+        let p = ctx.hit_point(&hit);
+        let front = ng.dot(ray.dir) < 0.0;
+        let n = if front { ng } else { -ng };
+        if matches!(m.kind, MaterialKind::Diffuse | MaterialKind::Glossy) {
+            // Next-event estimation: one shadow ray to a point on an emitter.
+            if let Some((q, nl, lprim, pdf_area)) = ctx.sample_light(rng) {
+                let origin = offset_point(p, n);
+                let to = q - origin;
+                let dist2 = to.length_squared();
+                let dist = dist2.sqrt();
+                let wi = to / dist;
+                let cos_x = n.dot(wi);
+                let cos_l = nl.dot(wi).abs();
+                if cos_x > 0.0 && dist > 0.0 {
+                    let mut sdir = wi;
+                    if ctx.bug == Some(Bug::ShadowDir) && depth >= 1 && m.kind == MaterialKind::Diffuse {
+                        sdir = Vec3A::new(-wi.x, wi.y, -wi.z);
+                    }
+                    let sray = Ray::new(origin, sdir);
+                    let mut sst = TraversalStats::default();
+                    let occ = ctx.bvh.any_hit(&sray, 0.0, dist * (1.0 - 1e-4), &mut sst);
+                    let f = material::eval(m, n, -ray.dir, wi);
+                    let weight = beta * f * (cos_x * cos_l / (dist2 * pdf_area));
+                    let le = scene.material_of(lprim).emission;
+                    let carried = if occ.is_none() { le } else { Vec3A::ZERO };
+                    if occ.is_none() {
+                        l += weight * le;
+                    }
+                    push(
+                        &mut rec,
+                        RecRay {
+                            parent: Some(idx),
+                            origin,
+                            dir: sdir,
+                            t: Some(occ.map_or(dist, |o| o.t)),
+                            prim: Some(occ.map_or(lprim, |o| o.prim)),
+                            kind: Kind::SHADOW,
+                            throughput: weight,
+                            radiance: carried,
+                            material: Some(scene.tri_material[occ.map_or(lprim, |o| o.prim) as usize]),
+                            stats: sst,
+                            visits: (0, 0),
+                        },
+                    );
+                }
+            }
+        }
+        let Some(s) = material::sample(m, ng, ray.dir, rng) else { break };
+        beta *= s.weight;
+        count_emission = s.delta;
+        kind = match s.lobe {
+            Lobe::Diffuse => Kind::DIFFUSE,
+            Lobe::Specular => Kind::SPECULAR,
+            Lobe::Transmission => Kind::TRANSMISSION,
+        };
+        // Russian roulette after three bounces.
+        if depth >= 3 {
+            let q = beta.max_element().clamp(0.05, 0.95);
+            if rng.next_f32() >= q {
+                break;
+            }
+            beta /= q;
+        }
+        if !beta.is_finite() || beta.max_element() <= 0.0 {
+            break;
+        }
+        let side = if s.dir.dot(ng) > 0.0 { ng } else { -ng };
+        ray = Ray::new(offset_point(p, side), s.dir);
+        parent = Some(idx);
+        depth += 1;
+    }
+    if let Some(out) = rec.filter(|r| r.keep) {
+        for &(i, b, before) in &chain[..chain_len] {
+            let gathered = l - before;
+            let r = &mut out.rays[i as usize];
+            r.radiance = Vec3A::select(b.cmpgt(Vec3A::ZERO), gathered / b, Vec3A::ZERO);
+        }
+    }
+    l
+}
+
+/// Traces one Whitted sample through film position (fx, fy).
+pub fn whitted_sample(
+    ctx: &TraceCtx<'_>,
+    fx: f32,
+    fy: f32,
+    w: u32,
+    h: u32,
+    rng: &mut Rng,
+    mut rec: Option<&mut SampleRecord>,
+) -> Vec3A {
+    let cam = &ctx.scene.camera;
+    let ray = Ray::new(cam.position, cam.direction(fx, fy, w, h));
+    whitted(ctx, &ray, Kind::CAMERA, None, 0, Vec3A::ONE, rng, &mut rec)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn whitted(
+    ctx: &TraceCtx<'_>,
+    ray: &Ray,
+    kind: Kind,
+    parent: Option<u32>,
+    depth: u32,
+    weight: Vec3A,
+    rng: &mut Rng,
+    rec: &mut Option<&mut SampleRecord>,
+) -> Vec3A {
+    let scene = ctx.scene;
+    let (hit, st, vis) = ctx.closest(ray, rec);
+    let idx = push(
+        rec,
+        RecRay {
+            parent,
+            origin: ray.origin,
+            dir: ray.dir,
+            t: hit.map(|h| h.t),
+            prim: hit.map(|h| h.prim),
+            kind,
+            throughput: weight,
+            radiance: Vec3A::ZERO,
+            material: hit.map(|h| scene.tri_material[h.prim as usize]),
+            stats: st,
+            visits: vis,
+        },
+    );
+    let Some(hit) = hit else { return Vec3A::ZERO };
+    let m = scene.material_of(hit.prim);
+    let ng = scene.normals[hit.prim as usize];
+    let n = if ng.dot(ray.dir) < 0.0 { ng } else { -ng };
+    let p = ctx.hit_point(&hit);
+    let mut l = m.emission;
+    if depth < ctx.max_depth {
+        match m.kind {
+            MaterialKind::Diffuse | MaterialKind::Glossy => {
+                // Each emitter as a point light at its centroid (at most 32, chosen by area).
+                let k = scene.lights.len().min(32);
+                for j in 0..k {
+                    let li = if scene.lights.len() <= 32 {
+                        j
+                    } else {
+                        let u = rng.next_f32() * scene.light_area;
+                        scene.light_cdf.partition_point(|&c| c <= u).min(scene.lights.len() - 1)
+                    };
+                    let prim = scene.lights[li];
+                    let [v0, v1, v2] = scene.tris[prim as usize];
+                    let c = (v0 + v1 + v2) / 3.0;
+                    let area = 0.5 * (v1 - v0).cross(v2 - v0).length();
+                    let scale = if scene.lights.len() <= 32 { 1.0 } else { scene.light_area / (area * k as f32) };
+                    let origin = offset_point(p, n);
+                    let to = c - origin;
+                    let d2 = to.length_squared();
+                    let wi = to / d2.sqrt();
+                    let cos_x = n.dot(wi);
+                    if cos_x <= 0.0 {
+                        continue;
+                    }
+                    let sray = Ray::new(origin, wi);
+                    let mut sst = TraversalStats::default();
+                    let occ = ctx.bvh.any_hit(&sray, 0.0, d2.sqrt() * (1.0 - 1e-4), &mut sst);
+                    let le = scene.material_of(prim).emission;
+                    let cos_l = scene.normals[prim as usize].dot(wi).abs();
+                    let contrib = m.diffuse / std::f32::consts::PI * le * (area * scale * cos_x * cos_l / d2);
+                    if occ.is_none() {
+                        l += contrib;
+                    }
+                    push(
+                        rec,
+                        RecRay {
+                            parent: Some(idx),
+                            origin,
+                            dir: wi,
+                            t: Some(occ.map_or(d2.sqrt(), |o| o.t)),
+                            prim: Some(occ.map_or(prim, |o| o.prim)),
+                            kind: Kind::SHADOW,
+                            throughput: weight * m.diffuse / std::f32::consts::PI * (area * scale * cos_x * cos_l / d2),
+                            radiance: if occ.is_none() { le } else { Vec3A::ZERO },
+                            material: Some(scene.tri_material[occ.map_or(prim, |o| o.prim) as usize]),
+                            stats: sst,
+                            visits: (0, 0),
+                        },
+                    );
+                }
+                if m.kind == MaterialKind::Glossy && m.specular.max_element() > 0.0 {
+                    let r = Ray::new(offset_point(p, n), reflect(ray.dir, n));
+                    l += m.specular
+                        * whitted(ctx, &r, Kind::SPECULAR, Some(idx), depth + 1, weight * m.specular, rng, rec);
+                }
+            }
+            MaterialKind::Mirror => {
+                let r = Ray::new(offset_point(p, n), reflect(ray.dir, n));
+                l += m.specular * whitted(ctx, &r, Kind::SPECULAR, Some(idx), depth + 1, weight * m.specular, rng, rec);
+            }
+            MaterialKind::Dielectric => {
+                let front = ng.dot(ray.dir) < 0.0;
+                let (eta_i, eta_t) = if front { (1.0, m.ior) } else { (m.ior, 1.0) };
+                let cos_i = n.dot(-ray.dir).clamp(0.0, 1.0);
+                let (f, cos_t) = fresnel(cos_i, eta_i, eta_t);
+                let r = Ray::new(offset_point(p, n), reflect(ray.dir, n));
+                l += m.specular * f * whitted(ctx, &r, Kind::SPECULAR, Some(idx), depth + 1, weight * f, rng, rec);
+                if f < 1.0 {
+                    let eta = eta_i / eta_t;
+                    let dir = (ray.dir * eta + n * (eta * cos_i - cos_t)).normalize();
+                    let t = Ray::new(offset_point(p, -n), dir);
+                    let wt = (1.0 - f) * eta * eta;
+                    l += m.specular
+                        * wt
+                        * whitted(ctx, &t, Kind::TRANSMISSION, Some(idx), depth + 1, weight * wt, rng, rec);
+                }
+            }
+        }
+    }
+    if let Some(out) = rec.as_deref_mut().filter(|r| r.keep) {
+        out.rays[idx as usize].radiance = l;
+    }
+    l
+}
