@@ -1,10 +1,9 @@
 //! The dataset subcommands: demo, info, tree, check.
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
-use rl::{Dataset, Recorder, RecorderOptions, Tree, TreeId};
+use anyhow::{Result, bail};
+use rl::{Dataset, Tree, TreeId};
 use serde_json::json;
 
 pub fn parse_size(s: &str) -> Result<(u32, u32), String> {
@@ -24,50 +23,41 @@ pub fn parse_pixel(s: &str) -> Result<(u32, u32), String> {
     Ok((x, y))
 }
 
-/// Records the demo scene depth-first from `threads` threads.
+/// Renders and records the Cornell box with the path tracer, then summarizes the trace.
 pub fn demo(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) -> Result<()> {
-    let (dir, _keep) = match out {
-        Some(d) => (d, None),
-        None => {
-            let t = std::env::temp_dir().join(format!("rtvtk-demo-{}", std::process::id()));
-            (t.clone(), Some(t))
-        }
+    let dir = out.unwrap_or_else(|| std::env::temp_dir().join(format!("rtvtk-demo-{}", std::process::id())));
+    let args = crate::record::RecordArgs {
+        scene: "cornell".into(),
+        spp,
+        size: (w, h),
+        out: Some(dir.clone()),
+        tracer: crate::record::TracerArg::Path,
+        window: None,
+        pixel: None,
+        sample: None,
+        record_kinds: None,
+        record_visits: false,
+        no_record: false,
+        seed: 0,
+        threads: Some(threads.max(1)),
+        max_depth: 8,
+        image: None,
+        exr: None,
+        exposure: 1.0,
+        inject_bug: None,
+        camera_pos: None,
+        camera_target: None,
+        fov: None,
+        quiet: false,
     };
-    let start = Instant::now();
-    let rec =
-        Recorder::create(&dir, RecorderOptions::default()).with_context(|| format!("creating {}", dir.display()))?;
-    let threads = threads.max(1) as u32;
-    std::thread::scope(|s| {
-        for t in 0..threads {
-            let rec = rec.clone();
-            s.spawn(move || {
-                for y in (t..h).step_by(threads as usize) {
-                    for x in 0..w {
-                        for sample in 0..spp {
-                            let mut tree = rec.begin_tree(x, y, sample);
-                            rl::demo::trace_pixel(&mut tree, x, y, sample, w, h);
-                            tree.end();
-                        }
-                    }
-                }
-            });
-        }
-    });
-    let summary = rec.finish()?;
-    println!(
-        "recorded {} trees, {} rays of the demo scene ({w}x{h}, {spp} spp) in {:.2} s into {}",
-        summary.trees,
-        summary.rays,
-        start.elapsed().as_secs_f64(),
-        dir.display()
-    );
+    crate::record::run(&args)?;
     println!();
     info(&dir, false)?;
     println!();
     let ds = Dataset::open(&dir)?;
-    let trees = ds.trees_at_pixel(w / 2, h * 3 / 4, Some(0))?;
-    if let Some(t) = trees.first() {
-        println!("the tree of pixel ({}, {}), sample 0:", w / 2, h * 3 / 4);
+    let (x, y) = (w / 2, h * 3 / 4);
+    if let Some(t) = ds.trees_at_pixel(x, y, Some(0))?.first() {
+        println!("the ray tree of pixel ({x}, {y}), sample 0:");
         print_tree(&ds, t);
     }
     println!();

@@ -2,6 +2,7 @@
 
 mod bench;
 mod commands;
+mod record;
 
 use std::path::PathBuf;
 
@@ -17,16 +18,18 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Record a small trace of the built-in demo scene and print its summary.
+    /// Render a scene with a CPU tracer, recording every ray into a dataset.
+    Record(Box<record::RecordArgs>),
+    /// Render and record the Cornell box, then print a summary of the trace.
     Demo {
         /// Dataset directory to write (default: a fresh temporary directory).
         #[arg(long)]
         out: Option<PathBuf>,
         /// Image size, WxH.
-        #[arg(long, default_value = "64x48", value_parser = commands::parse_size)]
+        #[arg(long, default_value = "128x128", value_parser = commands::parse_size)]
         size: (u32, u32),
         /// Samples per pixel.
-        #[arg(long, default_value_t = 4)]
+        #[arg(long, default_value_t = 8)]
         spp: u32,
         /// Tracing threads.
         #[arg(long, default_value_t = 2)]
@@ -70,6 +73,7 @@ fn main() {
     let cli = Cli::parse();
     let result: Result<i32> = match cli.command {
         Command::Demo { out, size, spp, threads } => commands::demo(out, size, spp, threads).map(|_| 0),
+        Command::Record(args) => record::run(&args).map(|_| 0),
         Command::Info { dataset, json } => commands::info(&dataset, json).map(|_| 0),
         Command::Tree { dataset, pixel, sample, tree, json } => {
             commands::tree(&dataset, pixel, sample, tree, json).map(|_| 0)

@@ -92,7 +92,7 @@ pub fn intersect_triangle(ray: &Ray, v0: Vec3A, v1: Vec3A, v2: Vec3A, tmin: f32,
 }
 
 /// Offsets a surface point along its normal so a ray leaving it does not hit the same surface
-/// again (Wächter and Binder, Ray Tracing Gems ch. 6): a few ULPs in integer space far from the
+/// again (Wächter and Binder, Ray Tracing Gems ch. 6): 256 ULPs in integer space far from the
 /// origin, a small absolute step near it. Works at any scene scale and distance from the origin.
 pub fn offset_point(p: Vec3A, n: Vec3A) -> Vec3A {
     const ORIGIN: f32 = 1.0 / 32.0;

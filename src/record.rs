@@ -1,0 +1,253 @@
+//! `rtvtk record` and `rtvtk demo`: render a scene with a CPU tracer, recording every ray.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use renderers::{Bug, BuiltinScene, Bvh, Camera, RenderOptions, Scene, TracerKind};
+use rl::{Kind, Recorder, RecorderOptions};
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum TracerArg {
+    Path,
+    Whitted,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum BugArg {
+    /// Shadow rays from diffuse surfaces (after the first bounce) aimed at no light (Figure 1).
+    ShadowDir,
+}
+
+#[derive(Args, Debug)]
+pub struct RecordArgs {
+    /// cornell, cornell-glass, glossy, or an OBJ file.
+    #[arg(long, default_value = "cornell")]
+    pub scene: String,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 16)]
+    pub spp: u32,
+    /// Image size, WxH.
+    #[arg(long, default_value = "256x256", value_parser = crate::commands::parse_size)]
+    pub size: (u32, u32),
+    /// Dataset directory to write (required unless --no-record).
+    #[arg(long, required_unless_present = "no_record")]
+    pub out: Option<PathBuf>,
+    #[arg(long, value_enum, default_value = "path")]
+    pub tracer: TracerArg,
+    /// Only pixels in X0,Y0,X1,Y1 (X1, Y1 exclusive).
+    #[arg(long, value_parser = parse_window)]
+    pub window: Option<[u32; 4]>,
+    /// Only this pixel, X,Y (with --sample: only that sample, traced exactly as in a full render).
+    #[arg(long, value_parser = crate::commands::parse_pixel, conflicts_with = "window")]
+    pub pixel: Option<(u32, u32)>,
+    #[arg(long, requires = "pixel")]
+    pub sample: Option<u32>,
+    /// Record only these kinds (comma separated); rays of other kinds are left out with their descendants.
+    #[arg(long, value_delimiter = ',')]
+    pub record_kinds: Option<Vec<String>>,
+    /// Also record the BVH nodes every ray visits (the ray_nodes table; large).
+    #[arg(long)]
+    pub record_visits: bool,
+    /// Render without recording (for overhead figures).
+    #[arg(long)]
+    pub no_record: bool,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Tracing threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    #[arg(long, default_value_t = 8)]
+    pub max_depth: u32,
+    /// Where to write the PNG (default: OUT/image.png).
+    #[arg(long)]
+    pub image: Option<PathBuf>,
+    /// Where to write the linear EXR (default: OUT/image.exr).
+    #[arg(long)]
+    pub exr: Option<PathBuf>,
+    #[arg(long, default_value_t = 1.0)]
+    pub exposure: f32,
+    #[arg(long, value_enum)]
+    pub inject_bug: Option<BugArg>,
+    /// Camera position X,Y,Z (with --camera-target and --fov; default: the scene's camera).
+    #[arg(long, value_parser = parse_vec3, requires = "camera_target")]
+    pub camera_pos: Option<[f32; 3]>,
+    #[arg(long, value_parser = parse_vec3, requires = "camera_pos")]
+    pub camera_target: Option<[f32; 3]>,
+    /// Vertical field of view in degrees.
+    #[arg(long)]
+    pub fov: Option<f32>,
+    /// Do not print the summary tables.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+fn parse_window(s: &str) -> Result<[u32; 4], String> {
+    let v: Vec<u32> = s
+        .split(',')
+        .map(|p| p.trim().parse().map_err(|_| format!("bad window {s:?}: expected X0,Y0,X1,Y1")))
+        .collect::<Result<_, _>>()?;
+    v.try_into().map_err(|_| format!("bad window {s:?}: expected 4 numbers X0,Y0,X1,Y1"))
+}
+
+fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|p| p.trim().parse().map_err(|_| format!("bad vector {s:?}: expected X,Y,Z")))
+        .collect::<Result<_, _>>()?;
+    let v: [f32; 3] = v.try_into().map_err(|_| format!("bad vector {s:?}: expected 3 numbers X,Y,Z"))?;
+    if v.iter().any(|c| !c.is_finite()) {
+        return Err(format!("bad vector {s:?}: NaN or infinite"));
+    }
+    Ok(v)
+}
+
+fn kind_by_name(name: &str) -> Option<Kind> {
+    store::BUILTIN_KINDS.iter().find(|(n, _)| *n == name).map(|(_, k)| *k)
+}
+
+pub fn load_scene(name: &str, camera: Option<Camera>) -> Result<Scene> {
+    let mut scene = match BuiltinScene::parse(name) {
+        Some(b) => b.build(1)?,
+        None => {
+            let p = Path::new(name);
+            if p.extension().is_none_or(|e| !e.eq_ignore_ascii_case("obj")) && !p.exists() {
+                bail!("unknown scene {name:?}: expected cornell, cornell-glass, glossy or an .obj file");
+            }
+            renderers::load_obj(p, camera)?
+        }
+    };
+    if let Some(c) = camera {
+        scene.camera = c;
+    }
+    Ok(scene)
+}
+
+pub fn run(a: &RecordArgs) -> Result<()> {
+    let camera = match (a.camera_pos, a.camera_target) {
+        (Some(p), Some(t)) => Some(Camera {
+            position: glam::Vec3A::from_array(p),
+            target: glam::Vec3A::from_array(t),
+            up: glam::Vec3A::Y,
+            fov_y: a.fov.unwrap_or(40.0),
+        }),
+        _ => None,
+    };
+    let mut scene = load_scene(&a.scene, camera)?;
+    if let (Some(f), None) = (a.fov, camera) {
+        scene.camera.fov_y = f;
+    }
+    if scene.report.degenerate_skipped > 0 {
+        eprintln!("note: skipped {} degenerate triangles of {}", scene.report.degenerate_skipped, a.scene);
+    }
+    let (w, h) = a.size;
+    let record_kinds = match &a.record_kinds {
+        None => None,
+        Some(names) => Some(
+            names
+                .iter()
+                .map(|n| {
+                    kind_by_name(n).with_context(|| {
+                        format!("unknown kind {n:?}: expected camera, shadow, diffuse, specular or transmission")
+                    })
+                })
+                .collect::<Result<Vec<_>>>()?,
+        ),
+    };
+    let (window, samples) = match a.pixel {
+        Some((x, y)) => {
+            if x >= w || y >= h {
+                bail!("pixel {x},{y} is outside the {w}x{h} image");
+            }
+            if let Some(s) = a.sample
+                && s >= a.spp
+            {
+                bail!("sample {s} is outside 0..{} (--spp)", a.spp);
+            }
+            (Some([x, y, x + 1, y + 1]), a.sample.map(|s| s..s + 1))
+        }
+        None => (a.window, None),
+    };
+    let opts = RenderOptions {
+        width: w,
+        height: h,
+        spp: a.spp,
+        seed: a.seed,
+        tracer: match a.tracer {
+            TracerArg::Path => TracerKind::Path,
+            TracerArg::Whitted => TracerKind::Whitted,
+        },
+        max_depth: a.max_depth,
+        window,
+        samples,
+        threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
+        bug: a.inject_bug.map(|_| Bug::ShadowDir),
+        record_kinds,
+        record_visits: a.record_visits,
+    };
+    let t = std::time::Instant::now();
+    let bvh = Bvh::build(&scene.tris);
+    let build_secs = t.elapsed().as_secs_f64();
+    let recorder = match (&a.out, a.no_record) {
+        (Some(out), false) => {
+            let options = RecorderOptions { payload: renderers::payload_schema(), ..Default::default() };
+            let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
+            renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
+            Some(rec)
+        }
+        _ => None,
+    };
+    let rows = window.map_or(h, |w| w[3] - w[1]);
+    let bar = ProgressBar::new(u64::from(rows));
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} rendering [{bar:40}] {pos}/{len} rows {elapsed_precise} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let (film, stats) = renderers::render(&scene, &bvh, &opts, recorder.as_ref(), &|n| bar.set_position(u64::from(n)))?;
+    bar.finish_and_clear();
+    let summary = match recorder {
+        Some(r) => Some(r.finish()?),
+        None => None,
+    };
+    let total_secs = t.elapsed().as_secs_f64();
+    let image = a.image.clone().or_else(|| a.out.as_ref().filter(|_| !a.no_record).map(|o| o.join("image.png")));
+    let exr = a.exr.clone().or_else(|| a.out.as_ref().filter(|_| !a.no_record).map(|o| o.join("image.exr")));
+    if let Some(p) = &image {
+        film.write_png(p, a.exposure)?;
+    }
+    if let Some(p) = &exr {
+        film.write_exr(p)?;
+    }
+    if a.quiet {
+        return Ok(());
+    }
+    println!(
+        "{} {}x{} spp {} ({} triangles, BVH {} nodes built in {:.3} s): {} samples, {} rays in {:.2} s ({:.2} Mrays/s)",
+        scene.name,
+        w,
+        h,
+        a.spp,
+        scene.tris.len(),
+        bvh.node_count(),
+        build_secs,
+        stats.samples,
+        stats.rays,
+        stats.secs,
+        stats.rays as f64 / stats.secs / 1e6
+    );
+    for (k, n) in &stats.rays_by_kind {
+        let name = store::BUILTIN_KINDS.iter().find(|(_, kk)| kk == k).map_or("?", |(n, _)| n);
+        println!("  {name:<13} {n:>12}");
+    }
+    if let Some(s) = summary {
+        println!(
+            "recorded {} trees, {} rays, {} segments, {} bytes; wall {:.2} s",
+            s.trees, s.rays, s.segments, s.bytes, total_secs
+        );
+    }
+    if let Some(p) = image {
+        println!("image: {}", p.display());
+    }
+    Ok(())
+}
