@@ -421,7 +421,7 @@ fn material_from_mtl(m: &tobj::Material) -> Material {
     let mut diffuse = v(m.diffuse).clamp(Vec3A::ZERO, Vec3A::ONE);
     let mut specular = v(m.specular).clamp(Vec3A::ZERO, Vec3A::ONE);
     let exponent = m.shininess.unwrap_or(0.0).max(0.0);
-    let emission = Vec3A::from_array(parse3(param("Ke")).unwrap_or([0.0; 3])).max(Vec3A::ZERO);
+    let emission = Vec3A::from_array(m.emissive.or_else(|| parse3(param("Ke"))).unwrap_or([0.0; 3])).max(Vec3A::ZERO);
     let kind = if dissolve < 1.0 || tr > 0.0 || matches!(illum, 4 | 6 | 7) {
         MaterialKind::Dielectric
     } else if (matches!(illum, 3 | 5) || exponent >= 10_000.0) && specular.max_element() > 0.0 {

@@ -14,9 +14,9 @@ use crate::scene::{MaterialKind, Scene};
 /// A bug to inject on purpose, to be found with the toolkit.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Bug {
-    /// The paper's Figure 1: shadow rays leaving diffuse surfaces after the first bounce are
-    /// mirrored about the vertical axis, so many are aimed at no light. Visibility comes from the
-    /// wrong direction, shading from the right one: the image still looks plausible.
+    /// The paper's Figure 1: shadow rays leaving upward-facing diffuse surfaces after the first
+    /// bounce are mirrored about the vertical axis, so many are aimed at no light. Visibility
+    /// comes from the wrong direction, shading from the right one: the image still looks plausible.
     ShadowDir,
 }
 
@@ -187,7 +187,7 @@ pub fn path_sample(
                 let cos_l = nl.dot(wi).abs();
                 if cos_x > 0.0 && dist > 0.0 {
                     let mut sdir = wi;
-                    if ctx.bug == Some(Bug::ShadowDir) && depth >= 1 && m.kind == MaterialKind::Diffuse {
+                    if ctx.bug == Some(Bug::ShadowDir) && depth >= 1 && m.kind == MaterialKind::Diffuse && n.y > 0.9 {
                         sdir = Vec3A::new(-wi.x, wi.y, -wi.z);
                     }
                     let sray = Ray::new(origin, sdir);
