@@ -16,6 +16,21 @@ use store::{KindTable, PayloadSchema, RayColumns, TreeRow};
 
 #[derive(Subcommand)]
 pub enum BenchCommand {
+    /// Single-core traversal speed per ray kind: our BVH traversal beside obvhs's stock BVH2 and
+    /// CWBVH traversals on the same rays (and Embree when built with `--features embree`).
+    Trace {
+        /// Split every quad of the Cornell box n × n (31 gives ~30K triangles, 130 ~0.5M).
+        #[arg(long, default_value_t = 31)]
+        subdivide: u32,
+        /// Rotate the scene off the axes (the stock CWBVH is slow on axis-aligned walls).
+        #[arg(long)]
+        rotate: bool,
+        /// Image width (and height) of the path-traced frame the rays come from.
+        #[arg(long, default_value_t = 256)]
+        width: u32,
+        #[arg(long, default_value_t = 4)]
+        spp: u32,
+    },
     /// Write throughput and bytes per ray against plain arrow-rs Parquet, and one-tree fetch latency.
     Store {
         /// Rays to record (at least).
@@ -38,6 +53,7 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
+        BenchCommand::Trace { subdivide, rotate, width, spp } => crate::bench_trace::run(subdivide, rotate, width, spp),
         BenchCommand::Store { rays, threads, workers, fetches, dir } => {
             store_bench(rays, threads.max(1), workers.max(1), fetches, dir)
         }

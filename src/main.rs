@@ -1,6 +1,7 @@
 //! `rtvtk`: the command line of the ray tracing visualization toolkit.
 
 mod bench;
+mod bench_trace;
 mod commands;
 mod record;
 
