@@ -52,9 +52,11 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
     let ours_build = t.elapsed().as_secs_f64();
     let tris: Vec<Triangle> = scene.tris.iter().map(|t| Triangle { v0: t[0], v1: t[1], v2: t[2] }).collect();
     let t = Instant::now();
-    let cw = obvhs::cwbvh::builder::build_cwbvh_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
+    let cw =
+        obvhs::cwbvh::builder::build_cwbvh_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
     let cw_build = t.elapsed().as_secs_f64();
-    let b2 = obvhs::bvh2::builder::build_bvh2_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
+    let b2 =
+        obvhs::bvh2::builder::build_bvh2_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
 
     // Rays of a path-traced frame, by kind.
     let ctx = TraceCtx { scene: &scene, bvh: &bvh, max_depth: 6, bug: None, record_visits: false };
@@ -87,7 +89,9 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
     );
     println!("build: ours (obvhs BVH2 medium) {ours_build:.3} s, obvhs CWBVH medium {cw_build:.3} s");
     println!();
-    println!("| kind | rays | ours Mrays/s | obvhs BVH2 stock | obvhs CWBVH stock | ours / CWBVH | boxes/ray | tris/ray |");
+    println!(
+        "| kind | rays | ours Mrays/s | obvhs BVH2 stock | obvhs CWBVH stock | ours / CWBVH | boxes/ray | tris/ray |"
+    );
     println!("|---|---|---|---|---|---|---|---|");
     for kind in [Kind::CAMERA, Kind::SHADOW, Kind::DIFFUSE] {
         let set: Vec<&BenchRay> = rays.iter().filter(|(k, _)| *k == kind).map(|(_, r)| r).collect();
@@ -156,7 +160,9 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
         );
         let agree = |a: u64, b: u64| (a as f64 - b as f64).abs() <= 0.002 * n;
         if !agree(hits_ours, hits_cw) || !agree(hits_ours, hits_b2) {
-            println!("  note: hit counts differ: ours {hits_ours}, BVH2 {hits_b2}, CWBVH {hits_cw} (Möller vs watertight test)");
+            println!(
+                "  note: hit counts differ: ours {hits_ours}, BVH2 {hits_b2}, CWBVH {hits_cw} (Möller vs watertight test)"
+            );
         }
     }
     Ok(())

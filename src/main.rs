@@ -36,6 +36,24 @@ enum Command {
         #[arg(long, default_value_t = 2)]
         threads: usize,
     },
+    /// Image error (RMSE, relative MSE) of the path tracer against time and samples per pixel.
+    Converge {
+        #[arg(long, default_value = "cornell")]
+        scene: String,
+        #[arg(long, default_value = "96x96", value_parser = commands::parse_size)]
+        size: (u32, u32),
+        /// Samples per pixel of the reference image.
+        #[arg(long, default_value_t = 1024)]
+        reference_spp: u32,
+        /// Sample counts to measure (comma separated).
+        #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,32,64,128")]
+        spp: Vec<u32>,
+        /// Directory for convergence.csv, convergence.png and reference.exr.
+        #[arg(long, default_value = "converge-out")]
+        out: PathBuf,
+        #[arg(long)]
+        threads: Option<usize>,
+    },
     /// Counts, bytes per ray, kinds, payload schema and format version of a dataset.
     Info {
         dataset: PathBuf,
@@ -74,6 +92,9 @@ fn main() {
     let cli = Cli::parse();
     let result: Result<i32> = match cli.command {
         Command::Demo { out, size, spp, threads } => commands::demo(out, size, spp, threads).map(|_| 0),
+        Command::Converge { scene, size, reference_spp, spp, out, threads } => {
+            commands::converge(&scene, size, reference_spp, &spp, &out, threads).map(|_| 0)
+        }
         Command::Record(args) => record::run(&args).map(|_| 0),
         Command::Info { dataset, json } => commands::info(&dataset, json).map(|_| 0),
         Command::Tree { dataset, pixel, sample, tree, json } => {

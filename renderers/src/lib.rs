@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod bvh;
+pub mod converge;
 mod error;
 pub mod film;
 pub mod geometry;

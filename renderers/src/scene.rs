@@ -267,13 +267,19 @@ type Quad = [[f32; 3]; 4];
 
 // The Cornell box data as measured (Cornell University Program of Computer Graphics), in mm.
 const FLOOR: Quad = [[552.8, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 559.2], [549.6, 0.0, 559.2]];
-const CEILING: Quad = [[556.0, 548.8, 0.0], [556.0, 548.8, 559.2], [0.0, 548.8, 559.2], [0.0, 548.8, 0.0]];
 const BACK: Quad = [[549.6, 0.0, 559.2], [0.0, 0.0, 559.2], [0.0, 548.8, 559.2], [556.0, 548.8, 559.2]];
 const GREEN: Quad = [[0.0, 0.0, 559.2], [0.0, 0.0, 0.0], [0.0, 548.8, 0.0], [0.0, 548.8, 559.2]];
 const RED: Quad = [[552.8, 0.0, 0.0], [549.6, 0.0, 559.2], [556.0, 548.8, 559.2], [556.0, 548.8, 0.0]];
-// The light sits 0.8 mm below the ceiling (measured: in its plane) so the two stay distinct in f32
-// even with the box moved 1e6 mm from the origin, where floats are 1/16 mm apart.
-const LIGHT: Quad = [[343.0, 548.0, 227.0], [343.0, 548.0, 332.0], [213.0, 548.0, 332.0], [213.0, 548.0, 227.0]];
+// The light is flush with the ceiling, filling a hole cut in it (as in the real box): the ceiling
+// cannot see the light (no near-singular geometry term at the light's edges), and the two never
+// overlap, however coarse the floating-point grid (the box moved 1e6 mm from the origin).
+const LIGHT: Quad = [[343.0, 548.8, 227.0], [343.0, 548.8, 332.0], [213.0, 548.8, 332.0], [213.0, 548.8, 227.0]];
+const CEILING_PARTS: [Quad; 4] = [
+    [[556.0, 548.8, 0.0], [556.0, 548.8, 227.0], [0.0, 548.8, 227.0], [0.0, 548.8, 0.0]],
+    [[556.0, 548.8, 332.0], [556.0, 548.8, 559.2], [0.0, 548.8, 559.2], [0.0, 548.8, 332.0]],
+    [[213.0, 548.8, 227.0], [213.0, 548.8, 332.0], [0.0, 548.8, 332.0], [0.0, 548.8, 227.0]],
+    [[556.0, 548.8, 227.0], [556.0, 548.8, 332.0], [343.0, 548.8, 332.0], [343.0, 548.8, 227.0]],
+];
 const SHORT: [Quad; 5] = [
     [[130.0, 165.0, 65.0], [82.0, 165.0, 225.0], [240.0, 165.0, 272.0], [290.0, 165.0, 114.0]],
     [[290.0, 0.0, 114.0], [290.0, 165.0, 114.0], [240.0, 165.0, 272.0], [240.0, 0.0, 272.0]],
@@ -346,7 +352,9 @@ fn cornell(which: BuiltinScene, n: u32) -> Result<Scene> {
     let mut tris = Vec::new();
     let mut mats = Vec::new();
     push_quad(&FLOOR, floor_mat, n, &mut tris, &mut mats);
-    push_quad(&CEILING, 0, n, &mut tris, &mut mats);
+    for q in &CEILING_PARTS {
+        push_quad(q, 0, n, &mut tris, &mut mats);
+    }
     push_quad(&BACK, 0, n, &mut tris, &mut mats);
     push_quad(&GREEN, 2, n, &mut tris, &mut mats);
     push_quad(&RED, 1, n, &mut tris, &mut mats);

@@ -300,3 +300,21 @@ fn whitted_tracer_records_shadow_specular_and_transmission_rays() {
     assert!(ds.check().is_ok());
     let _ = TraversalStats::default();
 }
+
+#[test]
+fn error_falls_as_one_over_root_samples() {
+    let scene = BuiltinScene::Cornell.build(1).unwrap();
+    let bvh = Bvh::build(&scene.tris);
+    let base = RenderOptions { width: 16, height: 16, threads: 2, ..Default::default() };
+    let (_, points) = renderers::converge::convergence(&scene, &bvh, &base, 1024, &[2, 4, 8, 16, 32]).unwrap();
+    // Relative RMSE weighs every pixel by its own scale; linear RMSE on a tiny image is dominated
+    // by a few pixels on the edge of the (radiance 17) light, so it is only checked to fall.
+    let rel = renderers::converge::log_log_slope(
+        &points.iter().map(|p| (f64::from(p.spp), p.rel_mse.sqrt())).collect::<Vec<_>>(),
+    );
+    assert!((-0.75..=-0.3).contains(&rel), "log-log slope of relative RMSE {rel}, expected near -0.5: {points:?}");
+    assert!(points.last().unwrap().rmse < points[0].rmse * 0.6);
+    let tmp = tempfile::tempdir().unwrap();
+    renderers::converge::write_plot(&points, &tmp.path().join("c.png")).unwrap();
+    assert!(tmp.path().join("c.png").metadata().unwrap().len() > 1000);
+}
