@@ -34,7 +34,9 @@ fn demo_info_tree_check() {
     let by_kind: u64 = info["rays_by_kind"].as_object().unwrap().values().map(|v| v.as_u64().unwrap()).sum();
     assert_eq!(by_kind, rays);
     assert!(info["bytes_per_ray"].as_f64().unwrap() > 1.0);
-    assert!(info["payload"].as_array().unwrap().is_empty());
+    let payload: Vec<&str> = info["payload"].as_array().unwrap().iter().map(|p| p["name"].as_str().unwrap()).collect();
+    assert_eq!(payload, ["throughput", "radiance", "material", "nodes_visited", "box_tests", "tri_tests"]);
+    assert!(dir.join("image.png").exists() && dir.join("image.exr").exists());
 
     let out = rtvtk(&["tree", d, "--pixel", "16,18", "--json"]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));

@@ -199,6 +199,19 @@ impl Bvh {
 
     /// Whether anything lies in (tmin, tmax): stops at the first hit. Returns the hit found.
     pub fn any_hit(&self, ray: &Ray, tmin: f32, tmax: f32, stats: &mut TraversalStats) -> Option<Hit> {
+        self.any_hit_except(ray, tmin, tmax, u32::MAX, stats)
+    }
+
+    /// Like [`Bvh::any_hit`], ignoring triangle `skip`: a shadow ray's target emitter cannot occlude
+    /// itself, whatever rounding does to the end of the ray far from the origin.
+    pub fn any_hit_except(
+        &self,
+        ray: &Ray,
+        tmin: f32,
+        tmax: f32,
+        skip: u32,
+        stats: &mut TraversalStats,
+    ) -> Option<Hit> {
         if self.nodes.is_empty() {
             return None;
         }
@@ -216,9 +229,13 @@ impl Bvh {
             if n.count > 0 {
                 for slot in n.first..n.first + n.count {
                     stats.tris += 1;
+                    let prim = self.prims[slot as usize];
+                    if prim == skip {
+                        continue;
+                    }
                     let [v0, v1, v2] = self.verts[slot as usize];
                     if let Some(h) = intersect_triangle(ray, v0, v1, v2, tmin, tmax) {
-                        return Some(Hit { t: h.t, prim: self.prims[slot as usize], u: h.u, v: h.v });
+                        return Some(Hit { t: h.t, prim, u: h.u, v: h.v });
                     }
                 }
             } else if sp + 2 <= stack.len() {

@@ -192,7 +192,7 @@ pub fn path_sample(
                     }
                     let sray = Ray::new(origin, sdir);
                     let mut sst = TraversalStats::default();
-                    let occ = ctx.bvh.any_hit(&sray, 0.0, dist * (1.0 - 1e-4), &mut sst);
+                    let occ = ctx.bvh.any_hit_except(&sray, 0.0, dist * (1.0 - 1e-4), lprim, &mut sst);
                     let f = material::eval(m, n, -ray.dir, wi);
                     let weight = beta * f * (cos_x * cos_l / (dist2 * pdf_area));
                     let le = scene.material_of(lprim).emission;
@@ -330,7 +330,7 @@ fn whitted(
                     }
                     let sray = Ray::new(origin, wi);
                     let mut sst = TraversalStats::default();
-                    let occ = ctx.bvh.any_hit(&sray, 0.0, d2.sqrt() * (1.0 - 1e-4), &mut sst);
+                    let occ = ctx.bvh.any_hit_except(&sray, 0.0, d2.sqrt() * (1.0 - 1e-4), prim, &mut sst);
                     let le = scene.material_of(prim).emission;
                     let cos_l = scene.normals[prim as usize].dot(wi).abs();
                     let contrib = m.diffuse / std::f32::consts::PI * le * (area * scale * cos_x * cos_l / d2);
