@@ -89,10 +89,12 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
     );
     println!("build: ours (obvhs BVH2 medium) {ours_build:.3} s, obvhs CWBVH medium {cw_build:.3} s");
     println!();
+    #[cfg(feature = "embree")]
+    let embree = crate::embree::EmbreeScene::new(&scene.tris);
     println!(
-        "| kind | rays | ours Mrays/s | obvhs BVH2 stock | obvhs CWBVH stock | ours / CWBVH | boxes/ray | tris/ray |"
+        "| kind | rays | ours Mrays/s | obvhs BVH2 stock | obvhs CWBVH stock | Embree 3 | ours / CWBVH | ours / Embree | boxes/ray | tris/ray |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     for kind in [Kind::CAMERA, Kind::SHADOW, Kind::DIFFUSE] {
         let set: Vec<&BenchRay> = rays.iter().filter(|(k, _)| *k == kind).map(|(_, r)| r).collect();
         if set.is_empty() {
@@ -146,18 +148,38 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
             }
             hits
         });
+        #[allow(unused_mut)]
+        let mut emb: Option<(f64, u64)> = None;
+        #[cfg(feature = "embree")]
+        if let Some(e) = &embree {
+            emb = Some(time(|| {
+                let mut hits = 0;
+                for r in &set {
+                    let hit = if shadow { e.occluded(r.o, r.d, r.tmax) } else { e.intersect(r.o, r.d, r.tmax).is_some() };
+                    hits += u64::from(hit);
+                }
+                hits
+            }));
+        }
         let n = set.len() as f64;
         let name = store::BUILTIN_KINDS.iter().find(|(_, k)| *k == kind).map_or("?", |(n, _)| n);
         println!(
-            "| {name} | {} | {:.2} | {:.2} | {:.2} | {:.2}x | {:.1} | {:.1} |",
+            "| {name} | {} | {:.2} | {:.2} | {:.2} | {} | {:.2}x | {} | {:.1} | {:.1} |",
             set.len(),
             n / ours / 1e6,
             n / stock2 / 1e6,
             n / stock_cw / 1e6,
+            emb.map_or("n/a".into(), |(s, _)| format!("{:.2}", n / s / 1e6)),
             stock_cw / ours,
+            emb.map_or("n/a".into(), |(s, _)| format!("{:.2}x", s / ours)),
             st.boxes as f64 / n,
             st.tris as f64 / n
         );
+        if let Some((_, h)) = emb
+            && (h as f64 - hits_ours as f64).abs() > 0.002 * n
+        {
+            println!("  note: Embree found {h} hits, ours {hits_ours}");
+        }
         let agree = |a: u64, b: u64| (a as f64 - b as f64).abs() <= 0.002 * n;
         if !agree(hits_ours, hits_cw) || !agree(hits_ours, hits_b2) {
             println!(

@@ -3,6 +3,8 @@
 mod bench;
 mod bench_trace;
 mod commands;
+#[cfg(feature = "embree")]
+mod embree;
 mod record;
 
 use std::path::PathBuf;
