@@ -155,7 +155,8 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
             emb = Some(time(|| {
                 let mut hits = 0;
                 for r in &set {
-                    let hit = if shadow { e.occluded(r.o, r.d, r.tmax) } else { e.intersect(r.o, r.d, r.tmax).is_some() };
+                    let hit =
+                        if shadow { e.occluded(r.o, r.d, r.tmax) } else { e.intersect(r.o, r.d, r.tmax).is_some() };
                     hits += u64::from(hit);
                 }
                 hits

@@ -47,7 +47,14 @@ unsafe extern "C" {
     fn rtcNewScene(device: *mut c_void) -> *mut c_void;
     fn rtcReleaseScene(scene: *mut c_void);
     fn rtcNewGeometry(device: *mut c_void, kind: u32) -> *mut c_void;
-    fn rtcSetNewGeometryBuffer(geom: *mut c_void, kind: u32, slot: u32, format: u32, stride: usize, count: usize) -> *mut c_void;
+    fn rtcSetNewGeometryBuffer(
+        geom: *mut c_void,
+        kind: u32,
+        slot: u32,
+        format: u32,
+        stride: usize,
+        count: usize,
+    ) -> *mut c_void;
     fn rtcCommitGeometry(geom: *mut c_void);
     fn rtcAttachGeometry(scene: *mut c_void, geom: *mut c_void) -> u32;
     fn rtcReleaseGeometry(geom: *mut c_void);
@@ -79,8 +86,10 @@ impl EmbreeScene {
             }
             let scene = rtcNewScene(device);
             let geom = rtcNewGeometry(device, RTC_GEOMETRY_TYPE_TRIANGLE);
-            let v = rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, tris.len() * 3) as *mut f32;
-            let ix = rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, tris.len()) as *mut u32;
+            let v = rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 12, tris.len() * 3)
+                as *mut f32;
+            let ix =
+                rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 12, tris.len()) as *mut u32;
             if v.is_null() || ix.is_null() {
                 return None;
             }

@@ -51,9 +51,24 @@ struct Node {
     count: u32,
 }
 
+/// An inner node as traversal reads it: both children's boxes in one 64-byte line.
+#[derive(Clone, Copy, Debug, Default)]
+#[repr(C, align(16))]
+struct Pair {
+    min: [Vec3A; 2],
+    max: [Vec3A; 2],
+    /// Child node ids (ids of `nodes`, also the ids in the `bvh_nodes` table).
+    child: [u32; 2],
+    /// Leaf children: first slot in `prims` and triangle count; a count of 0 marks an inner child.
+    first: [u32; 2],
+    count: [u32; 2],
+}
+
 /// A binary BVH over triangles.
 pub struct Bvh {
     nodes: Vec<Node>,
+    /// Indexed by inner node id.
+    pairs: Vec<Pair>,
     /// Triangle index per leaf slot.
     prims: Vec<u32>,
     /// Triangle vertices per leaf slot (copied for locality).
@@ -65,25 +80,46 @@ pub struct Bvh {
 /// γ(3) of Pharr et al.: the relative error bound that makes the slab test conservative.
 const GAMMA3: f32 = 3.0 * f32::EPSILON * 0.5 / (1.0 - 3.0 * f32::EPSILON * 0.5);
 
+/// 1/d with components of magnitude below 1e-30 clamped to ±1e-30 first: finite, so the SIMD
+/// slab test never forms 0 · ∞ (an axis-parallel ray starting on a box plane).
 #[inline(always)]
-fn slab(min: Vec3A, max: Vec3A, ray: &Ray, tmin: f32, tmax: f32) -> Option<f32> {
-    // Scalar min/max ignore NaN (0 · ∞ when an axis-parallel ray starts on a box plane).
-    let t1x = (min.x - ray.origin.x) * ray.inv_dir.x;
-    let t2x = (max.x - ray.origin.x) * ray.inv_dir.x;
-    let t1y = (min.y - ray.origin.y) * ray.inv_dir.y;
-    let t2y = (max.y - ray.origin.y) * ray.inv_dir.y;
-    let t1z = (min.z - ray.origin.z) * ray.inv_dir.z;
-    let t2z = (max.z - ray.origin.z) * ray.inv_dir.z;
-    let near = t1x.min(t2x).max(t1y.min(t2y)).max(t1z.min(t2z)).max(tmin);
-    let far = t1x.max(t2x).min(t1y.max(t2y)).min(t1z.max(t2z)).min(tmax);
-    if near <= far * (1.0 + 2.0 * GAMMA3) { Some(near) } else { None }
+fn safe_inv(d: Vec3A) -> Vec3A {
+    let tiny = Vec3A::splat(1e-30);
+    let clamped = Vec3A::select(d.abs().cmplt(tiny), tiny.copysign(d), d);
+    Vec3A::ONE / clamped
+}
+
+#[inline(always)]
+fn slab_simd(min: Vec3A, max: Vec3A, org_inv: Vec3A, inv: Vec3A, tmin: f32, tmax: f32) -> f32 {
+    // Inputs are finite (see safe_inv), so plain comparisons stand in for the NaN-aware (and
+    // slower) f32::min/max.
+    let t1 = min * inv - org_inv;
+    let t2 = max * inv - org_inv;
+    let lo = t1.min(t2);
+    let hi = t1.max(t2);
+    let (lx, ly, lz) = (lo.x, lo.y, lo.z);
+    let (hx, hy, hz) = (hi.x, hi.y, hi.z);
+    let mut near = if lx > ly { lx } else { ly };
+    near = if lz > near { lz } else { near };
+    near = if tmin > near { tmin } else { near };
+    let mut far = if hx < hy { hx } else { hy };
+    far = if hz < far { hz } else { far };
+    far = if tmax < far { tmax } else { far };
+    if near <= far * (1.0 + 2.0 * GAMMA3) { near } else { f32::INFINITY }
 }
 
 impl Bvh {
     /// Builds a BVH over `tris` (each three vertices). Empty input gives an empty BVH.
     pub fn build(tris: &[[Vec3A; 3]]) -> Bvh {
         if tris.is_empty() {
-            return Bvh { nodes: Vec::new(), prims: Vec::new(), verts: Vec::new(), parents: Vec::new(), depth: 0 };
+            return Bvh {
+                nodes: Vec::new(),
+                pairs: Vec::new(),
+                prims: Vec::new(),
+                verts: Vec::new(),
+                parents: Vec::new(),
+                depth: 0,
+            };
         }
         let input: Vec<Triangle> = tris.iter().map(|t| Triangle { v0: t[0], v1: t[1], v2: t[2] }).collect();
         let bvh = build_bvh2_from_tris(&input, BvhBuildParams::medium_build(), &mut Duration::default());
@@ -107,7 +143,44 @@ impl Bvh {
                 }
             }
         }
-        Bvh { nodes, prims, verts, parents, depth }
+        let mut pairs = vec![Pair::default(); nodes.len()];
+        for (i, n) in nodes.iter().enumerate() {
+            if n.count == 0 {
+                let mut p = Pair::default();
+                for k in 0..2 {
+                    let c = nodes[(n.first + k as u32) as usize];
+                    p.min[k] = c.min;
+                    p.max[k] = c.max;
+                    p.child[k] = n.first + k as u32;
+                    p.first[k] = if c.count > 0 { c.first } else { 0 };
+                    p.count[k] = c.count;
+                }
+                pairs[i] = p;
+            }
+        }
+        Bvh { nodes, pairs, prims, verts, parents, depth }
+    }
+
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn leaf(
+        &self,
+        first: u32,
+        count: u32,
+        ray: &Ray,
+        tmin: f32,
+        tmax: &mut f32,
+        best: &mut Option<(TriHit, u32)>,
+        stats: &mut TraversalStats,
+    ) {
+        for slot in first..first + count {
+            stats.tris += 1;
+            let [v0, v1, v2] = self.verts[slot as usize];
+            if let Some(h) = intersect_triangle(ray, v0, v1, v2, tmin, *tmax) {
+                *tmax = h.t;
+                *best = Some((h, self.prims[slot as usize]));
+            }
+        }
     }
 
     pub fn node_count(&self) -> usize {
@@ -132,64 +205,76 @@ impl Bvh {
             return None;
         }
         let mut best: Option<(TriHit, u32)> = None;
-        let mut stack = [0u32; 128];
-        let mut sp = 0usize;
+        let inv = safe_inv(ray.dir);
+        let org_inv = ray.origin * inv;
         stats.boxes += 1;
         let root = &self.nodes[0];
-        slab(root.min, root.max, ray, tmin, tmax)?;
+        if slab_simd(root.min, root.max, org_inv, inv, tmin, tmax) == f32::INFINITY {
+            return None;
+        }
+        stats.nodes += 1;
+        if let Some(v) = visits.as_deref_mut() {
+            v.push(0);
+        }
+        if root.count > 0 {
+            self.leaf(root.first, root.count, ray, tmin, &mut tmax, &mut best, stats);
+            return best.map(|(h, p)| Hit { t: h.t, prim: p, u: h.u, v: h.v });
+        }
+        // Stack of (inner node, distance at which its box was entered).
+        let mut stack = [(0u32, 0.0f32); 128];
+        let mut sp = 0usize;
         let mut node = 0u32;
         loop {
-            stats.nodes += 1;
-            if let Some(v) = visits.as_deref_mut() {
-                v.push(node);
-            }
-            let n = self.nodes[node as usize];
-            if n.count > 0 {
-                for slot in n.first..n.first + n.count {
-                    stats.tris += 1;
-                    let [v0, v1, v2] = self.verts[slot as usize];
-                    if let Some(h) = intersect_triangle(ray, v0, v1, v2, tmin, tmax) {
-                        tmax = h.t;
-                        best = Some((h, self.prims[slot as usize]));
-                    }
+            let p = &self.pairs[node as usize];
+            stats.boxes += 2;
+            let d = [
+                slab_simd(p.min[0], p.max[0], org_inv, inv, tmin, tmax),
+                slab_simd(p.min[1], p.max[1], org_inv, inv, tmin, tmax),
+            ];
+            // Nearer child first.
+            let order = if d[1] < d[0] { [1, 0] } else { [0, 1] };
+            let mut next: [u32; 2] = [u32::MAX; 2];
+            let mut next_d = [f32::INFINITY; 2];
+            let mut k = 0;
+            for c in order {
+                if d[c] == f32::INFINITY || d[c] > tmax {
+                    continue;
                 }
-            } else {
-                let (l, r) = (n.first, n.first + 1);
-                let (ln, rn) = (&self.nodes[l as usize], &self.nodes[r as usize]);
-                stats.boxes += 2;
-                let dl = slab(ln.min, ln.max, ray, tmin, tmax);
-                let dr = slab(rn.min, rn.max, ray, tmin, tmax);
-                match (dl, dr) {
-                    (Some(a), Some(b)) => {
-                        let (near, far) = if a <= b { (l, r) } else { (r, l) };
-                        if sp < stack.len() {
-                            stack[sp] = far;
-                            sp += 1;
-                        }
-                        node = near;
-                        continue;
-                    }
-                    (Some(_), None) => {
-                        node = l;
-                        continue;
-                    }
-                    (None, Some(_)) => {
-                        node = r;
-                        continue;
-                    }
-                    (None, None) => {}
+                let id = p.child[c];
+                stats.nodes += 1;
+                if let Some(v) = visits.as_deref_mut() {
+                    v.push(id);
+                }
+                if p.count[c] > 0 {
+                    self.leaf(p.first[c], p.count[c], ray, tmin, &mut tmax, &mut best, stats);
+                } else {
+                    next[k] = id;
+                    next_d[k] = d[c];
+                    k += 1;
                 }
             }
-            // Pop the next node whose box still lies before the closest hit.
+            match k {
+                2 => {
+                    if sp < stack.len() {
+                        stack[sp] = (next[1], next_d[1]);
+                        sp += 1;
+                    }
+                    node = next[0];
+                    continue;
+                }
+                1 => {
+                    node = next[0];
+                    continue;
+                }
+                _ => {}
+            }
             loop {
                 if sp == 0 {
                     return best.map(|(h, p)| Hit { t: h.t, prim: p, u: h.u, v: h.v });
                 }
                 sp -= 1;
-                let c = stack[sp];
-                let cn = &self.nodes[c as usize];
-                stats.boxes += 1;
-                if slab(cn.min, cn.max, ray, tmin, tmax).is_some() {
+                let (c, dist) = stack[sp];
+                if dist <= tmax {
                     node = c;
                     break;
                 }
@@ -215,33 +300,50 @@ impl Bvh {
         if self.nodes.is_empty() {
             return None;
         }
+        let inv = safe_inv(ray.dir);
+        let org_inv = ray.origin * inv;
+        stats.boxes += 1;
+        let root = &self.nodes[0];
+        if slab_simd(root.min, root.max, org_inv, inv, tmin, tmax) == f32::INFINITY {
+            return None;
+        }
+        stats.nodes += 1;
+        let test_leaf = |first: u32, count: u32, stats: &mut TraversalStats| -> Option<Hit> {
+            for slot in first..first + count {
+                stats.tris += 1;
+                let prim = self.prims[slot as usize];
+                if prim == skip {
+                    continue;
+                }
+                let [v0, v1, v2] = self.verts[slot as usize];
+                if let Some(h) = intersect_triangle(ray, v0, v1, v2, tmin, tmax) {
+                    return Some(Hit { t: h.t, prim, u: h.u, v: h.v });
+                }
+            }
+            None
+        };
+        if root.count > 0 {
+            return test_leaf(root.first, root.count, stats);
+        }
         let mut stack = [0u32; 128];
         let mut sp = 1usize;
         while sp > 0 {
             sp -= 1;
-            let i = stack[sp];
-            let n = self.nodes[i as usize];
-            stats.boxes += 1;
-            if slab(n.min, n.max, ray, tmin, tmax).is_none() {
-                continue;
-            }
-            stats.nodes += 1;
-            if n.count > 0 {
-                for slot in n.first..n.first + n.count {
-                    stats.tris += 1;
-                    let prim = self.prims[slot as usize];
-                    if prim == skip {
-                        continue;
-                    }
-                    let [v0, v1, v2] = self.verts[slot as usize];
-                    if let Some(h) = intersect_triangle(ray, v0, v1, v2, tmin, tmax) {
-                        return Some(Hit { t: h.t, prim, u: h.u, v: h.v });
-                    }
+            let p = &self.pairs[stack[sp] as usize];
+            stats.boxes += 2;
+            for c in 0..2 {
+                if slab_simd(p.min[c], p.max[c], org_inv, inv, tmin, tmax) == f32::INFINITY {
+                    continue;
                 }
-            } else if sp + 2 <= stack.len() {
-                stack[sp] = n.first + 1;
-                stack[sp + 1] = n.first;
-                sp += 2;
+                stats.nodes += 1;
+                if p.count[c] > 0 {
+                    if let Some(h) = test_leaf(p.first[c], p.count[c], stats) {
+                        return Some(h);
+                    }
+                } else if sp < stack.len() {
+                    stack[sp] = p.child[c];
+                    sp += 1;
+                }
             }
         }
         None

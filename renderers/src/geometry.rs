@@ -50,7 +50,7 @@ pub struct TriHit {
 
 /// Watertight ray/triangle intersection (Woop, Benthin and Wald 2013): no ray passes between
 /// two triangles sharing an edge, including rays through edges and vertices.
-#[inline]
+#[inline(always)]
 pub fn intersect_triangle(ray: &Ray, v0: Vec3A, v1: Vec3A, v2: Vec3A, tmin: f32, tmax: f32) -> Option<TriHit> {
     let a = v0 - ray.origin;
     let b = v1 - ray.origin;
