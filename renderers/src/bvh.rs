@@ -90,11 +90,13 @@ fn safe_inv(d: Vec3A) -> Vec3A {
 }
 
 #[inline(always)]
-fn slab_simd(min: Vec3A, max: Vec3A, org_inv: Vec3A, inv: Vec3A, tmin: f32, tmax: f32) -> f32 {
+fn slab_simd(min: Vec3A, max: Vec3A, org: Vec3A, inv: Vec3A, tmin: f32, tmax: f32) -> f32 {
     // Inputs are finite (see safe_inv), so plain comparisons stand in for the NaN-aware (and
     // slower) f32::min/max.
-    let t1 = min * inv - org_inv;
-    let t2 = max * inv - org_inv;
+    // (min − o)·inv, not min·inv − o·inv: the latter cancels catastrophically for rays starting on a
+    // box plane, and the conservative bound (Ize 2013) no longer holds — grazing rays leaked.
+    let t1 = (min - org) * inv;
+    let t2 = (max - org) * inv;
     let lo = t1.min(t2);
     let hi = t1.max(t2);
     let (lx, ly, lz) = (lo.x, lo.y, lo.z);
@@ -206,7 +208,7 @@ impl Bvh {
         }
         let mut best: Option<(TriHit, u32)> = None;
         let inv = safe_inv(ray.dir);
-        let org_inv = ray.origin * inv;
+        let org_inv = ray.origin;
         stats.boxes += 1;
         let root = &self.nodes[0];
         if slab_simd(root.min, root.max, org_inv, inv, tmin, tmax) == f32::INFINITY {
@@ -301,7 +303,7 @@ impl Bvh {
             return None;
         }
         let inv = safe_inv(ray.dir);
-        let org_inv = ray.origin * inv;
+        let org_inv = ray.origin;
         stats.boxes += 1;
         let root = &self.nodes[0];
         if slab_simd(root.min, root.max, org_inv, inv, tmin, tmax) == f32::INFINITY {
