@@ -49,6 +49,7 @@ pub fn demo(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) 
         camera_target: None,
         fov: None,
         quiet: false,
+        subdivide: 1,
     };
     crate::record::run(&args)?;
     println!();

@@ -81,6 +81,9 @@ pub struct RecordArgs {
     /// Do not print the summary tables.
     #[arg(long)]
     pub quiet: bool,
+    /// Split every quad of a built-in scene n × n (more triangles, same picture).
+    #[arg(long, default_value_t = 1)]
+    pub subdivide: u32,
 }
 
 fn parse_window(s: &str) -> Result<[u32; 4], String> {
@@ -108,8 +111,12 @@ fn kind_by_name(name: &str) -> Option<Kind> {
 }
 
 pub fn load_scene(name: &str, camera: Option<Camera>) -> Result<Scene> {
+    load_scene_subdivided(name, camera, 1)
+}
+
+pub fn load_scene_subdivided(name: &str, camera: Option<Camera>, subdivide: u32) -> Result<Scene> {
     let mut scene = match BuiltinScene::parse(name) {
-        Some(b) => b.build(1)?,
+        Some(b) => b.build(subdivide)?,
         None => {
             let p = Path::new(name);
             if p.extension().is_none_or(|e| !e.eq_ignore_ascii_case("obj")) && !p.exists() {
@@ -134,7 +141,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         }),
         _ => None,
     };
-    let mut scene = load_scene(&a.scene, camera)?;
+    let mut scene = load_scene_subdivided(&a.scene, camera, a.subdivide)?;
     if let (Some(f), None) = (a.fov, camera) {
         scene.camera.fov_y = f;
     }

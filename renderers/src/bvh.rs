@@ -124,7 +124,8 @@ impl Bvh {
             };
         }
         let input: Vec<Triangle> = tris.iter().map(|t| Triangle { v0: t[0], v1: t[1], v2: t[2] }).collect();
-        let bvh = build_bvh2_from_tris(&input, BvhBuildParams::medium_build(), &mut Duration::default());
+        let params = BvhBuildParams { max_prims_per_leaf: 4, ..BvhBuildParams::slow_build() };
+        let bvh = build_bvh2_from_tris(&input, params, &mut Duration::default());
         let nodes: Vec<Node> = bvh
             .nodes
             .iter()
@@ -351,7 +352,8 @@ impl Bvh {
         None
     }
 
-    /// Checks the structure: children inside parents, every triangle in exactly one leaf,
+    /// Checks the structure: children inside parents, every triangle in at least one leaf (large
+    /// triangles are split across leaves),
     /// leaves bounding their triangles. Returns the first violation.
     pub fn validate(&self, triangle_count: usize) -> Result<(), String> {
         if self.nodes.is_empty() {
@@ -381,8 +383,8 @@ impl Bvh {
                 }
             }
         }
-        match seen.iter().position(|&c| c != 1) {
-            Some(p) => Err(format!("triangle {p} is in {} leaves, expected 1", seen[p])),
+        match seen.iter().position(|&c| c == 0) {
+            Some(p) => Err(format!("triangle {p} is in no leaf")),
             None => Ok(()),
         }
     }
