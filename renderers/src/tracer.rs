@@ -39,6 +39,64 @@ pub struct RecRay {
     pub visits: (u32, u32),
 }
 
+impl RecRay {
+    /// A ray traced for its closest hit (radiance is filled in once known).
+    #[allow(clippy::too_many_arguments)]
+    fn traced(
+        scene: &Scene,
+        parent: Option<u32>,
+        ray: &Ray,
+        hit: Option<Hit>,
+        kind: Kind,
+        throughput: Vec3A,
+        stats: TraversalStats,
+        visits: (u32, u32),
+    ) -> RecRay {
+        RecRay {
+            parent,
+            origin: ray.origin,
+            dir: ray.dir,
+            t: hit.map(|h| h.t),
+            prim: hit.map(|h| h.prim),
+            kind,
+            throughput,
+            radiance: Vec3A::ZERO,
+            material: hit.map(|h| scene.tri_material[h.prim as usize]),
+            stats,
+            visits,
+        }
+    }
+
+    /// A shadow ray towards emitter `target` at distance `dist`, blocked by `occluder` if any:
+    /// recorded up to the blocker, or up to the light it reached.
+    #[allow(clippy::too_many_arguments)]
+    fn shadow(
+        scene: &Scene,
+        parent: u32,
+        ray: &Ray,
+        target: u32,
+        dist: f32,
+        occluder: Option<Hit>,
+        throughput: Vec3A,
+        stats: TraversalStats,
+    ) -> RecRay {
+        let prim = occluder.map_or(target, |o| o.prim);
+        RecRay {
+            parent: Some(parent),
+            origin: ray.origin,
+            dir: ray.dir,
+            t: Some(occluder.map_or(dist, |o| o.t)),
+            prim: Some(prim),
+            kind: Kind::SHADOW,
+            throughput,
+            radiance: if occluder.is_none() { scene.material_of(target).emission } else { Vec3A::ZERO },
+            material: Some(scene.tri_material[prim as usize]),
+            stats,
+            visits: (0, 0),
+        }
+    }
+}
+
 /// The rays of one pixel sample (kept only when `keep` is set; always counted by kind).
 #[derive(Clone, Debug)]
 pub struct SampleRecord {
@@ -143,22 +201,7 @@ pub fn path_sample(
     let mut depth = 0u32;
     loop {
         let (hit, st, vis) = ctx.closest(&ray, &mut rec);
-        let idx = push(
-            &mut rec,
-            RecRay {
-                parent,
-                origin: ray.origin,
-                dir: ray.dir,
-                t: hit.map(|h| h.t),
-                prim: hit.map(|h| h.prim),
-                kind,
-                throughput: beta,
-                radiance: Vec3A::ZERO,
-                material: hit.map(|h| scene.tri_material[h.prim as usize]),
-                stats: st,
-                visits: vis,
-            },
-        );
+        let idx = push(&mut rec, RecRay::traced(scene, parent, &ray, hit, kind, beta, st, vis));
         if chain_len < chain.len() {
             chain[chain_len] = (idx, beta, l);
             chain_len += 1;
@@ -195,27 +238,10 @@ pub fn path_sample(
                     let occ = ctx.bvh.any_hit_except(&sray, 0.0, dist * (1.0 - 1e-4), lprim, &mut sst);
                     let f = material::eval(m, n, -ray.dir, wi);
                     let weight = beta * f * (cos_x * cos_l / (dist2 * pdf_area));
-                    let le = scene.material_of(lprim).emission;
-                    let carried = if occ.is_none() { le } else { Vec3A::ZERO };
                     if occ.is_none() {
-                        l += weight * le;
+                        l += weight * scene.material_of(lprim).emission;
                     }
-                    push(
-                        &mut rec,
-                        RecRay {
-                            parent: Some(idx),
-                            origin,
-                            dir: sdir,
-                            t: Some(occ.map_or(dist, |o| o.t)),
-                            prim: Some(occ.map_or(lprim, |o| o.prim)),
-                            kind: Kind::SHADOW,
-                            throughput: weight,
-                            radiance: carried,
-                            material: Some(scene.tri_material[occ.map_or(lprim, |o| o.prim) as usize]),
-                            stats: sst,
-                            visits: (0, 0),
-                        },
-                    );
+                    push(&mut rec, RecRay::shadow(scene, idx, &sray, lprim, dist, occ, weight, sst));
                 }
             }
         }
@@ -281,22 +307,7 @@ fn whitted(
 ) -> Vec3A {
     let scene = ctx.scene;
     let (hit, st, vis) = ctx.closest(ray, rec);
-    let idx = push(
-        rec,
-        RecRay {
-            parent,
-            origin: ray.origin,
-            dir: ray.dir,
-            t: hit.map(|h| h.t),
-            prim: hit.map(|h| h.prim),
-            kind,
-            throughput: weight,
-            radiance: Vec3A::ZERO,
-            material: hit.map(|h| scene.tri_material[h.prim as usize]),
-            stats: st,
-            visits: vis,
-        },
-    );
+    let idx = push(rec, RecRay::traced(scene, parent, ray, hit, kind, weight, st, vis));
     let Some(hit) = hit else { return Vec3A::ZERO };
     let m = scene.material_of(hit.prim);
     let ng = scene.normals[hit.prim as usize];
@@ -333,26 +344,11 @@ fn whitted(
                     let occ = ctx.bvh.any_hit_except(&sray, 0.0, d2.sqrt() * (1.0 - 1e-4), prim, &mut sst);
                     let le = scene.material_of(prim).emission;
                     let cos_l = scene.normals[prim as usize].dot(wi).abs();
-                    let contrib = m.diffuse / std::f32::consts::PI * le * (area * scale * cos_x * cos_l / d2);
+                    let g = m.diffuse / std::f32::consts::PI * (area * scale * cos_x * cos_l / d2);
                     if occ.is_none() {
-                        l += contrib;
+                        l += g * le;
                     }
-                    push(
-                        rec,
-                        RecRay {
-                            parent: Some(idx),
-                            origin,
-                            dir: wi,
-                            t: Some(occ.map_or(d2.sqrt(), |o| o.t)),
-                            prim: Some(occ.map_or(prim, |o| o.prim)),
-                            kind: Kind::SHADOW,
-                            throughput: weight * m.diffuse / std::f32::consts::PI * (area * scale * cos_x * cos_l / d2),
-                            radiance: if occ.is_none() { le } else { Vec3A::ZERO },
-                            material: Some(scene.tri_material[occ.map_or(prim, |o| o.prim) as usize]),
-                            stats: sst,
-                            visits: (0, 0),
-                        },
-                    );
+                    push(rec, RecRay::shadow(scene, idx, &sray, prim, d2.sqrt(), occ, weight * g, sst));
                 }
                 if m.kind == MaterialKind::Glossy && m.specular.max_element() > 0.0 {
                     let r = Ray::new(offset_point(p, n), reflect(ray.dir, n));
