@@ -127,3 +127,41 @@ print("joined", q(f"select count(*) from {rays} r join {trees} t using (tree_id)
     }
     assert_eq!(get("joined"), want);
 }
+
+#[test]
+fn record_replays_a_sample_and_refuses_bad_input() {
+    let tmp = tempfile::tempdir().unwrap();
+    let full = tmp.path().join("full");
+    let one = tmp.path().join("one");
+    let base = ["record", "--scene", "cornell", "--size", "24x20", "--spp", "3", "--seed", "7", "--threads", "2"];
+    let out = rtvtk(&[&base[..], &["--out", full.to_str().unwrap()]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let out = rtvtk(&[&base[..], &["--out", one.to_str().unwrap(), "--pixel", "11,9", "--sample", "2"]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let tree = |d: &Path| -> Value {
+        let o = rtvtk(&["tree", d.to_str().unwrap(), "--pixel", "11,9", "--sample", "2", "--json"]);
+        let mut v: Value = serde_json::from_slice(&o.stdout).unwrap();
+        v[0]["tree_id"] = Value::Null; // ids differ between the runs; the rays must not
+        v
+    };
+    assert_eq!(tree(&full), tree(&one));
+    let info: Value = serde_json::from_slice(&rtvtk(&["info", one.to_str().unwrap(), "--json"]).stdout).unwrap();
+    assert_eq!(info["trees"], 1);
+
+    let bad = |args: &[&str], needle: &str| {
+        let o = rtvtk(args);
+        assert!(!o.status.success(), "{args:?} should fail");
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(e.contains(needle), "{args:?}: expected {needle:?} in {e}");
+    };
+    let d = tmp.path().join("x");
+    let d = d.to_str().unwrap();
+    bad(&["record", "--scene", "nowhere.obj", "--out", d], "nowhere.obj");
+    bad(&["record", "--scene", "box", "--out", d], "unknown scene");
+    bad(&["record", "--size", "0x5", "--out", d], "positive");
+    bad(&["record", "--size", "24x20", "--window", "0,0,30,5", "--out", d], "window");
+    bad(&["record", "--size", "24x20", "--pixel", "24,0", "--out", d], "outside");
+    bad(&["record", "--record-kinds", "camera,photon", "--out", d], "unknown kind");
+    bad(&["record", "--out", full.to_str().unwrap()], "not empty");
+    bad(&["record", "--camera-pos", "0,nan,0", "--camera-target", "0,0,0", "--out", d], "NaN");
+}
