@@ -69,11 +69,71 @@ struct Node4 {
 
 const EMPTY: u32 = u32::MAX;
 
+/// Up to four triangles of one leaf as SIMD lanes: `v[vertex][axis]`.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
+struct LeafBlock {
+    v: [[Vec4; 3]; 3],
+    prim: [u32; 4],
+    count: u32,
+    /// First slot in `prims`/`verts` (for the exact scalar fallback).
+    first: u32,
+}
+
+/// The closest of up to four triangles hit in (tmin, tmax): watertight (Woop et al. 2013) on four
+/// lanes at once. A lane exactly on an edge (U, V or W = 0) sends the whole block to the scalar
+/// test, which decides such cases in double precision. `skip` masks out one primitive.
+#[inline(always)]
+fn intersect_block(b: &LeafBlock, ray: &Ray, tmin: f32, tmax: f32, skip: u32) -> Result<Option<(TriHit, u32)>, ()> {
+    let (kx, ky, kz) = (ray.kx, ray.ky, ray.kz);
+    let o = [Vec4::splat(ray.origin[kx]), Vec4::splat(ray.origin[ky]), Vec4::splat(ray.origin[kz])];
+    let rel = |vtx: usize| [b.v[vtx][kx] - o[0], b.v[vtx][ky] - o[1], b.v[vtx][kz] - o[2]];
+    let (a, bb, c) = (rel(0), rel(1), rel(2));
+    let (sx, sy) = (Vec4::splat(ray.sx), Vec4::splat(ray.sy));
+    let ax = a[0] - sx * a[2];
+    let ay = a[1] - sy * a[2];
+    let bx = bb[0] - sx * bb[2];
+    let by = bb[1] - sy * bb[2];
+    let cx = c[0] - sx * c[2];
+    let cy = c[1] - sy * c[2];
+    let u = cx * by - cy * bx;
+    let v = ax * cy - ay * cx;
+    let w = bx * ay - by * ax;
+    let zero = Vec4::ZERO;
+    let lanes = (1u32 << b.count) - 1;
+    if (u.cmpeq(zero) | v.cmpeq(zero) | w.cmpeq(zero)).bitmask() & lanes != 0 {
+        return Err(());
+    }
+    let neg = u.cmplt(zero) | v.cmplt(zero) | w.cmplt(zero);
+    let pos = u.cmpgt(zero) | v.cmpgt(zero) | w.cmpgt(zero);
+    let det = u + v + w;
+    let sz = Vec4::splat(ray.sz);
+    // Same operations, in the same order, as the scalar test: results are bit-identical.
+    let inv_det = Vec4::ONE / det;
+    let t = (u * (sz * a[2]) + v * (sz * bb[2]) + w * (sz * c[2])) * inv_det;
+    let ok = !(neg & pos) & det.cmpne(zero) & t.cmpgt(Vec4::splat(tmin)) & t.cmplt(Vec4::splat(tmax));
+    let mut mask = ok.bitmask() & lanes;
+    let mut best: Option<(TriHit, u32)> = None;
+    while mask != 0 {
+        let i = mask.trailing_zeros() as usize;
+        mask &= mask - 1;
+        if b.prim[i] == skip || !t[i].is_finite() {
+            continue;
+        }
+        if best.as_ref().is_none_or(|(h, _)| t[i] < h.t) {
+            best = Some((TriHit { t: t[i], u: v[i] * inv_det[i], v: w[i] * inv_det[i] }, b.prim[i]));
+        }
+    }
+    Ok(best)
+}
+
 /// A binary BVH over triangles.
 pub struct Bvh {
     nodes: Vec<Node>,
     /// The 4-wide tree traversal uses; empty when the root is a leaf.
     nodes4: Vec<Node4>,
+    /// Leaf triangles as SIMD blocks, indexed by `Node4::child` of leaf slots.
+    blocks: Vec<LeafBlock>,
     /// Triangle index per leaf slot.
     prims: Vec<u32>,
     /// Triangle vertices per leaf slot (copied for locality).
@@ -181,6 +241,7 @@ impl Bvh {
             return Bvh {
                 nodes: Vec::new(),
                 nodes4: Vec::new(),
+                blocks: Vec::new(),
                 prims: Vec::new(),
                 verts: Vec::new(),
                 parents: Vec::new(),
@@ -196,7 +257,7 @@ impl Bvh {
             .map(|n| Node { min: n.aabb.min, max: n.aabb.max, first: n.first_index, count: n.prim_count })
             .collect();
         let prims = bvh.primitive_indices.clone();
-        let verts = prims.iter().map(|&p| tris[p as usize]).collect();
+        let verts: Vec<[Vec3A; 3]> = prims.iter().map(|&p| tris[p as usize]).collect();
         let mut parents = vec![u32::MAX; nodes.len()];
         let mut depth = 0;
         let mut stack = vec![(0u32, 0u32)];
@@ -214,7 +275,29 @@ impl Bvh {
         if nodes[0].count == 0 {
             collapse(&nodes, 0, &mut nodes4);
         }
-        Bvh { nodes, nodes4, prims, verts, parents, depth }
+        // One SIMD block per leaf slot of the 4-wide tree.
+        let mut blocks = Vec::new();
+        for n4 in &mut nodes4 {
+            for k in 0..4 {
+                // Leaves of more than four triangles keep the scalar path (child = first slot).
+                if n4.count[k] != EMPTY && n4.count[k] > 0 && n4.count[k] <= 4 {
+                    let (first, count) = (n4.child[k], n4.count[k]);
+                    let mut b = LeafBlock { v: [[Vec4::ZERO; 3]; 3], prim: [u32::MAX; 4], count: count.min(4), first };
+                    for lane in 0..count.min(4) as usize {
+                        let slot = first as usize + lane;
+                        for vtx in 0..3 {
+                            for axis in 0..3 {
+                                b.v[vtx][axis][lane] = verts[slot][vtx][axis];
+                            }
+                        }
+                        b.prim[lane] = prims[slot];
+                    }
+                    n4.child[k] = blocks.len() as u32;
+                    blocks.push(b);
+                }
+            }
+        }
+        Bvh { nodes, nodes4, blocks, prims, verts, parents, depth }
     }
 
     #[inline(always)]
@@ -311,8 +394,22 @@ impl Bvh {
                 if let Some(v) = visits.as_deref_mut() {
                     v.push(n.id[c]);
                 }
-                if n.count[c] > 0 {
+                if n.count[c] > 4 {
                     self.leaf(n.child[c], n.count[c], ray, tmin, &mut tmax, &mut best, stats);
+                } else if n.count[c] > 0 {
+                    let b = &self.blocks[n.child[c] as usize];
+                    stats.tris += b.count;
+                    match intersect_block(b, ray, tmin, tmax, u32::MAX) {
+                        Ok(Some((h, p))) => {
+                            tmax = h.t;
+                            best = Some((h, p));
+                        }
+                        Ok(None) => {}
+                        Err(()) => {
+                            stats.tris -= b.count;
+                            self.leaf(b.first, b.count, ray, tmin, &mut tmax, &mut best, stats);
+                        }
+                    }
                 } else if next.is_none() {
                     next = Some((n.child[c], dist));
                 } else {
@@ -402,9 +499,21 @@ impl Bvh {
                     continue;
                 }
                 stats.nodes += 1;
-                if n.count[c] > 0 {
+                if n.count[c] > 4 {
                     if let Some(h) = test_leaf(n.child[c], n.count[c], stats) {
                         return Some(h);
+                    }
+                } else if n.count[c] > 0 {
+                    let b = &self.blocks[n.child[c] as usize];
+                    let found = match intersect_block(b, ray, tmin, tmax, skip) {
+                        Ok(h) => {
+                            stats.tris += b.count;
+                            h.map(|(h, p)| Hit { t: h.t, prim: p, u: h.u, v: h.v })
+                        }
+                        Err(()) => test_leaf(b.first, b.count, stats),
+                    };
+                    if found.is_some() {
+                        return found;
                     }
                 } else if sp < stack.len() {
                     stack[sp] = n.child[c];
