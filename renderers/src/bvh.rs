@@ -285,9 +285,9 @@ impl Bvh {
                     let mut b = LeafBlock { v: [[Vec4::ZERO; 3]; 3], prim: [u32::MAX; 4], count: count.min(4), first };
                     for lane in 0..count.min(4) as usize {
                         let slot = first as usize + lane;
-                        for vtx in 0..3 {
-                            for axis in 0..3 {
-                                b.v[vtx][axis][lane] = verts[slot][vtx][axis];
+                        for (vtx, p) in verts[slot].iter().enumerate() {
+                            for (axis, c) in p.to_array().into_iter().enumerate() {
+                                b.v[vtx][axis][lane] = c;
                             }
                         }
                         b.prim[lane] = prims[slot];
