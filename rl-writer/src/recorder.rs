@@ -240,7 +240,6 @@ impl Recorder {
             last: None,
             max_depth: 0,
             mismatches: Vec::new(),
-            ended: false,
         }
     }
 
@@ -334,7 +333,6 @@ pub struct TreeBuilder {
     last: Option<u32>,
     max_depth: u16,
     mismatches: Vec<PayloadMismatch>,
-    ended: bool,
 }
 
 impl TreeBuilder {
@@ -402,8 +400,8 @@ impl TreeBuilder {
     }
 
     /// Ends the tree and hands it to the recorder. Returns its id.
+    /// A tree dropped without `end` is not recorded; `finish` reports it as a mistake.
     pub fn end(mut self) -> TreeId {
-        self.ended = true;
         if !self.stack.is_empty() {
             self.rec.mistake(format!(
                 "tree {}: ended {} levels below the root (missing ascend)",
@@ -430,14 +428,5 @@ impl TreeBuilder {
         self.rec.open_trees.fetch_sub(1, Ordering::Relaxed);
         Recorder { inner: self.rec.clone() }.seal(cols);
         TreeId(self.id)
-    }
-}
-
-impl Drop for TreeBuilder {
-    fn drop(&mut self) {
-        if !self.ended {
-            // Counted by `finish` through `open_trees`; the tree is not recorded.
-            self.ended = true;
-        }
     }
 }
