@@ -345,10 +345,10 @@ impl Bvh {
         }
         let mut best: Option<(TriHit, u32)> = None;
         let inv = safe_inv(ray.dir);
-        let org_inv = ray.origin;
+        let org = ray.origin;
         stats.boxes += 1;
         let root = &self.nodes[0];
-        if slab_simd(root.min, root.max, org_inv, inv, tmin, tmax) == f32::INFINITY {
+        if slab_simd(root.min, root.max, org, inv, tmin, tmax) == f32::INFINITY {
             return None;
         }
         stats.nodes += 1;
@@ -461,10 +461,10 @@ impl Bvh {
             return None;
         }
         let inv = safe_inv(ray.dir);
-        let org_inv = ray.origin;
+        let org = ray.origin;
         stats.boxes += 1;
         let root = &self.nodes[0];
-        if slab_simd(root.min, root.max, org_inv, inv, tmin, tmax) == f32::INFINITY {
+        if slab_simd(root.min, root.max, org, inv, tmin, tmax) == f32::INFINITY {
             return None;
         }
         stats.nodes += 1;
