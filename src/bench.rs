@@ -48,14 +48,18 @@ pub enum BenchCommand {
         /// Where to write (default: a temporary directory, removed afterwards).
         #[arg(long)]
         dir: Option<PathBuf>,
+        /// Take the rays from the path tracer on this scene (cornell, cornell-glass, glossy, FILE.obj)
+        /// instead of the small demo tracer.
+        #[arg(long)]
+        scene: Option<String>,
     },
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp } => crate::bench_trace::run(subdivide, rotate, width, spp),
-        BenchCommand::Store { rays, threads, workers, fetches, dir } => {
-            store_bench(rays, threads.max(1), workers.max(1), fetches, dir)
+        BenchCommand::Store { rays, threads, workers, fetches, dir, scene } => {
+            store_bench(rays, threads.max(1), workers.max(1), fetches, dir, scene.as_deref())
         }
     }
 }
@@ -63,6 +67,44 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
 struct Trace {
     trees: Vec<(u32, u32, RayList)>,
     rays: u64,
+}
+
+/// Ray trees of the path tracer on `scene` (core fields only), traced up front.
+fn path_traced(scene_name: &str, min_rays: u64) -> Result<Trace> {
+    use renderers::tracer::{SampleRecord, TraceCtx, path_sample};
+    let scene = crate::record::load_scene(scene_name, None)?;
+    let bvh = renderers::Bvh::build(&scene.tris);
+    let ctx = TraceCtx { scene: &scene, bvh: &bvh, max_depth: 8, bug: None, record_visits: false };
+    let (w, h) = (1024u32, 768u32);
+    let mut trees = Vec::new();
+    let mut rays = 0u64;
+    let mut rec = SampleRecord::new(true);
+    'outer: for sample in 0.. {
+        for y in 0..h {
+            for x in 0..w {
+                let mut rng = renderers::sampling::Rng::for_sample(0, x, y, sample);
+                rec.clear();
+                path_sample(&ctx, x as f32 + rng.next_f32(), y as f32 + rng.next_f32(), w, h, &mut rng, Some(&mut rec));
+                let mut list = RayList::default();
+                for r in &rec.rays {
+                    let f = rl::RayFields {
+                        origin: r.origin.to_array(),
+                        direction: r.dir.to_array(),
+                        t: r.t,
+                        kind: r.kind,
+                        prim: r.prim,
+                    };
+                    list.rays.push((r.parent, f));
+                }
+                rays += list.rays.len() as u64;
+                trees.push((x, y, list));
+                if rays >= min_rays {
+                    break 'outer;
+                }
+            }
+        }
+    }
+    Ok(Trace { trees, rays })
 }
 
 /// Ray trees of the demo scene, traced up front so that only recording is timed.
@@ -122,16 +164,27 @@ fn dir_bytes(dir: &std::path::Path) -> u64 {
     walk(dir)
 }
 
-fn store_bench(min_rays: u64, threads: usize, workers: usize, fetches: usize, dir: Option<PathBuf>) -> Result<()> {
+fn store_bench(
+    min_rays: u64,
+    threads: usize,
+    workers: usize,
+    fetches: usize,
+    dir: Option<PathBuf>,
+    scene: Option<&str>,
+) -> Result<()> {
     let tmp = match &dir {
         Some(_) => None,
         None => Some(tempfile::tempdir().context("creating a temporary directory")?),
     };
     let root = dir.unwrap_or_else(|| tmp.as_ref().map(|t| t.path().to_path_buf()).unwrap_or_default());
     std::fs::create_dir_all(&root)?;
-    eprintln!("tracing the demo scene for at least {min_rays} rays ...");
+    let source = scene.map_or_else(|| "the demo scene".to_string(), |s| format!("the path tracer on {s}"));
+    eprintln!("tracing {source} for at least {min_rays} rays ...");
     let t0 = Instant::now();
-    let trace = make_trace(min_rays);
+    let trace = match scene {
+        Some(s) => path_traced(s, min_rays)?,
+        None => make_trace(min_rays),
+    };
     eprintln!(
         "  {} rays in {} trees ({:.1} s, not timed below)",
         trace.rays,
@@ -214,7 +267,7 @@ fn store_bench(min_rays: u64, threads: usize, workers: usize, fetches: usize, di
     let ours_bytes = dir_bytes(&ds_path);
     let n = trace.rays as f64;
 
-    println!("## rtvtk bench store ({} rays, {} trees of the demo scene)", trace.rays, summary.trees);
+    println!("## rtvtk bench store ({} rays, {} trees of {source})", trace.rays, summary.trees);
     println!();
     println!("| writer | Mrays/s | B/ray | time s |");
     println!("|---|---|---|---|");
