@@ -165,7 +165,7 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
             }));
         }
         let n = set.len() as f64;
-        let name = store::BUILTIN_KINDS.iter().find(|(_, k)| *k == kind).map_or("?", |(n, _)| n);
+        let name = store::KindTable::default().name(kind).unwrap_or("?").to_string();
         println!(
             "| {name} | {} | {:.2} | {:.2} | {:.2} | {} | {:.2}x | {} | {:.1} | {:.1} |",
             set.len(),

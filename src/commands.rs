@@ -26,31 +26,22 @@ pub fn parse_pixel(s: &str) -> Result<(u32, u32), String> {
 /// Renders and records the Cornell box with the path tracer, then summarizes the trace.
 pub fn demo(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) -> Result<()> {
     let dir = out.unwrap_or_else(|| std::env::temp_dir().join(format!("rtvtk-demo-{}", std::process::id())));
-    let args = crate::record::RecordArgs {
-        scene: "cornell".into(),
-        spp,
-        size: (w, h),
-        out: Some(dir.clone()),
-        tracer: crate::record::TracerArg::Path,
-        window: None,
-        pixel: None,
-        sample: None,
-        record_kinds: None,
-        record_visits: false,
-        no_record: false,
-        seed: 0,
-        threads: Some(threads.max(1)),
-        max_depth: 8,
-        image: None,
-        exr: None,
-        exposure: 1.0,
-        inject_bug: None,
-        camera_pos: None,
-        camera_target: None,
-        fov: None,
-        quiet: false,
-        subdivide: 1,
-    };
+    // The `record` command with its own defaults, so the demo cannot drift from it.
+    let (size, spp, threads) = (format!("{w}x{h}"), spp.to_string(), threads.max(1).to_string());
+    let dir_arg = dir.to_string_lossy().to_string();
+    let args = <crate::record::RecordArgs as clap::Parser>::try_parse_from([
+        "record",
+        "--scene",
+        "cornell",
+        "--out",
+        &dir_arg,
+        "--size",
+        &size,
+        "--spp",
+        &spp,
+        "--threads",
+        &threads,
+    ])?;
     crate::record::run(&args)?;
     println!();
     info(&dir, false)?;

@@ -3,7 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use clap::{Args, ValueEnum};
+use clap::{Parser, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use renderers::{Bug, BuiltinScene, Bvh, Camera, RenderOptions, Scene, TracerKind};
 use rl::{Kind, Recorder, RecorderOptions};
@@ -20,7 +20,7 @@ pub enum BugArg {
     ShadowDir,
 }
 
-#[derive(Args, Debug)]
+#[derive(Parser, Debug)]
 pub struct RecordArgs {
     /// cornell, cornell-glass, glossy, or an OBJ file.
     #[arg(long, default_value = "cornell")]
@@ -107,7 +107,7 @@ fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
 }
 
 fn kind_by_name(name: &str) -> Option<Kind> {
-    store::BUILTIN_KINDS.iter().find(|(n, _)| *n == name).map(|(_, k)| *k)
+    store::KindTable::default().lookup(name)
 }
 
 pub fn load_scene(name: &str, camera: Option<Camera>) -> Result<Scene> {
@@ -243,8 +243,9 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         stats.secs,
         stats.rays as f64 / stats.secs / 1e6
     );
+    let kinds = store::KindTable::default();
     for (k, n) in &stats.rays_by_kind {
-        let name = store::BUILTIN_KINDS.iter().find(|(_, kk)| kk == k).map_or("?", |(n, _)| n);
+        let name = kinds.name(*k).unwrap_or("?");
         println!("  {name:<13} {n:>12}");
     }
     if let Some(s) = summary {

@@ -65,6 +65,8 @@ struct Node4 {
     count: [u32; 4],
     /// The child's id in the binary tree (and in the `bvh_nodes` table).
     id: [u32; 4],
+    /// Occupied slots (boxes a visit tests).
+    slots: u32,
 }
 
 const EMPTY: u32 = u32::MAX;
@@ -199,7 +201,8 @@ fn collapse(nodes: &[Node], root: u32, out: &mut Vec<Node4>) -> u32 {
     }
     let me = out.len() as u32;
     let inf = Vec4::splat(f32::INFINITY);
-    out.push(Node4 { min: [inf; 3], max: [inf; 3], child: [0; 4], count: [EMPTY; 4], id: [0; 4] });
+    let slots_used = slots.len() as u32;
+    out.push(Node4 { min: [inf; 3], max: [inf; 3], child: [0; 4], count: [EMPTY; 4], id: [0; 4], slots: slots_used });
     for (k, &c) in slots.iter().enumerate() {
         let n = nodes[c as usize];
         let mut node = out[me as usize];
@@ -217,6 +220,15 @@ fn collapse(nodes: &[Node], root: u32, out: &mut Vec<Node4>) -> u32 {
         }
     }
     me
+}
+
+/// The origin and inverse direction splatted across four lanes, per axis.
+#[inline(always)]
+fn lanes(org: Vec3A, inv: Vec3A) -> ([Vec4; 3], [Vec4; 3]) {
+    (
+        [Vec4::splat(org.x), Vec4::splat(org.y), Vec4::splat(org.z)],
+        [Vec4::splat(inv.x), Vec4::splat(inv.y), Vec4::splat(inv.z)],
+    )
 }
 
 /// Entry distances of the four child boxes of `n` (∞ for a miss), conservative as `slab_simd`.
@@ -300,26 +312,51 @@ impl Bvh {
         Bvh { nodes, nodes4, blocks, prims, verts, parents, depth }
     }
 
+    /// Closest hit among leaf slots `first..first + count` (scalar watertight test), narrowing `tmax`.
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn leaf(
+    fn leaf_closest(
         &self,
-        first: u32,
-        count: u32,
+        (first, count): (u32, u32),
         ray: &Ray,
         tmin: f32,
         tmax: &mut f32,
         best: &mut Option<(TriHit, u32)>,
-        stats: &mut TraversalStats,
     ) {
         for slot in first..first + count {
-            stats.tris += 1;
             let [v0, v1, v2] = self.verts[slot as usize];
             if let Some(h) = intersect_triangle(ray, v0, v1, v2, tmin, *tmax) {
                 *tmax = h.t;
                 *best = Some((h, self.prims[slot as usize]));
             }
         }
+    }
+
+    /// Any hit among leaf slots `first..first + count` other than triangle `skip`.
+    #[inline(always)]
+    fn leaf_any(&self, (first, count): (u32, u32), ray: &Ray, tmin: f32, tmax: f32, skip: u32) -> Option<Hit> {
+        (first..first + count).find_map(|slot| {
+            let prim = self.prims[slot as usize];
+            let [v0, v1, v2] = self.verts[slot as usize];
+            (prim != skip).then(|| intersect_triangle(ray, v0, v1, v2, tmin, tmax)).flatten().map(|h| Hit {
+                t: h.t,
+                prim,
+                u: h.u,
+                v: h.v,
+            })
+        })
+    }
+
+    /// Tests the root box (counting it); the ray's safe inverse direction when it is entered.
+    #[inline(always)]
+    fn enter_root(&self, ray: &Ray, tmin: f32, tmax: f32, stats: &mut TraversalStats) -> Option<Vec3A> {
+        let root = self.nodes.first()?;
+        let inv = safe_inv(ray.dir);
+        stats.boxes += 1;
+        if slab_simd(root.min, root.max, ray.origin, inv, tmin, tmax) == f32::INFINITY {
+            return None;
+        }
+        stats.nodes += 1;
+        Some(inv)
     }
 
     pub fn node_count(&self) -> usize {
@@ -340,27 +377,18 @@ impl Bvh {
         stats: &mut TraversalStats,
         mut visits: Option<&mut Vec<u32>>,
     ) -> Option<Hit> {
-        if self.nodes.is_empty() {
-            return None;
-        }
-        let mut best: Option<(TriHit, u32)> = None;
-        let inv = safe_inv(ray.dir);
-        let org = ray.origin;
-        stats.boxes += 1;
-        let root = &self.nodes[0];
-        if slab_simd(root.min, root.max, org, inv, tmin, tmax) == f32::INFINITY {
-            return None;
-        }
-        stats.nodes += 1;
+        let inv = self.enter_root(ray, tmin, tmax, stats)?;
         if let Some(v) = visits.as_deref_mut() {
             v.push(0);
         }
+        let mut best: Option<(TriHit, u32)> = None;
+        let root = &self.nodes[0];
         if root.count > 0 {
-            self.leaf(root.first, root.count, ray, tmin, &mut tmax, &mut best, stats);
+            stats.tris += root.count;
+            self.leaf_closest((root.first, root.count), ray, tmin, &mut tmax, &mut best);
             return best.map(|(h, p)| Hit { t: h.t, prim: p, u: h.u, v: h.v });
         }
-        let org4 = [Vec4::splat(ray.origin.x), Vec4::splat(ray.origin.y), Vec4::splat(ray.origin.z)];
-        let inv4 = [Vec4::splat(inv.x), Vec4::splat(inv.y), Vec4::splat(inv.z)];
+        let (org4, inv4) = lanes(ray.origin, inv);
         // Stack of (4-wide node, distance at which its box was entered).
         let mut stack = [(0u32, 0.0f32); 96];
         let mut sp = 0usize;
@@ -368,7 +396,7 @@ impl Bvh {
         loop {
             let n = &self.nodes4[node as usize];
             let d = slab4(n, org4, inv4, tmin, tmax);
-            stats.boxes += n.count.iter().filter(|&&c| c != EMPTY).count() as u32;
+            stats.boxes += n.slots;
             // Hit children, nearest first.
             let mut order = [(0usize, 0.0f32); 4];
             let mut k = 0;
@@ -394,21 +422,20 @@ impl Bvh {
                 if let Some(v) = visits.as_deref_mut() {
                     v.push(n.id[c]);
                 }
+                if n.count[c] > 0 {
+                    stats.tris += n.count[c];
+                }
                 if n.count[c] > 4 {
-                    self.leaf(n.child[c], n.count[c], ray, tmin, &mut tmax, &mut best, stats);
+                    self.leaf_closest((n.child[c], n.count[c]), ray, tmin, &mut tmax, &mut best);
                 } else if n.count[c] > 0 {
                     let b = &self.blocks[n.child[c] as usize];
-                    stats.tris += b.count;
                     match intersect_block(b, ray, tmin, tmax, u32::MAX) {
-                        Ok(Some((h, p))) => {
-                            tmax = h.t;
-                            best = Some((h, p));
+                        Ok(Some(hit)) => {
+                            tmax = hit.0.t;
+                            best = Some(hit);
                         }
                         Ok(None) => {}
-                        Err(()) => {
-                            stats.tris -= b.count;
-                            self.leaf(b.first, b.count, ray, tmin, &mut tmax, &mut best, stats);
-                        }
+                        Err(()) => self.leaf_closest((b.first, b.count), ray, tmin, &mut tmax, &mut best),
                     }
                 } else if next.is_none() {
                     next = Some((n.child[c], dist));
@@ -457,60 +484,35 @@ impl Bvh {
         skip: u32,
         stats: &mut TraversalStats,
     ) -> Option<Hit> {
-        if self.nodes.is_empty() {
-            return None;
-        }
-        let inv = safe_inv(ray.dir);
-        let org = ray.origin;
-        stats.boxes += 1;
+        let inv = self.enter_root(ray, tmin, tmax, stats)?;
         let root = &self.nodes[0];
-        if slab_simd(root.min, root.max, org, inv, tmin, tmax) == f32::INFINITY {
-            return None;
-        }
-        stats.nodes += 1;
-        let test_leaf = |first: u32, count: u32, stats: &mut TraversalStats| -> Option<Hit> {
-            for slot in first..first + count {
-                stats.tris += 1;
-                let prim = self.prims[slot as usize];
-                if prim == skip {
-                    continue;
-                }
-                let [v0, v1, v2] = self.verts[slot as usize];
-                if let Some(h) = intersect_triangle(ray, v0, v1, v2, tmin, tmax) {
-                    return Some(Hit { t: h.t, prim, u: h.u, v: h.v });
-                }
-            }
-            None
-        };
         if root.count > 0 {
-            return test_leaf(root.first, root.count, stats);
+            stats.tris += root.count;
+            return self.leaf_any((root.first, root.count), ray, tmin, tmax, skip);
         }
-        let org4 = [Vec4::splat(ray.origin.x), Vec4::splat(ray.origin.y), Vec4::splat(ray.origin.z)];
-        let inv4 = [Vec4::splat(inv.x), Vec4::splat(inv.y), Vec4::splat(inv.z)];
+        let (org4, inv4) = lanes(ray.origin, inv);
         let mut stack = [0u32; 96];
         let mut sp = 1usize;
         while sp > 0 {
             sp -= 1;
             let n = &self.nodes4[stack[sp] as usize];
             let d = slab4(n, org4, inv4, tmin, tmax);
-            stats.boxes += n.count.iter().filter(|&&c| c != EMPTY).count() as u32;
+            stats.boxes += n.slots;
             for c in 0..4 {
                 if d[c] == f32::INFINITY {
                     continue;
                 }
                 stats.nodes += 1;
-                if n.count[c] > 4 {
-                    if let Some(h) = test_leaf(n.child[c], n.count[c], stats) {
-                        return Some(h);
-                    }
-                } else if n.count[c] > 0 {
-                    let b = &self.blocks[n.child[c] as usize];
-                    let found = match intersect_block(b, ray, tmin, tmax, skip) {
-                        Ok(h) => {
-                            stats.tris += b.count;
-                            h.map(|(h, p)| Hit { t: h.t, prim: p, u: h.u, v: h.v })
+                if n.count[c] > 0 {
+                    stats.tris += n.count[c];
+                    let found = if n.count[c] > 4 {
+                        self.leaf_any((n.child[c], n.count[c]), ray, tmin, tmax, skip)
+                    } else {
+                        let b = &self.blocks[n.child[c] as usize];
+                        match intersect_block(b, ray, tmin, tmax, skip) {
+                            Ok(h) => h.map(|(h, p)| Hit { t: h.t, prim: p, u: h.u, v: h.v }),
+                            Err(()) => self.leaf_any((b.first, b.count), ray, tmin, tmax, skip),
                         }
-                        Err(()) => test_leaf(b.first, b.count, stats),
                     };
                     if found.is_some() {
                         return found;

@@ -74,24 +74,20 @@ pub struct RenderStats {
 
 /// The payload every instrumented tracer records per ray.
 pub fn payload_schema() -> PayloadSchema {
-    let f = |r: rl::Result<PayloadField, store::Error>| r.unwrap_or_else(|_| unreachable_field());
-    PayloadSchema::new(
-        vec![
-            f(PayloadField::list("throughput", DataType::Float32, 3)),
-            f(PayloadField::list("radiance", DataType::Float32, 3)),
-            f(PayloadField::scalar("material", DataType::UInt32)),
-            f(PayloadField::scalar("nodes_visited", DataType::UInt32)),
-            f(PayloadField::scalar("box_tests", DataType::UInt32)),
-            f(PayloadField::scalar("tri_tests", DataType::UInt32)),
+    // Valid by construction (distinct names, supported types), so built directly.
+    let field =
+        |name: &str, element: DataType, list_len: Option<usize>| PayloadField { name: name.into(), element, list_len };
+    PayloadSchema {
+        fields: vec![
+            field("throughput", DataType::Float32, Some(3)),
+            field("radiance", DataType::Float32, Some(3)),
+            field("material", DataType::UInt32, None),
+            field("nodes_visited", DataType::UInt32, None),
+            field("box_tests", DataType::UInt32, None),
+            field("tri_tests", DataType::UInt32, None),
         ],
-        None,
-    )
-    .unwrap_or_default()
-}
-
-fn unreachable_field() -> PayloadField {
-    // The declarations above are valid by construction; this keeps the library free of unwrap().
-    PayloadField { name: "invalid".into(), element: DataType::UInt8, list_len: None }
+        bytes: None,
+    }
 }
 
 impl RenderOptions {
@@ -262,9 +258,9 @@ pub fn render(
                             row.push(sum / (samples.end - samples.start) as f32);
                         }
                         out.rows.push((y, row));
-                        out.rays = sr.counts;
                         progress(done.fetch_add(1, Ordering::Relaxed) + 1);
                     }
+                    out.rays = sr.counts;
                     out
                 })
             })

@@ -140,13 +140,8 @@ impl Scene {
             s.tris.push(t);
             s.tri_material.push(m);
         }
-        for (i, t) in s.tris.iter().enumerate() {
-            if s.materials[s.tri_material[i] as usize].is_emissive() {
-                s.light_area += 0.5 * triangle_normal(t[0], t[1], t[2]).length();
-                s.lights.push(i as u32);
-                s.light_cdf.push(s.light_area);
-            }
-        }
+        s.lights = (0..s.tris.len() as u32).filter(|&i| s.material_of(i).is_emissive()).collect();
+        s.index_emitters();
         s.report.triangles = s.tris.len();
         s.report.materials = s.materials.len();
         s.report.emitters = s.lights.len();
@@ -154,6 +149,28 @@ impl Scene {
             return Err(Error::Scene(format!("scene {name:?} has no usable triangles")));
         }
         Ok(s)
+    }
+
+    /// Recomputes the emitters' cumulative area distribution from their triangles.
+    fn index_emitters(&mut self) {
+        self.light_area = 0.0;
+        self.light_cdf.clear();
+        for &l in &self.lights {
+            let t = self.tris[l as usize];
+            self.light_area += 0.5 * triangle_normal(t[0], t[1], t[2]).length();
+            self.light_cdf.push(self.light_area);
+        }
+    }
+
+    /// Area of the `i`-th emitter.
+    pub fn emitter_area(&self, i: usize) -> f32 {
+        self.light_cdf[i] - if i == 0 { 0.0 } else { self.light_cdf[i - 1] }
+    }
+
+    /// The emitter a uniform number `u` in [0, 1) picks, with probability proportional to area.
+    pub fn pick_emitter(&self, u: f32) -> usize {
+        let target = u * self.light_area;
+        self.light_cdf.partition_point(|&c| c <= target).min(self.lights.len().saturating_sub(1))
     }
 
     pub fn material_of(&self, prim: u32) -> &Material {
@@ -185,13 +202,7 @@ impl Scene {
         for t in &mut out.tris {
             *t = [f(t[0]), f(t[1]), f(t[2])];
         }
-        out.light_area = 0.0;
-        out.light_cdf.clear();
-        for &l in &out.lights {
-            let t = out.tris[l as usize];
-            out.light_area += 0.5 * triangle_normal(t[0], t[1], t[2]).length();
-            out.light_cdf.push(out.light_area);
-        }
+        out.index_emitters();
         out.camera.position = f(out.camera.position);
         out.camera.target = f(out.camera.target);
         out
@@ -219,10 +230,7 @@ impl Scene {
             cols.push(col(&|l| self.material_of(l).emission[a]));
         }
         fields.push(Field::new("area", DataType::Float32, false));
-        cols.push(col(&|l| {
-            let t = self.tris[l as usize];
-            0.5 * triangle_normal(t[0], t[1], t[2]).length()
-        }));
+        cols.push(Arc::new(Float32Array::from_iter_values((0..self.lights.len()).map(|i| self.emitter_area(i)))));
         RecordBatch::try_new(Arc::new(Schema::new(fields)), cols)
     }
 }

@@ -152,9 +152,7 @@ impl TraceCtx<'_> {
         if s.lights.is_empty() || s.light_area <= 0.0 {
             return None;
         }
-        let u = rng.next_f32() * s.light_area;
-        let i = s.light_cdf.partition_point(|&c| c <= u).min(s.lights.len() - 1);
-        let prim = s.lights[i];
+        let prim = s.lights[s.pick_emitter(rng.next_f32())];
         let [v0, v1, v2] = s.tris[prim as usize];
         let (b1, b2) = triangle_point(rng.next_f32(), rng.next_f32());
         let p = v0 * (1.0 - b1 - b2) + v1 * b1 + v2 * b2;
@@ -320,16 +318,11 @@ fn whitted(
                 // Each emitter as a point light at its centroid (at most 32, chosen by area).
                 let k = scene.lights.len().min(32);
                 for j in 0..k {
-                    let li = if scene.lights.len() <= 32 {
-                        j
-                    } else {
-                        let u = rng.next_f32() * scene.light_area;
-                        scene.light_cdf.partition_point(|&c| c <= u).min(scene.lights.len() - 1)
-                    };
+                    let li = if scene.lights.len() <= 32 { j } else { scene.pick_emitter(rng.next_f32()) };
                     let prim = scene.lights[li];
                     let [v0, v1, v2] = scene.tris[prim as usize];
                     let c = (v0 + v1 + v2) / 3.0;
-                    let area = 0.5 * (v1 - v0).cross(v2 - v0).length();
+                    let area = scene.emitter_area(li);
                     let scale = if scene.lights.len() <= 32 { 1.0 } else { scene.light_area / (area * k as f32) };
                     let origin = offset_point(p, n);
                     let to = c - origin;

@@ -135,6 +135,39 @@ impl Inner {
     fn kinds(&self) -> Arc<KindTable> {
         self.kinds.read().unwrap_or_else(|p| p.into_inner()).clone()
     }
+
+    /// Hands an ended tree to its thread's shard (or straight to the sink when it is big, and in
+    /// immediate mode); a full shard goes to the sink as one chunk. The tree's buffers are pooled.
+    fn seal(&self, cols: RayColumns) {
+        let inner = self;
+        if cols.len() >= inner.chunk_rays {
+            // Big trees (and immediate mode) go straight to the sink.
+            inner.sink.submit(cols, &inner.kinds());
+            return;
+        }
+        let shard = SHARD.with(|s| s.get()) % inner.shards.len();
+        let full = {
+            let mut s = inner.shards[shard].lock().unwrap_or_else(|p| p.into_inner());
+            s.append(&cols);
+            if s.len() >= inner.chunk_rays {
+                let cap = inner.chunk_rays + inner.chunk_rays / 8;
+                Some(std::mem::replace(&mut *s, RayColumns::with_capacity(&inner.payload, cap)))
+            } else {
+                None
+            }
+        };
+        let mut cols = cols;
+        cols.clear();
+        {
+            let mut pool = inner.pool.lock().unwrap_or_else(|p| p.into_inner());
+            if pool.len() < 256 {
+                pool.push(cols);
+            }
+        }
+        if let Some(chunk) = full {
+            inner.sink.submit(chunk, &inner.kinds());
+        }
+    }
 }
 
 /// Records ray trees from any number of threads. Cheap to clone (shared handle).
@@ -279,37 +312,6 @@ impl Recorder {
         }
         Ok(summary)
     }
-
-    fn seal(&self, cols: RayColumns) {
-        let inner = &self.inner;
-        if cols.len() >= inner.chunk_rays {
-            // Big trees (and immediate mode) go straight to the sink.
-            inner.sink.submit(cols, &inner.kinds());
-            return;
-        }
-        let shard = SHARD.with(|s| s.get()) % inner.shards.len();
-        let full = {
-            let mut s = inner.shards[shard].lock().unwrap_or_else(|p| p.into_inner());
-            s.append(&cols);
-            if s.len() >= inner.chunk_rays {
-                let cap = inner.chunk_rays + inner.chunk_rays / 8;
-                Some(std::mem::replace(&mut *s, RayColumns::with_capacity(&inner.payload, cap)))
-            } else {
-                None
-            }
-        };
-        let mut cols = cols;
-        cols.clear();
-        {
-            let mut pool = inner.pool.lock().unwrap_or_else(|p| p.into_inner());
-            if pool.len() < 256 {
-                pool.push(cols);
-            }
-        }
-        if let Some(chunk) = full {
-            inner.sink.submit(chunk, &inner.kinds());
-        }
-    }
 }
 
 fn registry(names: &[String]) -> Result<KindTable> {
@@ -426,7 +428,7 @@ impl TreeBuilder {
             first_row: 0,
         });
         self.rec.open_trees.fetch_sub(1, Ordering::Relaxed);
-        Recorder { inner: self.rec.clone() }.seal(cols);
+        self.rec.seal(cols);
         TreeId(self.id)
     }
 }

@@ -83,18 +83,16 @@ impl Dataset {
         }
         for (name, file) in &manifest.tables {
             let path = dir.join(&file.path);
-            match fs::metadata(&path) {
-                Ok(m) if m.len() == file.bytes => {}
-                Ok(m) => {
-                    return Err(Error::SizeMismatch { segment: 0, path, expected: file.bytes, found: m.len() });
-                }
-                Err(_) => {
-                    return Err(Error::Manifest {
-                        path,
-                        message: format!("table `{name}` is listed in the manifest but its file is missing"),
-                    });
-                }
-            }
+            let message = match fs::metadata(&path) {
+                Ok(m) if m.len() == file.bytes => continue,
+                Ok(m) => format!(
+                    "expected {} bytes as the manifest records, found {}: truncated or changed",
+                    file.bytes,
+                    m.len()
+                ),
+                Err(e) => format!("listed in the manifest but cannot be read: {e}"),
+            };
+            return Err(Error::Table { name: name.clone(), path, message });
         }
         let kinds = manifest.kind_table();
         let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();

@@ -20,7 +20,7 @@ use parquet::schema::types::ColumnPath;
 use crate::columns::{RayColumns, TreeRow};
 use crate::error::{io_err, pq_err};
 use crate::manifest::{FileEntry, Manifest, SegmentEntry, segment_file, sync_dir};
-use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
+use crate::schema::{KindTable, PayloadSchema, ray_schema};
 use crate::stats::Stats;
 use crate::{Error, FORMAT_VERSION, Result};
 
@@ -175,20 +175,7 @@ impl DatasetWriter {
         let dir = self.dir.join("tables");
         fs::create_dir_all(&dir).map_err(io_err("creating the tables directory", &dir))?;
         let tmp = self.dir.join(format!("{rel}.tmp"));
-        let file = File::create(&tmp).map_err(io_err("creating a table file", &tmp))?;
-        let props = WriterProperties::builder()
-            .set_compression(Compression::ZSTD(ZstdLevel::default()))
-            .set_statistics_enabled(EnabledStatistics::Page)
-            .set_key_value_metadata(Some(vec![
-                KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
-                KeyValue::new("rtvtk.table".into(), name.to_string()),
-            ]))
-            .build();
-        let mut w = ArrowWriter::try_new(CrcWriter::new(BufWriter::new(file)), batch.schema(), Some(props))
-            .map_err(pq_err(&tmp))?;
-        w.write(batch).map_err(pq_err(&tmp))?;
-        let sink = w.into_inner().map_err(pq_err(&tmp))?;
-        let (crc, bytes) = finish_file(sink, &tmp, self.options.sync)?;
+        let (crc, bytes) = write_small_table(&tmp, name, batch, self.options.sync)?;
         let path = self.dir.join(&rel);
         fs::rename(&tmp, &path).map_err(io_err("moving a table into place", &path))?;
         if self.options.sync {
@@ -271,20 +258,7 @@ impl SegmentWriter {
         let trees_tmp = ds.dir.join(format!("{trees_rel}.tmp"));
         self.trees.sort_unstable_by_key(|t| t.tree_id);
         let batch = RayColumns::to_tree_batch(&self.trees, self.id)?;
-        let file = File::create(&trees_tmp).map_err(io_err("creating a segment file", &trees_tmp))?;
-        let props = WriterProperties::builder()
-            .set_compression(Compression::ZSTD(ZstdLevel::default()))
-            .set_statistics_enabled(EnabledStatistics::Page)
-            .set_key_value_metadata(Some(vec![
-                KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
-                KeyValue::new("rtvtk.table".into(), "trees".to_string()),
-            ]))
-            .build();
-        let mut w = ArrowWriter::try_new(CrcWriter::new(BufWriter::new(file)), tree_schema(), Some(props))
-            .map_err(pq_err(&trees_tmp))?;
-        w.write(&batch).map_err(pq_err(&trees_tmp))?;
-        let sink = w.into_inner().map_err(pq_err(&trees_tmp))?;
-        let trees = finish_file(sink, &trees_tmp, ds.options.sync)?;
+        let trees = write_small_table(&trees_tmp, "trees", &batch, ds.options.sync)?;
 
         let rays_path = ds.dir.join(&rays_rel);
         let trees_path = ds.dir.join(&trees_rel);
@@ -310,6 +284,25 @@ impl SegmentWriter {
         self.writer.take();
         let _ = fs::remove_file(&self.tmp);
     }
+}
+
+/// Writes one small Parquet file (a segment's tree table, an optional table) to `tmp` in one go:
+/// zstd, page statistics, rtvtk key-value metadata. Returns its CRC32 and size; the caller renames it.
+fn write_small_table(tmp: &Path, table: &str, batch: &arrow::array::RecordBatch, sync: bool) -> Result<(u32, u64)> {
+    let file = File::create(tmp).map_err(io_err("creating a table file", tmp))?;
+    let props = WriterProperties::builder()
+        .set_compression(Compression::ZSTD(ZstdLevel::default()))
+        .set_statistics_enabled(EnabledStatistics::Page)
+        .set_key_value_metadata(Some(vec![
+            KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
+            KeyValue::new("rtvtk.table".into(), table.to_string()),
+        ]))
+        .build();
+    let mut w =
+        ArrowWriter::try_new(CrcWriter::new(BufWriter::new(file)), batch.schema(), Some(props)).map_err(pq_err(tmp))?;
+    w.write(batch).map_err(pq_err(tmp))?;
+    let sink = w.into_inner().map_err(pq_err(tmp))?;
+    finish_file(sink, tmp, sync)
 }
 
 fn finish_file(sink: FileSink, path: &Path, sync: bool) -> Result<(u32, u64)> {
