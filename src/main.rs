@@ -91,6 +91,13 @@ enum Command {
 }
 
 fn main() {
+    // Rust ignores SIGPIPE, so printing into a closed pipe (`rtvtk tree ... | head`) would panic;
+    // restore the default: the process ends quietly, like any Unix tool.
+    #[cfg(unix)]
+    // SAFETY: setting a signal disposition to its default at start-up, before any thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     let result: Result<i32> = match cli.command {
         Command::Demo { out, size, spp, threads } => commands::demo(out, size, spp, threads).map(|_| 0),

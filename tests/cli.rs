@@ -165,3 +165,24 @@ fn record_replays_a_sample_and_refuses_bad_input() {
     bad(&["record", "--out", full.to_str().unwrap()], "not empty");
     bad(&["record", "--camera-pos", "0,nan,0", "--camera-target", "0,0,0", "--out", d], "NaN");
 }
+
+/// Output into a pipe closed early (`rtvtk ... | head`) ends the process quietly, not in a panic.
+#[test]
+fn closed_stdout_pipe_is_not_a_panic() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("t");
+    // 256 trees of one pixel: far more JSON than a pipe buffer holds, so the write must fail.
+    let out = rtvtk(&["record", "--size", "2x2", "--spp", "256", "--quiet", "--out", dir.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
+        .args(["tree", dir.to_str().unwrap(), "--pixel", "1,1", "--json"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_ne!(out.status.code(), Some(101), "exit code 101 is a Rust panic");
+}
