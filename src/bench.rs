@@ -2,7 +2,6 @@
 
 use std::fs::File;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
@@ -12,7 +11,7 @@ use parquet::basic::{Compression, ZstdLevel};
 use parquet::file::properties::WriterProperties;
 use rl::demo::{RayList, pixel_rays};
 use rl::{Dataset, Payload, RayId, Recorder, RecorderOptions, TreeId};
-use store::{KindTable, PayloadSchema, RayColumns, TreeRow};
+use store::{Encoding, KindTable, PayloadSchema, RayColumns, TreeRow};
 
 #[derive(Subcommand)]
 pub enum BenchCommand {
@@ -52,20 +51,30 @@ pub enum BenchCommand {
         /// instead of the small demo tracer.
         #[arg(long)]
         scene: Option<String>,
+        /// Encodings to record the trace in, each timed and sized against the baseline; the first
+        /// one is used for the fetch figures.
+        #[arg(long, value_delimiter = ',', default_value = "lossless,plain,oct16,oct12")]
+        encodings: Vec<String>,
+        /// Skip the DuckDB comparison (needs `python3` with the `duckdb` module).
+        #[arg(long)]
+        no_duckdb: bool,
     },
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp } => crate::bench_trace::run(subdivide, rotate, width, spp),
-        BenchCommand::Store { rays, threads, workers, fetches, dir, scene } => {
-            store_bench(rays, threads.max(1), workers.max(1), fetches, dir, scene.as_deref())
+        BenchCommand::Store { rays, threads, workers, fetches, dir, scene, encodings, no_duckdb } => {
+            let encodings = encodings.iter().map(|e| Encoding::parse(e)).collect::<Result<Vec<_>, _>>()?;
+            let args = StoreArgs { threads: threads.max(1), workers: workers.max(1), fetches, duckdb: !no_duckdb };
+            store_bench(rays, &args, dir, scene.as_deref(), &encodings)
         }
     }
 }
 
+/// Traced trees: (pixel x, pixel y, sample, rays).
 struct Trace {
-    trees: Vec<(u32, u32, RayList)>,
+    trees: Vec<(u32, u32, u32, RayList)>,
     rays: u64,
 }
 
@@ -97,7 +106,7 @@ fn path_traced(scene_name: &str, min_rays: u64) -> Result<Trace> {
                     list.rays.push((r.parent, f));
                 }
                 rays += list.rays.len() as u64;
-                trees.push((x, y, list));
+                trees.push((x, y, sample, list));
                 if rays >= min_rays {
                     break 'outer;
                 }
@@ -117,14 +126,14 @@ fn make_trace(min_rays: u64) -> Trace {
     let mut sample = 0;
     'outer: loop {
         for y0 in (0..h).step_by(per_thread as usize * 8) {
-            let parts: Vec<Vec<(u32, u32, RayList)>> = std::thread::scope(|s| {
+            let parts: Vec<Vec<(u32, u32, u32, RayList)>> = std::thread::scope(|s| {
                 let handles: Vec<_> = (0..per_thread)
                     .map(|t| {
                         s.spawn(move || {
                             let mut out = Vec::new();
                             for y in (y0 + t * 8)..(y0 + t * 8 + 8).min(h) {
                                 for x in 0..w {
-                                    out.push((x, y, pixel_rays(x, y, sample, w, h)));
+                                    out.push((x, y, sample, pixel_rays(x, y, sample, w, h)));
                                 }
                             }
                             out
@@ -135,7 +144,7 @@ fn make_trace(min_rays: u64) -> Trace {
             });
             for p in parts {
                 for t in p {
-                    rays += t.2.rays.len() as u64;
+                    rays += t.3.rays.len() as u64;
                     trees.push(t);
                 }
             }
@@ -164,13 +173,163 @@ fn dir_bytes(dir: &std::path::Path) -> u64 {
     walk(dir)
 }
 
-fn store_bench(
-    min_rays: u64,
+struct StoreArgs {
     threads: usize,
     workers: usize,
     fetches: usize,
+    duckdb: bool,
+}
+
+/// Records `trace` through the `rl` API in write mode; returns seconds, the summary and the tree
+/// id each trace entry got.
+fn record_trace(
+    trace: &Trace,
+    path: &std::path::Path,
+    args: &StoreArgs,
+    encoding: Encoding,
+) -> Result<(f64, rl::Summary, Vec<TreeId>)> {
+    let mut options = RecorderOptions { workers: args.workers, ..Default::default() };
+    options.write.encoding = encoding;
+    let threads = args.threads;
+    let t = Instant::now();
+    let rec = Recorder::create(path, options)?;
+    let ids: Vec<Vec<(usize, TreeId)>> = std::thread::scope(|s| {
+        let handles: Vec<_> = (0..threads)
+            .map(|th| {
+                let rec = rec.clone();
+                s.spawn(move || {
+                    let mut ids = Vec::new();
+                    for (k, (x, y, sample, list)) in trace.trees.iter().enumerate().skip(th).step_by(threads) {
+                        let mut tree = rec.begin_tree(*x, *y, *sample);
+                        ids.push((k, tree.id()));
+                        for (parent, f) in &list.rays {
+                            match parent {
+                                Some(p) => tree.add_ray_under(RayId(*p), f, Payload::NONE),
+                                None => tree.add_ray(f, Payload::NONE),
+                            };
+                        }
+                        tree.end();
+                    }
+                    ids
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap_or_default()).collect()
+    });
+    let summary = rec.finish()?;
+    let secs = t.elapsed().as_secs_f64();
+    let mut by_entry = vec![TreeId(u64::MAX); trace.trees.len()];
+    for (k, id) in ids.into_iter().flatten() {
+        by_entry[k] = id;
+    }
+    Ok((secs, summary, by_entry))
+}
+
+/// Error of a (lossy) dataset against the traced rays: max and mean angle between directions,
+/// max origin and hit-point distance.
+#[derive(Default)]
+struct Errors {
+    max_angle: f64,
+    sum_angle: f64,
+    n_angle: u64,
+    max_origin: f64,
+    max_hit: f64,
+    mismatched_rays: u64,
+}
+
+fn measure_errors(ds: &Dataset, trace: &Trace, ids: &[TreeId]) -> Result<Errors> {
+    let mut entry_of = std::collections::HashMap::with_capacity(ids.len());
+    for (k, id) in ids.iter().enumerate() {
+        entry_of.insert(*id, k);
+    }
+    let dist = |a: [f32; 3], b: [f32; 3]| -> f64 {
+        let d = [0, 1, 2].map(|i| f64::from(a[i]) - f64::from(b[i]));
+        (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt()
+    };
+    let mut e = Errors::default();
+    for tree in ds.trees() {
+        let tree = tree?;
+        let Some(&k) = entry_of.get(&tree.info.id) else {
+            e.mismatched_rays += tree.rays.len() as u64;
+            continue;
+        };
+        let list = &trace.trees[k].3;
+        for (r, (_, f)) in tree.rays.iter().zip(&list.rays) {
+            let ok = |v: [f32; 3]| v.iter().all(|c| c.is_finite());
+            if !(ok(f.origin) && ok(f.direction)) {
+                continue;
+            }
+            let a = store::angle_between(f.direction, r.direction);
+            if a.is_finite() {
+                e.max_angle = e.max_angle.max(a);
+                e.sum_angle += a;
+                e.n_angle += 1;
+            }
+            e.max_origin = e.max_origin.max(dist(f.origin, r.origin));
+            if let (Some(t0), Some(t1)) = (f.t, r.t) {
+                let h0 = [0, 1, 2].map(|i| f.origin[i] + f.direction[i] * t0);
+                let h1 = [0, 1, 2].map(|i| r.origin[i] + r.direction[i] * t1);
+                if ok(h0) && ok(h1) {
+                    e.max_hit = e.max_hit.max(dist(h0, h1));
+                }
+            }
+        }
+    }
+    Ok(e)
+}
+
+/// p50 and p99 in milliseconds.
+fn percentiles(v: &mut [f64]) -> (f64, f64) {
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v.get(((v.len().max(1) - 1) as f64 * q) as usize).copied().unwrap_or(f64::NAN) * 1e3;
+    (at(0.5), at(0.99))
+}
+
+/// DuckDB's `SELECT * ... WHERE tree_id = k` over `files` for each id (warm: each query once
+/// before timing); p50 and p99 in milliseconds, or why it could not run.
+fn duckdb_fetch(files: &[PathBuf], ids: &[u64]) -> std::result::Result<(f64, f64), String> {
+    let script = r#"
+import sys, time, json
+import duckdb
+files = json.loads(sys.argv[1]); ids = json.loads(sys.argv[2])
+con = duckdb.connect()
+con.execute("CREATE VIEW rays AS SELECT * FROM read_parquet([" + ",".join("'" + f.replace("'", "''") + "'" for f in files) + "])")
+q = "SELECT * FROM rays WHERE tree_id = ?"
+for k in ids[:5]:
+    con.execute(q, [k]).fetchall()
+times = []
+for k in ids:
+    t = time.perf_counter(); rows = con.execute(q, [k]).fetchall(); times.append(time.perf_counter() - t)
+    assert len(rows) > 0, k
+times.sort()
+print(times[len(times)//2] * 1e3, times[int((len(times)-1)*0.99)] * 1e3)
+"#;
+    let files: Vec<String> = files.iter().map(|p| p.display().to_string()).collect();
+    let out = std::process::Command::new("python3")
+        .arg("-c")
+        .arg(script)
+        .arg(serde_json::to_string(&files).map_err(|e| e.to_string())?)
+        .arg(serde_json::to_string(ids).map_err(|e| e.to_string())?)
+        .output()
+        .map_err(|e| format!("cannot run python3: {e}"))?;
+    if !out.status.success() {
+        let err = String::from_utf8_lossy(&out.stderr);
+        return Err(format!("python3/duckdb failed: {}", err.lines().last().unwrap_or("")));
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let v: Vec<f64> = text.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+    match v[..] {
+        [p50, p99] => Ok((p50, p99)),
+        _ => Err(format!("unexpected output from the DuckDB script: {text}")),
+    }
+}
+
+fn store_bench(
+    min_rays: u64,
+    args: &StoreArgs,
     dir: Option<PathBuf>,
     scene: Option<&str>,
+    encodings: &[Encoding],
 ) -> Result<()> {
     let tmp = match &dir {
         Some(_) => None,
@@ -192,12 +351,12 @@ fn store_bench(
         t0.elapsed().as_secs_f64()
     );
 
-    // Baseline input: the same rays as record batches of the same schema (built untimed).
+    // Baseline input: the same rays as record batches of the plain ray table schema (built untimed).
     let payload = PayloadSchema::default();
     let kinds = KindTable::default();
     let mut batches = Vec::new();
     let mut cols = RayColumns::new(&payload);
-    for (i, (x, y, list)) in trace.trees.iter().enumerate() {
+    for (i, (x, y, sample, list)) in trace.trees.iter().enumerate() {
         let first = cols.len() as u64;
         let mut depth = Vec::with_capacity(list.rays.len());
         for (k, (parent, f)) in list.rays.iter().enumerate() {
@@ -209,7 +368,7 @@ fn store_bench(
             tree_id: i as u64,
             pixel_x: *x,
             pixel_y: *y,
-            sample: 0,
+            sample: *sample,
             ray_count: list.rays.len() as u32,
             max_depth: depth.iter().copied().max().unwrap_or(0),
             first_row: first,
@@ -223,6 +382,7 @@ fn store_bench(
     }
 
     // Baseline: arrow-rs ArrowWriter, default properties with zstd(1), one file.
+    eprintln!("writing the baseline ...");
     let base_path = root.join("baseline.parquet");
     let t = Instant::now();
     {
@@ -237,63 +397,81 @@ fn store_bench(
     let base_secs = t.elapsed().as_secs_f64();
     let base_bytes = std::fs::metadata(&base_path)?.len();
     drop(batches);
-
-    // rtvtk: the recording API from `threads` threads, encoding on `workers` background threads.
-    let ds_path = root.join("trace");
-    let options = RecorderOptions { workers, ..Default::default() };
-    let t = Instant::now();
-    let rec = Recorder::create(&ds_path, options)?;
-    let trees = Arc::new(trace.trees);
-    std::thread::scope(|s| {
-        for th in 0..threads {
-            let rec = rec.clone();
-            let trees = trees.clone();
-            s.spawn(move || {
-                for (x, y, list) in trees.iter().skip(th).step_by(threads) {
-                    let mut tree = rec.begin_tree(*x, *y, 0);
-                    for (parent, f) in &list.rays {
-                        match parent {
-                            Some(p) => tree.add_ray_under(RayId(*p), f, Payload::NONE),
-                            None => tree.add_ray(f, Payload::NONE),
-                        };
-                    }
-                    tree.end();
-                }
-            });
-        }
-    });
-    let summary = rec.finish()?;
-    let ours_secs = t.elapsed().as_secs_f64();
-    let ours_bytes = dir_bytes(&ds_path);
     let n = trace.rays as f64;
 
-    println!("## rtvtk bench store ({} rays, {} trees of {source})", trace.rays, summary.trees);
+    println!("## rtvtk bench store ({} rays, {} trees of {source})", trace.rays, trace.trees.len());
     println!();
-    println!("| writer | Mrays/s | B/ray | time s |");
-    println!("|---|---|---|---|");
     println!(
-        "| arrow-rs ArrowWriter, default properties, zstd-1 (baseline) | {:.2} | {:.2} | {:.2} |",
+        "rtvtk: the rl recording API from {} tracing thread(s), encoding and writing on {} worker thread(s); \
+         core ray columns only (no payload).",
+        args.threads, args.workers
+    );
+    println!();
+    println!(
+        "| writer | Mrays/s | B/ray | time s | write speed vs baseline | bytes vs baseline | max angle error (rad) | mean angle error (rad) | max origin error / scene | max hit-point error / scene |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!(
+        "| arrow-rs ArrowWriter, default properties, zstd-1 (baseline) | {:.2} | {:.2} | {:.2} | 1.00x | 1.00x | 0 | 0 | 0 | 0 |",
         n / base_secs / 1e6,
         base_bytes as f64 / n,
         base_secs
     );
-    println!(
-        "| rtvtk rl write mode ({threads} tracing thread(s), {workers} worker(s), {} segments) | {:.2} | {:.2} | {:.2} |",
-        summary.segments,
-        n / ours_secs / 1e6,
-        ours_bytes as f64 / n,
-        ours_secs
-    );
+    let mut fetch_ds: Option<PathBuf> = None;
+    let mut peak = 0u64;
+    for &encoding in encodings {
+        let ds_path = root.join(format!("trace-{}", encoding.name()));
+        eprintln!("recording {} ...", encoding.name());
+        let (secs, summary, ids) = record_trace(&trace, &ds_path, args, encoding)?;
+        peak = peak.max(summary.peak_buffered_bytes);
+        let bytes = dir_bytes(&ds_path);
+        let (mut errs, mut scene_size) = (Errors::default(), f64::NAN);
+        let ds = Dataset::open(&ds_path)?;
+        if encoding.is_lossy() {
+            errs = measure_errors(&ds, &trace, &ids)?;
+            let st = ds.stats();
+            let (o, h) = (&st.origin_bounds, &st.hit_bounds);
+            let d = [0, 1, 2].map(|i| f64::from(o.max[i].max(h.max[i])) - f64::from(o.min[i].min(h.min[i])));
+            scene_size = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            if errs.mismatched_rays > 0 {
+                anyhow::bail!("{} rays of {} could not be matched to the trace", errs.mismatched_rays, encoding.name());
+            }
+        }
+        let err_cols = if encoding.is_lossy() {
+            format!(
+                "{:.2e} | {:.2e} | {:.2e} | {:.2e}",
+                errs.max_angle,
+                errs.sum_angle / errs.n_angle.max(1) as f64,
+                errs.max_origin / scene_size,
+                errs.max_hit / scene_size
+            )
+        } else {
+            "0 (bit-exact) | 0 | 0 | 0".to_string()
+        };
+        println!(
+            "| rtvtk {} ({} segments) | {:.2} | {:.2} | {:.2} | {:.2}x | {:.2}x | {err_cols} |",
+            encoding.name(),
+            summary.segments,
+            n / secs / 1e6,
+            bytes as f64 / n,
+            secs,
+            base_secs / secs,
+            bytes as f64 / base_bytes as f64,
+        );
+        if fetch_ds.is_none() {
+            fetch_ds = Some(ds_path);
+        }
+    }
     println!();
     println!(
-        "ratios vs baseline: write throughput {:.2}x, bytes {:.2}x; peak buffered {:.1} MiB",
-        base_secs / ours_secs,
-        ours_bytes as f64 / base_bytes as f64,
-        summary.peak_buffered_bytes as f64 / (1 << 20) as f64
+        "peak rays buffered for the writers: {:.1} MiB (budget {:.0} MiB)",
+        peak as f64 / (1 << 20) as f64,
+        RecorderOptions::default().memory_budget as f64 / (1 << 20) as f64
     );
+    let Some(fetch_path) = fetch_ds else { return Ok(()) };
 
-    // Fetch latency: random trees by id and by pixel, warm (metadata cached, page cache warm).
-    let ds = Dataset::open(&ds_path)?;
+    // Fetch latency: random trees by id and by (pixel, sample), warm (metadata cached, page cache warm).
+    let ds = Dataset::open(&fetch_path)?;
     let t = Instant::now();
     let entries = ds.tree_entries()?;
     let index_secs = t.elapsed().as_secs_f64();
@@ -304,39 +482,48 @@ fn store_bench(
         rng ^= rng << 17;
         entries[(rng % entries.len() as u64) as usize]
     };
-    for _ in 0..200.min(fetches) {
+    for _ in 0..200.min(args.fetches) {
         ds.tree(pick().info.id)?;
     }
-    let mut by_id = Vec::with_capacity(fetches);
-    for _ in 0..fetches {
+    let mut by_id = Vec::with_capacity(args.fetches);
+    let mut picked = Vec::with_capacity(args.fetches);
+    for _ in 0..args.fetches {
         let id: TreeId = pick().info.id;
+        picked.push(id.0);
         let t = Instant::now();
         let tree = ds.tree(id)?;
         by_id.push(t.elapsed().as_secs_f64());
         std::hint::black_box(tree);
     }
-    let mut by_pixel = Vec::with_capacity(fetches);
-    for _ in 0..fetches {
-        let p = pick().info.pixel;
+    let mut by_pixel = Vec::with_capacity(args.fetches);
+    for _ in 0..args.fetches {
+        let e = pick().info;
         let t = Instant::now();
-        let trees = ds.trees_at_pixel(p[0], p[1], None)?;
+        let trees = ds.trees_at_pixel(e.pixel[0], e.pixel[1], Some(e.sample))?;
         by_pixel.push(t.elapsed().as_secs_f64());
         std::hint::black_box(trees);
     }
-    let pct = |v: &mut Vec<f64>, q: f64| {
-        v.sort_by(f64::total_cmp);
-        v[((v.len() - 1) as f64 * q) as usize] * 1e3
-    };
+    let (id50, id99) = percentiles(&mut by_id);
+    let (px50, px99) = percentiles(&mut by_pixel);
     println!();
     println!(
-        "one-tree fetch over {} rays ({} fetches, warm): by id p50 {:.3} ms, p99 {:.3} ms; by pixel (all samples) p50 {:.3} ms, p99 {:.3} ms; tree index load {:.3} s",
+        "one-tree fetch ({}, {} rays, {} fetches, warm): by id p50 {id50:.3} ms, p99 {id99:.3} ms; \
+         by pixel and sample p50 {px50:.3} ms, p99 {px99:.3} ms; tree index load {index_secs:.3} s",
+        ds.encoding().name(),
         ds.ray_count(),
-        fetches,
-        pct(&mut by_id, 0.5),
-        pct(&mut by_id, 0.99),
-        pct(&mut by_pixel, 0.5),
-        pct(&mut by_pixel, 0.99),
-        index_secs
+        args.fetches,
     );
+    if args.duckdb {
+        let ids: Vec<u64> = picked.iter().copied().take(60).collect();
+        match duckdb_fetch(&ds.ray_files(), &ids) {
+            Ok((d50, d99)) => println!(
+                "DuckDB `SELECT * FROM rays WHERE tree_id = k` on the same files ({} queries, warm): p50 {d50:.2} ms, p99 {d99:.2} ms; \
+                 rtvtk by id is {:.0}x faster at p50",
+                ids.len(),
+                d50 / id50
+            ),
+            Err(e) => println!("DuckDB comparison skipped: {e}"),
+        }
+    }
     Ok(())
 }

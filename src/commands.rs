@@ -2,7 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use rl::{Dataset, Tree, TreeId};
 use serde_json::json;
 
@@ -117,6 +117,7 @@ pub fn info(dir: &Path, as_json: bool) -> Result<()> {
             "path": dir,
             "format": m.format,
             "format_version": m.format_version,
+            "encoding": m.encoding.name(),
             "complete": m.complete,
             "segments": m.segments.len(),
             "trees": s.trees,
@@ -145,6 +146,7 @@ pub fn info(dir: &Path, as_json: bool) -> Result<()> {
         m.format_version,
         if m.complete { "" } else { " (recording did not finish cleanly)" }
     );
+    println!("encoding       {}", m.encoding.name());
     println!("segments       {}", m.segments.len());
     println!("trees          {}", s.trees);
     println!("rays           {}  ({} misses, {} with NaN/Inf)", s.rays, s.misses, s.non_finite);
@@ -295,4 +297,20 @@ pub fn check(dir: &Path, as_json: bool) -> Result<i32> {
         );
     }
     Ok(if r.is_ok() { 0 } else { 1 })
+}
+
+/// `rtvtk export`: a plain copy of a dataset.
+pub fn export(dataset: &Path, out: &Path) -> Result<()> {
+    let ds = Dataset::open(dataset).with_context(|| format!("opening {}", dataset.display()))?;
+    let m = store::export_plain(&ds, out).with_context(|| format!("exporting to {}", out.display()))?;
+    let bytes: u64 = m.segments.iter().map(|s| s.rays.bytes + s.trees.bytes).sum();
+    println!(
+        "exported {} rays in {} segments ({} encoding -> plain), {} bytes: {}",
+        m.stats.rays,
+        m.segments.len(),
+        ds.encoding().name(),
+        bytes,
+        out.display()
+    );
+    Ok(())
 }

@@ -83,6 +83,13 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Copy a dataset with plain float origin and direction columns, for tools that read the
+    /// Parquet files directly (DuckDB, Polars, pyarrow, Ballista).
+    Export {
+        dataset: PathBuf,
+        /// Where to write the plain copy (must not exist or be empty).
+        out: PathBuf,
+    },
     /// Benchmarks, each against a baseline in the same run.
     Bench {
         #[command(subcommand)]
@@ -110,6 +117,7 @@ fn main() {
             commands::tree(&dataset, pixel, sample, tree, json).map(|_| 0)
         }
         Command::Check { dataset, json } => commands::check(&dataset, json),
+        Command::Export { dataset, out } => commands::export(&dataset, &out).map(|_| 0),
         Command::Bench { what } => bench::run(what).map(|_| 0),
     };
     match result {

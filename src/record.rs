@@ -53,6 +53,14 @@ pub struct RecordArgs {
     /// Render without recording (for overhead figures).
     #[arg(long)]
     pub no_record: bool,
+    /// How origins and directions are stored: lossless (residuals against the tree structure),
+    /// plain (Float32 columns any Parquet reader sees directly) or octN (directions quantized to
+    /// N bits per octahedral coordinate, 8..=16).
+    #[arg(long, default_value = "lossless", value_parser = parse_encoding)]
+    pub encoding: store::Encoding,
+    /// Background threads that encode and write segments.
+    #[arg(long, default_value_t = 1)]
+    pub writers: usize,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Tracing threads (default: all cores).
@@ -198,7 +206,12 @@ pub fn run(a: &RecordArgs) -> Result<()> {
     let build_secs = t.elapsed().as_secs_f64();
     let recorder = match (&a.out, a.no_record) {
         (Some(out), false) => {
-            let options = RecorderOptions { payload: renderers::payload_schema(), ..Default::default() };
+            let mut options = RecorderOptions {
+                payload: renderers::payload_schema(),
+                workers: a.writers.max(1),
+                ..Default::default()
+            };
+            options.write.encoding = a.encoding;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
             renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
             Some(rec)
@@ -258,4 +271,8 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         println!("image: {}", p.display());
     }
     Ok(())
+}
+
+fn parse_encoding(s: &str) -> Result<store::Encoding, String> {
+    store::Encoding::parse(s).map_err(|e| e.to_string())
 }

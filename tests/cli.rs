@@ -29,7 +29,8 @@ fn demo_info_tree_check() {
     assert!(out.status.success());
     let info: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(info["trees"], 1536);
-    assert_eq!(info["format_version"], 1);
+    assert_eq!(info["format_version"], store::FORMAT_VERSION);
+    assert_eq!(info["encoding"], "lossless");
     let rays = info["rays"].as_u64().unwrap();
     let by_kind: u64 = info["rays_by_kind"].as_object().unwrap().values().map(|v| v.as_u64().unwrap()).sum();
     assert_eq!(by_kind, rays);
@@ -126,6 +127,60 @@ print("joined", q(f"select count(*) from {rays} r join {trees} t using (tree_id)
         want += ds.trees_at_pixel(3, y, None).unwrap().iter().map(|t| t.rays.len() as u64).sum::<u64>();
     }
     assert_eq!(get("joined"), want);
+}
+
+/// `rtvtk export` turns a lossless dataset into a plain one whose float columns DuckDB reads with
+/// exactly the values the store decodes from the original.
+#[test]
+fn export_gives_duckdb_the_plain_values() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("t");
+    let plain = tmp.path().join("plain");
+    demo(&dir);
+    let out = rtvtk(&["export", dir.to_str().unwrap(), plain.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let info: Value = serde_json::from_slice(&rtvtk(&["info", plain.to_str().unwrap(), "--json"]).stdout).unwrap();
+    assert_eq!(info["encoding"], "plain");
+    assert!(rtvtk(&["check", plain.to_str().unwrap()]).status.success());
+    // Exporting over a non-empty directory is refused and names it.
+    let again = rtvtk(&["export", dir.to_str().unwrap(), plain.to_str().unwrap()]);
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("not empty"), "{}", String::from_utf8_lossy(&again.stderr));
+
+    let ds = rl::Dataset::open(&dir).unwrap();
+    let trees = ds.trees_at_pixel(5, 7, None).unwrap();
+    let ids: Vec<String> = trees.iter().map(|t| t.info.id.0.to_string()).collect();
+    let script = r#"
+import sys, duckdb
+d, ids = sys.argv[1], sys.argv[2]
+for r in duckdb.sql(f"select tree_id, ray, origin_x::double, origin_y::double, origin_z::double, dir_x::double, dir_y::double, dir_z::double from read_parquet('{d}/segments/*.rays.parquet') where tree_id in ({ids}) order by tree_id, ray").fetchall():
+    print(*[repr(v) for v in r])
+"#;
+    let out = Command::new("python3")
+        .args(["-c", script, plain.to_str().unwrap(), &ids.join(",")])
+        .output()
+        .expect("python3 is needed for this test");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = String::from_utf8_lossy(&out.stdout);
+    let want: Vec<(u64, u32, [u32; 6])> = trees
+        .iter()
+        .flat_map(|t| {
+            t.rays.iter().map(move |r| {
+                let v = [r.origin, r.direction].concat();
+                (t.info.id.0, r.index, [0, 1, 2, 3, 4, 5].map(|k| v[k].to_bits()))
+            })
+        })
+        .collect();
+    let got: Vec<(u64, u32, [u32; 6])> = text
+        .lines()
+        .map(|l| {
+            let w: Vec<&str> = l.split_whitespace().collect();
+            let f = |k: usize| (w[k].parse::<f64>().unwrap() as f32).to_bits();
+            (w[0].parse().unwrap(), w[1].parse().unwrap(), [f(2), f(3), f(4), f(5), f(6), f(7)])
+        })
+        .collect();
+    assert!(!want.is_empty());
+    assert_eq!(got, want);
 }
 
 #[test]

@@ -15,6 +15,7 @@ use parquet::arrow::arrow_reader::{
 };
 use parquet::file::metadata::PageIndexPolicy;
 
+use crate::codec::{Decoder, Encoding, file_schema};
 use crate::error::{arrow_err, io_err, pq_err};
 use crate::manifest::{MANIFEST_FILE, Manifest, SegmentEntry};
 use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
@@ -53,6 +54,8 @@ pub struct Dataset {
     kinds: KindTable,
     kinds_by_name: HashMap<String, Kind>,
     schema: SchemaRef,
+    /// Schema of the ray files (differs from `schema` when origins and directions are encoded).
+    file_schema: SchemaRef,
     metas: Vec<OnceLock<Arc<SegmentMeta>>>,
     index: OnceLock<Arc<TreeIndex>>,
 }
@@ -97,8 +100,10 @@ impl Dataset {
         let kinds = manifest.kind_table();
         let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();
         let metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
+        let schema = ray_schema(&payload);
         Ok(Self {
-            schema: ray_schema(&payload),
+            file_schema: file_schema(&schema, manifest.encoding),
+            schema,
             dir,
             manifest,
             payload,
@@ -179,7 +184,7 @@ impl Dataset {
             ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required),
         )
         .map_err(pq_err(&path))?;
-        check_schema(meta.schema(), &self.schema, &path)?;
+        check_schema(meta.schema(), &self.file_schema, &path)?;
         let mut starts = Vec::with_capacity(meta.metadata().num_row_groups());
         let mut row = 0u64;
         for rg in meta.metadata().row_groups() {
@@ -381,9 +386,9 @@ impl Dataset {
             batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
         }
         let batch = if batches.len() == 1 {
-            batches.pop().unwrap_or_else(|| RecordBatch::new_empty(self.schema.clone()))
+            batches.pop().unwrap_or_else(|| RecordBatch::new_empty(self.file_schema.clone()))
         } else {
-            concat_batches(&self.schema, &batches).map_err(arrow_err(path.display().to_string()))?
+            concat_batches(&self.file_schema, &batches).map_err(arrow_err(path.display().to_string()))?
         };
         if batch.num_rows() as u64 != count {
             return Err(Error::Corrupt {
@@ -392,7 +397,7 @@ impl Dataset {
                 message: format!("expected {count} rows from row {first}, read {}", batch.num_rows()),
             });
         }
-        Ok(batch)
+        self.decoder().decode(batch, &path)
     }
 
     /// Every ray batch of segment `i`, in file order.
@@ -404,7 +409,26 @@ impl Dataset {
             .with_batch_size(64 * 1024)
             .build()
             .map_err(pq_err(&path))?;
-        Ok(reader.map(move |b| b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })))
+        let mut decoder = self.decoder();
+        Ok(reader.map(move |b| {
+            let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+            decoder.decode(b, &path)
+        }))
+    }
+
+    /// How the ray files store origins and directions.
+    pub fn encoding(&self) -> Encoding {
+        self.manifest.encoding
+    }
+
+    /// The schema of the ray files as stored (the ray table schema for `plain` datasets).
+    pub fn file_schema(&self) -> SchemaRef {
+        self.file_schema.clone()
+    }
+
+    /// A decoder from ray-file batches (starting at a tree) to ray-table batches.
+    pub fn decoder(&self) -> Decoder {
+        Decoder::new(self.manifest.encoding, self.schema.clone())
     }
 
     /// Every tree, segment by segment in file order: a sequential scan that reads each page once.

@@ -61,6 +61,9 @@ pub enum Error {
     #[error("dataset directory is not empty; refusing to overwrite an existing trace ({path})")]
     NotEmpty { path: PathBuf },
 
+    #[error("invalid encoding: {0}")]
+    Encoding(String),
+
     #[error("no tree with id {0} in this trace")]
     NoSuchTree(u64),
 }

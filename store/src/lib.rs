@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 mod check;
+mod codec;
 mod columns;
 mod dataset;
 mod error;
@@ -10,6 +11,7 @@ mod stats;
 mod tree;
 mod writer;
 
+pub use codec::{Decoder, ENCODED_COLUMNS, Encoding, angle_between, file_schema};
 pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
 pub use dataset::{CheckReport, Dataset, TreeEntry, TreeIter};
 pub use error::{Error, Result};
@@ -20,4 +22,4 @@ pub use schema::{
 };
 pub use stats::{Bounds, Stats};
 pub use tree::{Ray, Tree, TreeId, TreeInfo, rays_from_batch, validate_tree};
-pub use writer::{CrcWriter, DatasetWriter, SegmentWriter, WriteOptions};
+pub use writer::{CrcWriter, DatasetWriter, SegmentWriter, WriteOptions, export_plain};

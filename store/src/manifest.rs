@@ -10,6 +10,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use crate::codec::Encoding;
 use crate::error::io_err;
 use crate::schema::{BytesPayload, KindTable, PayloadField, PayloadSchema};
 use crate::stats::Stats;
@@ -20,7 +21,7 @@ pub const MANIFEST_FILE: &str = "manifest.json";
 /// Value of the manifest's `format` field.
 pub const FORMAT_NAME: &str = "rtvtk-trace";
 /// The format version this build writes and the newest it reads.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 
 /// A file of a segment, as the manifest records it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -57,6 +58,9 @@ pub struct Manifest {
     pub format: String,
     pub format_version: u32,
     pub created_by: String,
+    /// How the ray files store origins and directions (absent in version 1: plain).
+    #[serde(default = "plain_encoding")]
+    pub encoding: Encoding,
     /// Typed payload columns (absent when there are none).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub payload: Vec<PayloadColumnDecl>,
@@ -80,11 +84,12 @@ pub struct Manifest {
 
 impl Manifest {
     /// An empty manifest for a new recording.
-    pub fn new(payload: &PayloadSchema) -> Self {
+    pub fn new(payload: &PayloadSchema, encoding: Encoding) -> Self {
         Self {
             format: FORMAT_NAME.into(),
             format_version: FORMAT_VERSION,
             created_by: format!("rtvtk-store {}", env!("CARGO_PKG_VERSION")),
+            encoding,
             payload: payload
                 .fields
                 .iter()
@@ -198,4 +203,8 @@ pub(crate) fn sync_dir(dir: &Path) -> Result<()> {
 /// Path of a segment's file relative to the dataset directory.
 pub fn segment_file(id: u32, table: &str) -> String {
     format!("segments/{id:06}.{table}.parquet")
+}
+
+fn plain_encoding() -> Encoding {
+    Encoding::Plain
 }

@@ -12,11 +12,12 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicU32, Ordering};
 
 use parquet::arrow::ArrowWriter;
-use parquet::basic::{Compression, ZstdLevel};
+use parquet::basic::{Compression, Encoding as Encoding_, ZstdLevel};
 use parquet::file::metadata::KeyValue;
 use parquet::file::properties::{EnabledStatistics, WriterProperties};
 use parquet::schema::types::ColumnPath;
 
+use crate::codec::{ENCODED_COLUMNS, Encoding, encode, file_schema};
 use crate::columns::{RayColumns, TreeRow};
 use crate::error::{io_err, pq_err};
 use crate::manifest::{FileEntry, Manifest, SegmentEntry, segment_file, sync_dir};
@@ -36,11 +37,13 @@ pub struct WriteOptions {
     /// fsync files and directories when sealing (needed for power-loss safety; a SIGKILL is
     /// survived either way).
     pub sync: bool,
+    /// How origins and directions are stored (lossless residuals by default).
+    pub encoding: Encoding,
 }
 
 impl Default for WriteOptions {
     fn default() -> Self {
-        Self { row_group_rows: 128 * 1024, page_rows: 4096, zstd_level: 1, sync: true }
+        Self { row_group_rows: 128 * 1024, page_rows: 4096, zstd_level: 1, sync: true, encoding: Encoding::default() }
     }
 }
 
@@ -96,7 +99,7 @@ impl DatasetWriter {
         }
         let segments = dir.join("segments");
         fs::create_dir_all(&segments).map_err(io_err("creating the dataset directory", &segments))?;
-        let manifest = Manifest::new(&payload);
+        let manifest = Manifest::new(&payload, options.encoding);
         manifest.store(dir, options.sync)?;
         Ok(Self {
             dir: dir.to_path_buf(),
@@ -120,22 +123,6 @@ impl DatasetWriter {
         self.manifest.lock().map(|m| m.clone()).unwrap_or_else(|p| p.into_inner().clone())
     }
 
-    fn ray_properties(&self) -> Result<WriterProperties> {
-        let level = ZstdLevel::try_new(self.options.zstd_level).map_err(pq_err(&self.dir))?;
-        Ok(WriterProperties::builder()
-            .set_compression(Compression::ZSTD(level))
-            .set_dictionary_enabled(false)
-            .set_column_dictionary_enabled(ColumnPath::from("kind"), true)
-            .set_statistics_enabled(EnabledStatistics::Page)
-            .set_max_row_group_row_count(Some(self.options.row_group_rows.max(1)))
-            .set_data_page_row_count_limit(self.options.page_rows.max(1))
-            .set_key_value_metadata(Some(vec![
-                KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
-                KeyValue::new("rtvtk.table".into(), "rays".to_string()),
-            ]))
-            .build())
-    }
-
     /// Opens a new segment for one worker to fill.
     pub fn open_segment(&self) -> Result<SegmentWriter> {
         let id = self.next_segment.fetch_add(1, Ordering::Relaxed);
@@ -143,9 +130,19 @@ impl DatasetWriter {
         let tmp = self.dir.join(format!("{rel}.tmp"));
         let file = File::create(&tmp).map_err(io_err("creating a segment file", &tmp))?;
         let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
-        let writer = ArrowWriter::try_new(sink, ray_schema(&self.payload), Some(self.ray_properties()?))
+        let schema = file_schema(&ray_schema(&self.payload), self.options.encoding);
+        let writer = ArrowWriter::try_new(sink, schema.clone(), Some(ray_properties(&self.options, &self.dir)?))
             .map_err(pq_err(&tmp))?;
-        Ok(SegmentWriter { id, tmp, writer: Some(writer), trees: Vec::new(), rows: 0, stats: Stats::default() })
+        Ok(SegmentWriter {
+            id,
+            tmp,
+            writer: Some(writer),
+            trees: Vec::new(),
+            rows: 0,
+            stats: Stats::default(),
+            encoding: self.options.encoding,
+            schema,
+        })
     }
 
     /// Marks the recording as finished cleanly.
@@ -207,6 +204,9 @@ pub struct SegmentWriter {
     trees: Vec<TreeRow>,
     rows: u64,
     stats: Stats,
+    encoding: Encoding,
+    /// Schema of the ray file (the ray table's, or the encoded layout).
+    schema: arrow::datatypes::SchemaRef,
 }
 
 impl SegmentWriter {
@@ -228,7 +228,21 @@ impl SegmentWriter {
         self.stats.merge(&Stats::of_columns(&cols, kinds));
         let base = self.rows;
         self.trees.extend(cols.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
-        let batch = cols.into_ray_batch(payload, kinds)?;
+        let encoded = if self.encoding == Encoding::Plain { None } else { Some(encode(&cols, self.encoding)?) };
+        let mut batch = cols.into_ray_batch(payload, kinds)?;
+        if let Some(enc) = encoded {
+            let mut arrays = enc.into_arrays().into_iter();
+            let mut columns = Vec::with_capacity(self.schema.fields().len());
+            for f in self.schema.fields() {
+                let c = match batch.column_by_name(f.name()) {
+                    Some(c) => c.clone(),
+                    None => arrays.next().ok_or_else(|| Error::Encoding(format!("no encoded column {}", f.name())))?,
+                };
+                columns.push(c);
+            }
+            batch = arrow::array::RecordBatch::try_new(self.schema.clone(), columns)
+                .map_err(crate::error::arrow_err("encoded ray batch"))?;
+        }
         let writer = self.writer.as_mut().ok_or_else(|| Error::Corrupt {
             path: self.tmp.clone(),
             what: "segment writer".into(),
@@ -286,11 +300,50 @@ impl SegmentWriter {
     }
 }
 
+/// Parquet properties of the ray files.
+fn ray_properties(options: &WriteOptions, dir: &Path) -> Result<WriterProperties> {
+    let level = ZstdLevel::try_new(options.zstd_level).map_err(pq_err(dir))?;
+    let mut b = WriterProperties::builder()
+        .set_compression(Compression::ZSTD(level))
+        .set_dictionary_enabled(false)
+        .set_column_dictionary_enabled(ColumnPath::from("kind"), true)
+        .set_statistics_enabled(EnabledStatistics::Page);
+    if options.encoding != Encoding::Plain {
+        // Residuals have no useful min/max; tree ids and ray indices are runs of +0/+1.
+        for name in ENCODED_COLUMNS {
+            b = b.set_column_statistics_enabled(ColumnPath::from(name), EnabledStatistics::None);
+        }
+        for name in ["tree_id", "ray"] {
+            b = b.set_column_encoding(ColumnPath::from(name), Encoding_::DELTA_BINARY_PACKED);
+        }
+        // Raw float bits: byte planes compress better than interleaved bytes.
+        for name in ["enc_dir_u", "enc_dir_v", "t"] {
+            b = b.set_column_encoding(ColumnPath::from(name), Encoding_::BYTE_STREAM_SPLIT);
+        }
+    }
+    Ok(b.set_max_row_group_row_count(Some(options.row_group_rows.max(1)))
+        .set_data_page_row_count_limit(options.page_rows.max(1))
+        .set_key_value_metadata(Some(vec![
+            KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
+            KeyValue::new("rtvtk.table".into(), "rays".to_string()),
+        ]))
+        .build())
+}
+
 /// Writes one small Parquet file (a segment's tree table, an optional table) to `tmp` in one go:
 /// zstd, page statistics, rtvtk key-value metadata. Returns its CRC32 and size; the caller renames it.
 fn write_small_table(tmp: &Path, table: &str, batch: &arrow::array::RecordBatch, sync: bool) -> Result<(u32, u64)> {
     let file = File::create(tmp).map_err(io_err("creating a table file", tmp))?;
-    let props = WriterProperties::builder()
+    let mut props = WriterProperties::builder();
+    if table == "trees" {
+        // Sorted ids and rows: deltas of +1 and of the tree sizes.
+        for name in ["tree_id", "first_row"] {
+            props = props
+                .set_column_dictionary_enabled(ColumnPath::from(name), false)
+                .set_column_encoding(ColumnPath::from(name), Encoding_::DELTA_BINARY_PACKED);
+        }
+    }
+    let props = props
         .set_compression(Compression::ZSTD(ZstdLevel::default()))
         .set_statistics_enabled(EnabledStatistics::Page)
         .set_key_value_metadata(Some(vec![
@@ -316,4 +369,51 @@ fn finish_file(sink: FileSink, path: &Path, sync: bool) -> Result<(u32, u64)> {
         file.sync_all().map_err(io_err("syncing a segment file", path))?;
     }
     Ok((crc, bytes))
+}
+
+/// Writes a copy of `ds` at `out` (which must not exist or be empty) whose ray files hold plain
+/// float origins and directions (`"encoding": "plain"`), for tools that read the Parquet files
+/// directly. Segments, tree files and optional tables keep their names; the manifest is written
+/// last, so an interrupted export is not a dataset.
+pub fn export_plain(ds: &crate::Dataset, out: &Path) -> Result<Manifest> {
+    if out.exists() {
+        let mut entries = fs::read_dir(out).map_err(io_err("listing the export directory", out))?;
+        if entries.next().is_some() {
+            return Err(Error::NotEmpty { path: out.to_path_buf() });
+        }
+    }
+    let options = WriteOptions { encoding: Encoding::Plain, ..WriteOptions::default() };
+    fs::create_dir_all(out.join("segments")).map_err(io_err("creating the export directory", out))?;
+    let mut manifest = ds.manifest().clone();
+    manifest.encoding = Encoding::Plain;
+    manifest.format_version = FORMAT_VERSION;
+    let schema = ray_schema(ds.payload_schema());
+    for (i, seg) in manifest.segments.iter_mut().enumerate() {
+        let path = out.join(&seg.rays.path);
+        let tmp = out.join(format!("{}.tmp", seg.rays.path));
+        let file = File::create(&tmp).map_err(io_err("creating a segment file", &tmp))?;
+        let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
+        let mut w =
+            ArrowWriter::try_new(sink, schema.clone(), Some(ray_properties(&options, out)?)).map_err(pq_err(&tmp))?;
+        for batch in ds.segment_batches(i)? {
+            w.write(&batch?).map_err(pq_err(&tmp))?;
+        }
+        let sink = w.into_inner().map_err(pq_err(&tmp))?;
+        let (crc, bytes) = finish_file(sink, &tmp, true)?;
+        fs::rename(&tmp, &path).map_err(io_err("moving a segment into place", &path))?;
+        seg.rays.crc32 = crc;
+        seg.rays.bytes = bytes;
+        let from = ds.dir().join(&seg.trees.path);
+        fs::copy(&from, out.join(&seg.trees.path)).map_err(io_err("copying a tree file", &from))?;
+    }
+    if !manifest.tables.is_empty() {
+        fs::create_dir_all(out.join("tables")).map_err(io_err("creating the tables directory", out))?;
+    }
+    for file in manifest.tables.values() {
+        let from = ds.dir().join(&file.path);
+        fs::copy(&from, out.join(&file.path)).map_err(io_err("copying a table", &from))?;
+    }
+    sync_dir(&out.join("segments"))?;
+    manifest.store(out, true)?;
+    Ok(manifest)
 }

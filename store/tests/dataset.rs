@@ -6,6 +6,7 @@ use std::path::Path;
 
 use arrow::array::{Array, AsArray};
 use arrow::datatypes::{DataType, Float32Type, Int64Type};
+use store::FORMAT_VERSION;
 use store::{
     BytesPayload, Dataset, DatasetWriter, Error, Kind, KindTable, ListValue, PayloadField, PayloadSchema, RayColumns,
     RayFields, TreeId, TreeRow, Value, WriteOptions,
@@ -239,10 +240,12 @@ fn corrupted_segment_is_detected_without_panic() {
 fn newer_format_version_is_refused() {
     let (_d, path) = sample_dataset();
     let m = path.join("manifest.json");
-    let text = fs::read_to_string(&m).unwrap().replace("\"format_version\": 1", "\"format_version\": 99");
+    let text = fs::read_to_string(&m)
+        .unwrap()
+        .replace(&format!("\"format_version\": {FORMAT_VERSION}"), "\"format_version\": 99");
     fs::write(&m, text).unwrap();
     let err = Dataset::open(&path).err().unwrap();
-    assert!(matches!(err, Error::NewerFormat { found: 99, supported: 1, .. }), "{err}");
+    assert!(matches!(err, Error::NewerFormat { found: 99, supported: FORMAT_VERSION, .. }), "{err}");
     assert!(err.to_string().contains("manifest.json"));
 }
 

@@ -1,0 +1,569 @@
+//! Compact encodings of the origin and direction columns (format version 2).
+//!
+//! Generic codecs leave float columns near 3.3–3.6 bytes per value. A ray tree has structure
+//! they cannot see, and the encodings here use it:
+//!
+//! - **Origins** are predicted from rays decoded before them in the same tree: a ray shares the
+//!   origin of its previous sibling (a shadow ray and the bounce leaving the same hit point), or
+//!   starts where its parent hit (`origin + t * dir` of the parent, in `f32`). What is stored is
+//!   the distance to the prediction in units in the last place (ULPs), zig-zag coded: a few bits
+//!   where the renderer offsets a secondary ray off the surface, zero for shared origins.
+//! - **Directions** are nearly unit vectors: the largest component is predicted from the other two
+//!   as `±sqrt(1 - b² - c²)` (in `f64`) and stored as its ULP distance to that prediction; the two
+//!   others are stored as their bits. Non-finite or zero directions are stored raw.
+//! - **Lossy** `octN`: directions quantized to N bits per octahedral coordinate (unit length after
+//!   decoding). Predictions then use decoded values, so origins stay lossless.
+//!
+//! Every encoding is a bijection on bit patterns for lossless modes: NaN payloads, infinities,
+//! negative zero and non-unit directions round-trip exactly (they only cost more bytes).
+//!
+//! Encoding and decoding only look at earlier rays of the same tree, so any run of whole trees
+//! decodes on its own: one tree fetched by id reads only its own rows.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use arrow::array::{Array, ArrayRef, AsArray, Float32Array, RecordBatch, UInt8Array, UInt32Array};
+use arrow::datatypes::{DataType, Field, Schema, SchemaRef, UInt8Type, UInt32Type, UInt64Type};
+
+use crate::columns::{NONE_U32, RayColumns};
+use crate::{Error, Result};
+
+/// How a dataset stores the origin and direction columns of its ray files.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Encoding {
+    /// Plain `Float32` columns (format version 1 layout): what external tools read directly.
+    Plain,
+    /// Predicted from the tree structure, stored as residuals; bit-exact.
+    #[default]
+    Lossless,
+    /// Directions quantized to this many bits per octahedral coordinate (8..=16); the rest lossless.
+    Oct(u8),
+}
+
+impl Encoding {
+    /// The name used on the command line and in the manifest.
+    pub fn name(&self) -> String {
+        match self {
+            Encoding::Plain => "plain".into(),
+            Encoding::Lossless => "lossless".into(),
+            Encoding::Oct(bits) => format!("oct{bits}"),
+        }
+    }
+
+    /// Parses `plain`, `lossless` or `octN` (N from 8 to 16).
+    pub fn parse(s: &str) -> Result<Self> {
+        match s {
+            "plain" => return Ok(Encoding::Plain),
+            "lossless" => return Ok(Encoding::Lossless),
+            _ => {}
+        }
+        if let Some(bits) = s.strip_prefix("oct").and_then(|b| b.parse::<u8>().ok())
+            && (8..=16).contains(&bits)
+        {
+            return Ok(Encoding::Oct(bits));
+        }
+        Err(Error::Encoding(format!("unknown encoding {s:?}: expected plain, lossless or octN with N from 8 to 16")))
+    }
+
+    pub fn is_lossy(&self) -> bool {
+        matches!(self, Encoding::Oct(_))
+    }
+}
+
+impl serde::Serialize for Encoding {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_str(&self.name())
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Encoding {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> std::result::Result<Self, D::Error> {
+        let s = String::deserialize(d)?;
+        Encoding::parse(&s).map_err(serde::de::Error::custom)
+    }
+}
+
+/// Names of the encoded core columns, in file order, replacing `origin_*` and `dir_*`.
+pub const ENCODED_COLUMNS: [&str; 7] =
+    ["enc_origin_x", "enc_origin_y", "enc_origin_z", "enc_dir_code", "enc_dir_u", "enc_dir_v", "enc_dir_r"];
+
+/// Direction codes (low 3 bits of `enc_dir_code`): 0..=5 predicted axis (`axis + 3 * negative`),
+/// raw bits, octahedral. Bits 3..=5 flag origin components stored raw instead of predicted.
+const DIR_RAW: u8 = 6;
+const DIR_OCT: u8 = 7;
+
+/// The schema of the ray files for `plain` (the ray table schema) and encoded layouts.
+pub fn file_schema(plain: &SchemaRef, encoding: Encoding) -> SchemaRef {
+    if encoding == Encoding::Plain {
+        return plain.clone();
+    }
+    let mut fields: Vec<Field> = Vec::with_capacity(plain.fields().len() + 1);
+    for f in plain.fields() {
+        match f.name().as_str() {
+            "origin_y" | "origin_z" | "dir_x" | "dir_y" | "dir_z" => {}
+            // The encoded columns go where origin_x was.
+            "origin_x" => {
+                for name in ENCODED_COLUMNS {
+                    let dt = if name == "enc_dir_code" { DataType::UInt8 } else { DataType::UInt32 };
+                    fields.push(Field::new(name, dt, false));
+                }
+            }
+            _ => fields.push(f.as_ref().clone()),
+        }
+    }
+    Arc::new(Schema::new_with_metadata(fields, plain.metadata().clone()))
+}
+
+#[inline]
+fn ord(f: f32) -> i32 {
+    let b = f.to_bits() as i32;
+    if b < 0 { b ^ 0x7fff_ffff } else { b }
+}
+
+#[inline]
+fn unord(i: i32) -> f32 {
+    f32::from_bits((if i < 0 { i ^ 0x7fff_ffff } else { i }) as u32)
+}
+
+#[inline]
+fn residual(actual: f32, pred: f32) -> u32 {
+    let d = ord(actual).wrapping_sub(ord(pred));
+    ((d << 1) ^ (d >> 31)) as u32
+}
+
+#[inline]
+fn apply(r: u32, pred: f32) -> f32 {
+    let d = ((r >> 1) as i32) ^ -((r & 1) as i32);
+    unord(ord(pred).wrapping_add(d))
+}
+
+/// The predicted largest component of a unit vector from the two others.
+#[inline]
+fn unit_component(b: f32, c: f32, negative: bool) -> f32 {
+    let (b, c) = (f64::from(b), f64::from(c));
+    let p = (1.0 - b * b - c * c).max(0.0).sqrt() as f32;
+    if negative { -p } else { p }
+}
+
+/// Octahedral encoding of a finite non-zero vector: (u, v) in [0, 2^bits - 1], the nearest of the
+/// four surrounding lattice points by angle.
+fn oct_encode(d: [f32; 3], bits: u8) -> Option<u32> {
+    let v = [f64::from(d[0]), f64::from(d[1]), f64::from(d[2])];
+    let l1 = v[0].abs() + v[1].abs() + v[2].abs();
+    if !(l1.is_finite() && l1 > 0.0) {
+        return None;
+    }
+    let (mut x, mut y) = (v[0] / l1, v[1] / l1);
+    if v[2] < 0.0 {
+        let (ox, oy) = (x, y);
+        x = (1.0 - oy.abs()) * if ox >= 0.0 { 1.0 } else { -1.0 };
+        y = (1.0 - ox.abs()) * if oy >= 0.0 { 1.0 } else { -1.0 };
+    }
+    let max = f64::from((1u32 << bits) - 1);
+    let (fx, fy) = ((x * 0.5 + 0.5) * max, (y * 0.5 + 0.5) * max);
+    let n = normalize(v);
+    let mut best = (f64::NEG_INFINITY, 0u32);
+    for qx in [fx.floor(), fx.ceil()] {
+        for qy in [fy.floor(), fy.ceil()] {
+            let (qx, qy) = (qx.clamp(0.0, max), qy.clamp(0.0, max));
+            let code = ((qx as u32) << 16) | qy as u32;
+            let dec = oct_decode64(code, bits);
+            let dot = dec[0] * n[0] + dec[1] * n[1] + dec[2] * n[2];
+            if dot > best.0 {
+                best = (dot, code);
+            }
+        }
+    }
+    Some(best.1)
+}
+
+/// The angle between two directions in radians (atan2 of the cross and dot products, accurate
+/// for tiny angles where `acos` of the dot product is not); NaN when either is zero or not finite.
+pub fn angle_between(a: [f32; 3], b: [f32; 3]) -> f64 {
+    let (a, b) = (a.map(f64::from), b.map(f64::from));
+    let c = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let cross = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
+    let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    if cross == 0.0 && dot == 0.0 { f64::NAN } else { cross.atan2(dot) }
+}
+
+fn normalize(v: [f64; 3]) -> [f64; 3] {
+    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    [v[0] / l, v[1] / l, v[2] / l]
+}
+
+fn oct_decode64(code: u32, bits: u8) -> [f64; 3] {
+    let max = f64::from((1u32 << bits) - 1);
+    let x = f64::from(code >> 16) / max * 2.0 - 1.0;
+    let y = f64::from(code & 0xffff) / max * 2.0 - 1.0;
+    let z = 1.0 - x.abs() - y.abs();
+    let (x, y) = if z < 0.0 {
+        ((1.0 - y.abs()) * if x >= 0.0 { 1.0 } else { -1.0 }, (1.0 - x.abs()) * if y >= 0.0 { 1.0 } else { -1.0 })
+    } else {
+        (x, y)
+    };
+    normalize([x, y, z])
+}
+
+fn oct_decode(code: u32, bits: u8) -> [f32; 3] {
+    let d = oct_decode64(code, bits);
+    [d[0] as f32, d[1] as f32, d[2] as f32]
+}
+
+/// The rays of the tree being coded, as the decoder will see them.
+#[derive(Default)]
+struct TreeState {
+    tree: u64,
+    origin: Vec<[f32; 3]>,
+    dir: Vec<[f32; 3]>,
+    t: Vec<Option<f32>>,
+    /// Last child (index + 1) of each ray, at index ray + 1; index 0 holds the last root.
+    last_child: Vec<u32>,
+}
+
+impl TreeState {
+    fn start(&mut self, tree: u64) {
+        self.tree = tree;
+        self.origin.clear();
+        self.dir.clear();
+        self.t.clear();
+        self.last_child.clear();
+        self.last_child.push(0);
+    }
+
+    fn len(&self) -> usize {
+        self.origin.len()
+    }
+
+    /// Checks `(tree, ray, parent)` continues the current tree or starts a new one.
+    fn advance(&mut self, tree: u64, ray: u32, parent: u32) -> std::result::Result<(), String> {
+        if ray == 0 {
+            self.start(tree);
+        } else if tree != self.tree || ray as usize != self.len() {
+            return Err(format!(
+                "tree {tree} ray {ray}: rays of a tree must be contiguous from ray 0 (expected ray {} of tree {})",
+                self.len(),
+                self.tree
+            ));
+        }
+        if parent != NONE_U32 && parent >= ray {
+            return Err(format!("tree {tree} ray {ray}: parent {parent} is not an earlier ray"));
+        }
+        Ok(())
+    }
+
+    #[inline]
+    fn slot(parent: u32) -> usize {
+        if parent == NONE_U32 { 0 } else { parent as usize + 1 }
+    }
+
+    #[inline]
+    fn predict_origin(&self, parent: u32) -> [f32; 3] {
+        let last = self.last_child[Self::slot(parent)];
+        if last > 0 {
+            return self.origin[last as usize - 1];
+        }
+        if parent != NONE_U32
+            && let Some(t) = self.t[parent as usize]
+        {
+            let (o, d) = (self.origin[parent as usize], self.dir[parent as usize]);
+            return [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
+        }
+        [0.0; 3]
+    }
+
+    #[inline]
+    fn push(&mut self, parent: u32, origin: [f32; 3], dir: [f32; 3], t: Option<f32>) {
+        let me = self.len() as u32 + 1;
+        self.last_child[Self::slot(parent)] = me;
+        self.origin.push(origin);
+        self.dir.push(dir);
+        self.t.push(t);
+        self.last_child.push(0);
+    }
+}
+
+/// The encoded origin and direction columns of a run of whole trees.
+#[derive(Default)]
+pub(crate) struct EncodedCore {
+    pub origin: [Vec<u32>; 3],
+    pub code: Vec<u8>,
+    pub dir: [Vec<u32>; 3],
+}
+
+impl EncodedCore {
+    pub fn into_arrays(self) -> Vec<ArrayRef> {
+        let [ox, oy, oz] = self.origin;
+        let [u, v, r] = self.dir;
+        vec![
+            Arc::new(UInt32Array::from(ox)),
+            Arc::new(UInt32Array::from(oy)),
+            Arc::new(UInt32Array::from(oz)),
+            Arc::new(UInt8Array::from(self.code)),
+            Arc::new(UInt32Array::from(u)),
+            Arc::new(UInt32Array::from(v)),
+            Arc::new(UInt32Array::from(r)),
+        ]
+    }
+}
+
+fn encode_dir(d: [f32; 3], encoding: Encoding) -> (u8, [u32; 3], [f32; 3]) {
+    if let Encoding::Oct(bits) = encoding
+        && let Some(code) = oct_encode(d, bits)
+    {
+        return (DIR_OCT, [code, 0, 0], oct_decode(code, bits));
+    }
+    if !(d[0].is_finite() && d[1].is_finite() && d[2].is_finite()) {
+        return (DIR_RAW, [d[0].to_bits(), d[1].to_bits(), d[2].to_bits()], d);
+    }
+    let (ax, ay, az) = (d[0].abs(), d[1].abs(), d[2].abs());
+    let axis = if ax >= ay && ax >= az {
+        0
+    } else if ay >= az {
+        1
+    } else {
+        2
+    };
+    let (b, c) = (d[(axis + 1) % 3], d[(axis + 2) % 3]);
+    let negative = d[axis].is_sign_negative();
+    let pred = unit_component(b, c, negative);
+    (axis as u8 + 3 * u8::from(negative), [b.to_bits(), c.to_bits(), residual(d[axis], pred)], d)
+}
+
+fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], String> {
+    match code {
+        0..=5 => {
+            let axis = (code % 3) as usize;
+            let (b, c) = (f32::from_bits(w[0]), f32::from_bits(w[1]));
+            let mut d = [0.0f32; 3];
+            d[(axis + 1) % 3] = b;
+            d[(axis + 2) % 3] = c;
+            d[axis] = apply(w[2], unit_component(b, c, code >= 3));
+            Ok(d)
+        }
+        DIR_RAW => Ok([f32::from_bits(w[0]), f32::from_bits(w[1]), f32::from_bits(w[2])]),
+        DIR_OCT if bits > 0 => Ok(oct_decode(w[0], bits)),
+        _ => Err(format!("direction code {code} is not valid for this encoding")),
+    }
+}
+
+/// Encodes the origin and direction columns of `cols` (whole trees, each contiguous from ray 0).
+pub(crate) fn encode(cols: &RayColumns, encoding: Encoding) -> Result<EncodedCore> {
+    let n = cols.len();
+    let mut out = EncodedCore {
+        origin: [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)],
+        code: Vec::with_capacity(n),
+        dir: [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)],
+    };
+    let mut st = TreeState::default();
+    for i in 0..n {
+        let parent = cols.parent[i];
+        st.advance(cols.tree_id[i], cols.ray[i], parent).map_err(Error::Encoding)?;
+        let o = [cols.origin[0][i], cols.origin[1][i], cols.origin[2][i]];
+        let d = [cols.direction[0][i], cols.direction[1][i], cols.direction[2][i]];
+        let pred = st.predict_origin(parent);
+        let mut raw_flags = 0u8;
+        for k in 0..3 {
+            // Near zero a prediction a few µm off is millions of ULPs away: store such a
+            // coordinate raw instead (repeated raw values are what zstd compresses well).
+            let (p, r) = (residual(o[k], pred[k]), residual(o[k], 0.0));
+            if r < p {
+                raw_flags |= 1 << k;
+            }
+            out.origin[k].push(p.min(r));
+        }
+        let (code, w, decoded) = encode_dir(d, encoding);
+        out.code.push(code | (raw_flags << 3));
+        for (col, v) in out.dir.iter_mut().zip(w) {
+            col.push(v);
+        }
+        st.push(parent, o, decoded, cols.hit[i].then_some(cols.t[i]));
+    }
+    Ok(out)
+}
+
+/// Turns ray-file batches back into ray-table batches. Keeps the tree being decoded across
+/// batches, so a file read in any batch size decodes; the first batch must start at a tree.
+pub struct Decoder {
+    encoding: Encoding,
+    plain: SchemaRef,
+    state: TreeState,
+}
+
+impl Decoder {
+    pub fn new(encoding: Encoding, plain: SchemaRef) -> Self {
+        Self { encoding, plain, state: TreeState::default() }
+    }
+
+    /// Decodes one batch of a ray file at `path` (named in errors).
+    pub fn decode(&mut self, batch: RecordBatch, path: &Path) -> Result<RecordBatch> {
+        if self.encoding == Encoding::Plain {
+            return Ok(batch);
+        }
+        let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
+        let col = |name: &str| {
+            batch.column_by_name(name).ok_or_else(|| Error::Schema {
+                path: path.to_path_buf(),
+                field: name.into(),
+                expected: "an encoded column".into(),
+                found: "no such column".into(),
+            })
+        };
+        let typed_u32 = |name: &str| -> Result<&UInt32Array> {
+            col(name)?.as_primitive_opt::<UInt32Type>().ok_or_else(|| corrupt(format!("column {name} is not UInt32")))
+        };
+        let tree = col("tree_id")?
+            .as_primitive_opt::<UInt64Type>()
+            .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
+        let ray = typed_u32("ray")?;
+        let parent = typed_u32("parent")?;
+        let t = col("t")?
+            .as_primitive_opt::<arrow::datatypes::Float32Type>()
+            .ok_or_else(|| corrupt("column t is not Float32".into()))?;
+        let eo = [typed_u32(ENCODED_COLUMNS[0])?, typed_u32(ENCODED_COLUMNS[1])?, typed_u32(ENCODED_COLUMNS[2])?];
+        let code = col("enc_dir_code")?
+            .as_primitive_opt::<UInt8Type>()
+            .ok_or_else(|| corrupt("column enc_dir_code is not UInt8".into()))?;
+        let ed = [typed_u32(ENCODED_COLUMNS[4])?, typed_u32(ENCODED_COLUMNS[5])?, typed_u32(ENCODED_COLUMNS[6])?];
+        let bits = match self.encoding {
+            Encoding::Oct(b) => b,
+            _ => 0,
+        };
+        let n = batch.num_rows();
+        let mut origin = [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
+        let mut dir = [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
+        let st = &mut self.state;
+        for i in 0..n {
+            let p = if parent.is_null(i) { NONE_U32 } else { parent.value(i) };
+            st.advance(tree.value(i), ray.value(i), p).map_err(corrupt)?;
+            let pred = st.predict_origin(p);
+            let c = code.value(i);
+            if c >> 6 != 0 {
+                return Err(corrupt(format!(
+                    "tree {} ray {}: enc_dir_code {c} has unknown bits",
+                    tree.value(i),
+                    ray.value(i)
+                )));
+            }
+            let o = [0, 1, 2].map(|k| apply(eo[k].value(i), if c & (8 << k) != 0 { 0.0 } else { pred[k] }));
+            let d = decode_dir(c & 7, [ed[0].value(i), ed[1].value(i), ed[2].value(i)], bits)
+                .map_err(|m| corrupt(format!("tree {} ray {}: {m}", tree.value(i), ray.value(i))))?;
+            for k in 0..3 {
+                origin[k].push(o[k]);
+                dir[k].push(d[k]);
+            }
+            st.push(p, o, d, if t.is_null(i) { None } else { Some(t.value(i)) });
+        }
+        let [ox, oy, oz] = origin;
+        let [dx, dy, dz] = dir;
+        let mut floats: Vec<(&str, ArrayRef)> = vec![
+            ("origin_x", Arc::new(Float32Array::from(ox))),
+            ("origin_y", Arc::new(Float32Array::from(oy))),
+            ("origin_z", Arc::new(Float32Array::from(oz))),
+            ("dir_x", Arc::new(Float32Array::from(dx))),
+            ("dir_y", Arc::new(Float32Array::from(dy))),
+            ("dir_z", Arc::new(Float32Array::from(dz))),
+        ];
+        let mut columns = Vec::with_capacity(self.plain.fields().len());
+        for f in self.plain.fields() {
+            if let Some(pos) = floats.iter().position(|(name, _)| name == f.name()) {
+                columns.push(floats.swap_remove(pos).1);
+            } else {
+                columns.push(col(f.name())?.clone());
+            }
+        }
+        RecordBatch::try_new(self.plain.clone(), columns).map_err(|e| corrupt(format!("decoded batch: {e}")))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn residuals_are_a_bijection_on_bits() {
+        let specials = [
+            0.0f32,
+            -0.0,
+            1.0,
+            -1.0,
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE,
+            f32::from_bits(1),
+            f32::MAX,
+            f32::MIN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            f32::from_bits(0x7fc0_1234),
+            f32::from_bits(0xffc0_0001),
+            1e-30,
+            3e30,
+        ];
+        for &a in &specials {
+            for &p in &specials {
+                assert_eq!(apply(residual(a, p), p).to_bits(), a.to_bits(), "{a:e} predicted by {p:e}");
+            }
+        }
+        assert_eq!(residual(1.0, 1.0), 0);
+        assert_eq!(residual(f32::from_bits(1.0f32.to_bits() + 1), 1.0), 2);
+        assert_eq!(residual(0.0, -0.0), 2, "-0.0 and +0.0 are adjacent");
+    }
+
+    #[test]
+    fn directions_round_trip_bit_exactly() {
+        let dirs = [
+            [0.0f32, 0.0, 1.0],
+            [0.0, -1.0, 0.0],
+            [0.6, 0.8, 0.0],
+            [-0.57735026, 0.57735026, -0.57735026],
+            [1e-30, -1.0, 1e-38],
+            [3.0, 4.0, 12.0],
+            [0.0, 0.0, 0.0],
+            [f32::NAN, 0.0, 1.0],
+            [0.0, f32::INFINITY, 0.0],
+            [-0.0, -0.0, -1.0],
+        ];
+        for d in dirs {
+            let (code, w, dec) = encode_dir(d, Encoding::Lossless);
+            assert_eq!(dec.map(f32::to_bits), d.map(f32::to_bits));
+            let back = decode_dir(code, w, 0).unwrap();
+            assert_eq!(back.map(f32::to_bits), d.map(f32::to_bits), "{d:?}");
+        }
+        // A normalized vector costs a small residual.
+        let (_, w, _) = encode_dir([0.26726124, 0.5345225, 0.8017837], Encoding::Lossless);
+        assert!(w[2] < 16, "residual {}", w[2]);
+    }
+
+    #[test]
+    fn octahedral_error_shrinks_with_bits() {
+        let mut worst = [0.0f64; 2];
+        for (k, bits) in [8u8, 16].into_iter().enumerate() {
+            for i in 0..2000 {
+                let a = i as f64 * 0.7;
+                let z = (i as f64 / 1000.0) - 1.0;
+                let r = (1.0 - z * z).sqrt();
+                let d = [(r * a.cos()) as f32, (r * a.sin()) as f32, z as f32];
+                let (code, w, dec) = encode_dir(d, Encoding::Oct(bits));
+                assert_eq!(code, DIR_OCT);
+                assert_eq!(decode_dir(code, w, bits).unwrap(), dec);
+                worst[k] = worst[k].max(angle_between(d, dec));
+            }
+        }
+        assert!(worst[0] < 0.02, "8-bit error {} rad", worst[0]);
+        assert!(worst[1] < 5e-5, "16-bit error {} rad", worst[1]);
+        assert!(worst[1] < worst[0] / 100.0);
+    }
+
+    #[test]
+    fn encoding_names_parse_back() {
+        for e in [Encoding::Plain, Encoding::Lossless, Encoding::Oct(8), Encoding::Oct(16)] {
+            assert_eq!(Encoding::parse(&e.name()).unwrap(), e);
+        }
+        for bad in ["oct", "oct7", "oct17", "zip", ""] {
+            let err = Encoding::parse(bad).unwrap_err().to_string();
+            assert!(err.contains("expected plain, lossless or octN"), "{err}");
+        }
+    }
+}

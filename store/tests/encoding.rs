@@ -1,0 +1,296 @@
+//! Format version 2 encodings: bit-exact round trips, lossy error bounds, reading version 1.
+#![allow(clippy::unwrap_used)]
+
+use std::path::Path;
+use std::sync::Arc;
+
+use arrow::array::{ArrayRef, RecordBatch, UInt8Array, UInt32Array};
+use store::{
+    Dataset, DatasetWriter, Decoder, Encoding, Kind, KindTable, PayloadSchema, RayColumns, RayFields, TreeId, TreeRow,
+    WriteOptions,
+};
+
+/// A small xorshift generator so the trees are varied but reproducible.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0
+    }
+    fn f(&mut self) -> f32 {
+        (self.next() >> 40) as f32 / (1u64 << 24) as f32
+    }
+    fn unit(&mut self) -> [f32; 3] {
+        let z = self.f() * 2.0 - 1.0;
+        let a = self.f() * std::f32::consts::TAU;
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        let d = [r * a.cos(), r * a.sin(), z];
+        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        [d[0] / l, d[1] / l, d[2] / l]
+    }
+}
+
+/// Path-tracer-like trees: a camera ray, then per bounce a shadow ray and a bounce ray leaving a
+/// point just off the parent's hit point; plus rays with every special value.
+fn trees(n: u64, scale: f32, offset: f32) -> RayColumns {
+    let mut rng = Rng(0x9E37_79B9_7F4A_7C15);
+    let mut cols = RayColumns::new(&PayloadSchema::default());
+    let specials = [f32::NAN, f32::from_bits(0x7fc0_1234), f32::INFINITY, f32::NEG_INFINITY, -0.0, 1e-40, f32::MAX];
+    for id in 0..n {
+        let first = cols.len() as u64;
+        let mut k = 0u32;
+        let mut push = |cols: &mut RayColumns, parent: u32, depth: u16, f: RayFields| {
+            cols.push_core(id, k, parent, depth, &f);
+            k += 1;
+            k - 1
+        };
+        let cam = [offset + 278.0 * scale, offset + 273.0 * scale, offset - 800.0 * scale];
+        let mut o = cam;
+        let mut d = rng.unit();
+        let mut parent = store::NONE_U32;
+        let mut depth = 0u16;
+        let bounces = (rng.next() % 6) as u16;
+        for b in 0..=bounces {
+            let t = (rng.f() + 0.01) * 500.0 * scale;
+            let miss = b == bounces && rng.next().is_multiple_of(3);
+            let kind = if b == 0 { Kind::CAMERA } else { Kind::DIFFUSE };
+            let me = push(
+                &mut cols,
+                parent,
+                depth,
+                RayFields {
+                    origin: o,
+                    direction: d,
+                    t: (!miss).then_some(t),
+                    kind,
+                    prim: (!miss).then_some(rng.next() as u32 % 1000),
+                },
+            );
+            if miss {
+                break;
+            }
+            // The hit point, nudged a few ULPs off the surface like a renderer does.
+            let nudge = (rng.next() % 33) as i32 - 16;
+            let hit = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t]
+                .map(|c| f32::from_bits((c.to_bits() as i32).wrapping_add(nudge) as u32));
+            depth += 1;
+            let sd = if id.is_multiple_of(17) {
+                // Unnormalized and special directions cost bytes but must round-trip.
+                [specials[(id as usize + b as usize) % specials.len()], 2.0, -3.0]
+            } else {
+                rng.unit()
+            };
+            push(
+                &mut cols,
+                me,
+                depth,
+                RayFields { origin: hit, direction: sd, t: Some(rng.f() * 100.0), kind: Kind::SHADOW, prim: Some(7) },
+            );
+            o = hit;
+            d = rng.unit();
+            parent = me;
+        }
+        let max_depth = depth;
+        cols.trees.push(TreeRow {
+            tree_id: id,
+            pixel_x: (id % 64) as u32,
+            pixel_y: (id / 64) as u32,
+            sample: 0,
+            ray_count: k,
+            max_depth,
+            first_row: first,
+        });
+    }
+    cols
+}
+
+fn write(dir: &Path, cols: &RayColumns, encoding: Encoding, chunks: usize) {
+    let schema = PayloadSchema::default();
+    let opts = WriteOptions { row_group_rows: 1000, page_rows: 100, encoding, ..Default::default() };
+    let w = DatasetWriter::create(dir, schema.clone(), opts).unwrap();
+    let kinds = KindTable::default();
+    let mut seg = w.open_segment().unwrap();
+    // Split the trees into a few chunks, as the recorder's workers would see them.
+    let per = cols.trees.len().div_ceil(chunks);
+    for part in cols.trees.chunks(per) {
+        let mut c = RayColumns::new(&schema);
+        for t in part {
+            let (a, b) = (t.first_row as usize, t.first_row as usize + t.ray_count as usize);
+            let first = c.len() as u64;
+            for i in a..b {
+                let f = RayFields {
+                    origin: [cols.origin[0][i], cols.origin[1][i], cols.origin[2][i]],
+                    direction: [cols.direction[0][i], cols.direction[1][i], cols.direction[2][i]],
+                    t: cols.hit[i].then_some(cols.t[i]),
+                    kind: Kind(cols.kind[i]),
+                    prim: (cols.prim[i] != store::NONE_U32).then_some(cols.prim[i]),
+                };
+                c.push_core(cols.tree_id[i], cols.ray[i], cols.parent[i], cols.depth[i], &f);
+            }
+            c.trees.push(TreeRow { first_row: first, ..*t });
+        }
+        seg.write(c, &schema, &kinds).unwrap();
+    }
+    seg.seal(&w, &kinds).unwrap();
+    w.mark_complete().unwrap();
+}
+
+fn bits3(v: [f32; 3]) -> [u32; 3] {
+    v.map(f32::to_bits)
+}
+
+#[test]
+fn lossless_and_plain_round_trip_bit_exactly_at_any_scale() {
+    for (scale, offset) in [(1.0, 0.0), (1e-4, 0.0), (1e5, 0.0), (1.0, 1e6)] {
+        let cols = trees(400, scale, offset);
+        for encoding in [Encoding::Lossless, Encoding::Plain] {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("ds");
+            write(&path, &cols, encoding, 3);
+            let ds = Dataset::open(&path).unwrap();
+            assert_eq!(ds.encoding(), encoding);
+            assert!(ds.check().is_ok(), "{:?}", ds.check());
+            // Sequential scan (decoder state carried across batches and row groups) and random access.
+            let mut seen = 0;
+            for tree in ds.trees() {
+                let tree = tree.unwrap();
+                let again = ds.tree(tree.info.id).unwrap();
+                assert_eq!(format!("{:?}", tree.rays), format!("{:?}", again.rays));
+                for r in &tree.rays {
+                    let i = (cols.trees[tree.info.id.0 as usize].first_row + u64::from(r.index)) as usize;
+                    let o = [cols.origin[0][i], cols.origin[1][i], cols.origin[2][i]];
+                    let d = [cols.direction[0][i], cols.direction[1][i], cols.direction[2][i]];
+                    assert_eq!(
+                        bits3(r.origin),
+                        bits3(o),
+                        "{encoding:?} scale {scale} tree {} ray {}",
+                        tree.info.id.0,
+                        r.index
+                    );
+                    assert_eq!(bits3(r.direction), bits3(d), "{encoding:?} scale {scale}");
+                    assert_eq!(r.t.map(f32::to_bits), cols.hit[i].then_some(cols.t[i].to_bits()));
+                    seen += 1;
+                }
+            }
+            assert_eq!(seen, cols.len());
+        }
+    }
+}
+
+#[test]
+fn lossless_is_smaller_than_plain_on_tree_structured_rays() {
+    let cols = trees(3000, 1.0, 0.0);
+    let mut sizes = Vec::new();
+    for encoding in [Encoding::Plain, Encoding::Lossless] {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("ds");
+        write(&path, &cols, encoding, 1);
+        let ds = Dataset::open(&path).unwrap();
+        sizes.push(ds.manifest().segments[0].rays.bytes);
+    }
+    assert!(sizes[1] * 10 < sizes[0] * 8, "lossless {} B vs plain {} B", sizes[1], sizes[0]);
+}
+
+#[test]
+fn octahedral_directions_stay_within_their_error_and_the_rest_is_exact() {
+    let cols = trees(300, 1.0, 1e3);
+    for (bits, bound) in [(16u8, 6e-5f64), (10, 4e-3)] {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("ds");
+        write(&path, &cols, Encoding::Oct(bits), 2);
+        let ds = Dataset::open(&path).unwrap();
+        assert!(ds.encoding().is_lossy());
+        let mut worst = 0.0f64;
+        for tree in ds.trees() {
+            let tree = tree.unwrap();
+            for r in &tree.rays {
+                let i = (cols.trees[tree.info.id.0 as usize].first_row + u64::from(r.index)) as usize;
+                let o = [cols.origin[0][i], cols.origin[1][i], cols.origin[2][i]];
+                assert_eq!(bits3(r.origin), bits3(o), "origins stay lossless");
+                let d = [cols.direction[0][i], cols.direction[1][i], cols.direction[2][i]];
+                if !d.iter().all(|c| c.is_finite()) {
+                    continue;
+                }
+                worst = worst.max(store::angle_between(d, r.direction));
+                let g = r.direction.map(f64::from);
+                let gl = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
+                assert!((gl - 1.0).abs() < 1e-6, "decoded directions are unit length");
+            }
+        }
+        assert!(worst > 0.0 && worst < bound, "oct{bits}: worst angular error {worst} rad");
+    }
+}
+
+#[test]
+fn version_1_datasets_still_read() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/v1-cornell");
+    let ds = Dataset::open(&dir).unwrap();
+    assert_eq!(ds.manifest().format_version, 1);
+    assert_eq!(ds.encoding(), Encoding::Plain);
+    assert!(ds.check().is_ok(), "{:?}", ds.check());
+    let csv = std::fs::read_to_string(dir.join("rays.csv")).unwrap();
+    let mut lines = csv.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
+    let f = |s: &str| -> Option<f32> { (!s.is_empty()).then(|| s.parse::<f64>().unwrap() as f32) };
+    let mut n = 0;
+    for line in lines {
+        let v: Vec<&str> = line.split(',').collect();
+        let tree = ds.tree(TreeId(v[col("tree_id")].parse().unwrap())).unwrap();
+        let r = &tree.rays[v[col("ray")].parse::<usize>().unwrap()];
+        assert_eq!(r.parent, v[col("parent")].parse().ok());
+        assert_eq!(r.kind, ds.kinds().lookup(v[col("kind")]).unwrap());
+        let o = [f(v[col("ox")]), f(v[col("oy")]), f(v[col("oz")])].map(Option::unwrap);
+        let d = [f(v[col("dx")]), f(v[col("dy")]), f(v[col("dz")])].map(Option::unwrap);
+        assert_eq!(bits3(r.origin), bits3(o));
+        assert_eq!(bits3(r.direction), bits3(d));
+        assert_eq!(r.t.map(f32::to_bits), f(v[col("t")]).map(f32::to_bits));
+        assert_eq!(r.prim, v[col("prim")].parse().ok());
+        n += 1;
+    }
+    assert_eq!(n, ds.ray_count());
+    // The payload columns declared in version 1 read through unchanged.
+    assert!(ds.payload_schema().index_of("throughput").is_some());
+}
+
+#[test]
+fn corrupt_encoded_rows_are_errors_that_name_the_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    write(&path, &trees(5, 1.0, 0.0), Encoding::Lossless, 1);
+    let ds = Dataset::open(&path).unwrap();
+    let file = &ds.ray_files()[0];
+    let reader =
+        parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(file).unwrap())
+            .unwrap()
+            .build()
+            .unwrap();
+    let raw: Vec<RecordBatch> = reader.map(Result::unwrap).collect();
+    let raw = arrow::compute::concat_batches(&ds.file_schema(), &raw).unwrap();
+    assert!(raw.num_rows() > 4);
+    // The untouched rows decode; each kind of damage is an error naming the file, not a panic.
+    assert_eq!(
+        Decoder::new(Encoding::Lossless, ds.ray_schema()).decode(raw.clone(), file).unwrap().num_rows(),
+        raw.num_rows()
+    );
+    let replace = |name: &str, col: ArrayRef| {
+        let mut cols = raw.columns().to_vec();
+        cols[raw.schema().index_of(name).unwrap()] = col;
+        RecordBatch::try_new(raw.schema(), cols).unwrap()
+    };
+    let n = raw.num_rows();
+    let cases = [
+        (replace("ray", Arc::new(UInt32Array::from_iter_values((0..n as u32).map(|i| i + 3)))), "contiguous"),
+        (
+            replace("parent", Arc::new(UInt32Array::from_iter((0..n as u32).map(|i| (i > 0).then_some(i + 5))))),
+            "is not an earlier ray",
+        ),
+        (replace("enc_dir_code", Arc::new(UInt8Array::from(vec![7u8; n]))), "direction code 7"),
+    ];
+    for (batch, expected) in cases {
+        let err = Decoder::new(Encoding::Lossless, ds.ray_schema()).decode(batch, file).unwrap_err().to_string();
+        assert!(err.contains(expected) && err.contains("000001.rays.parquet"), "{err}");
+    }
+}
