@@ -59,11 +59,20 @@ pub enum BenchCommand {
         #[arg(long)]
         no_duckdb: bool,
     },
+    /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
+    Fetch {
+        dataset: PathBuf,
+        #[arg(long, default_value_t = 2000)]
+        fetches: usize,
+        #[arg(long)]
+        no_duckdb: bool,
+    },
 }
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp } => crate::bench_trace::run(subdivide, rotate, width, spp),
+        BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
         BenchCommand::Store { rays, threads, workers, fetches, dir, scene, encodings, no_duckdb } => {
             let encodings = encodings.iter().map(|e| Encoding::parse(e)).collect::<Result<Vec<_>, _>>()?;
             let args = StoreArgs { threads: threads.max(1), workers: workers.max(1), fetches, duckdb: !no_duckdb };
@@ -469,35 +478,51 @@ fn store_bench(
         RecorderOptions::default().memory_budget as f64 / (1 << 20) as f64
     );
     let Some(fetch_path) = fetch_ds else { return Ok(()) };
+    fetch_bench(&fetch_path, args.fetches, args.duckdb)
+}
 
-    // Fetch latency: random trees by id and by (pixel, sample), warm (metadata cached, page cache warm).
-    let ds = Dataset::open(&fetch_path)?;
+/// One-tree fetch latency on an existing dataset, by id and by (pixel, sample), warm, beside
+/// DuckDB's `WHERE tree_id = k` on the same files.
+fn fetch_bench(fetch_path: &std::path::Path, fetches: usize, duckdb: bool) -> Result<()> {
+    // Warm: the ray files read once into the page cache, the tree index loaded (timed apart).
+    let ds = Dataset::open(fetch_path)?;
     let t = Instant::now();
-    let entries = ds.tree_entries()?;
+    let mut warm_bytes = 0u64;
+    for f in ds.ray_files() {
+        warm_bytes += std::io::copy(&mut File::open(&f)?, &mut std::io::sink())?;
+    }
+    let warm_secs = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let n_trees = ds.tree_count().max(1);
+    ds.tree_entry_at(0)?;
     let index_secs = t.elapsed().as_secs_f64();
+    eprintln!(
+        "  read {:.0} MiB of ray files in {warm_secs:.1} s to warm the page cache; tree index {index_secs:.2} s",
+        warm_bytes as f64 / (1 << 20) as f64
+    );
     let mut rng = 0x2545_F491_4F6C_DD1Du64;
-    let mut pick = || {
+    let mut pick = || -> Result<store::TreeEntry> {
         rng ^= rng << 13;
         rng ^= rng >> 7;
         rng ^= rng << 17;
-        entries[(rng % entries.len() as u64) as usize]
+        ds.tree_entry_at((rng % n_trees) as usize)?.context("tree index shorter than the manifest says")
     };
-    for _ in 0..200.min(args.fetches) {
-        ds.tree(pick().info.id)?;
+    for _ in 0..200.min(fetches) {
+        ds.tree(pick()?.info.id)?;
     }
-    let mut by_id = Vec::with_capacity(args.fetches);
-    let mut picked = Vec::with_capacity(args.fetches);
-    for _ in 0..args.fetches {
-        let id: TreeId = pick().info.id;
+    let mut by_id = Vec::with_capacity(fetches);
+    let mut picked = Vec::with_capacity(fetches);
+    for _ in 0..fetches {
+        let id: TreeId = pick()?.info.id;
         picked.push(id.0);
         let t = Instant::now();
         let tree = ds.tree(id)?;
         by_id.push(t.elapsed().as_secs_f64());
         std::hint::black_box(tree);
     }
-    let mut by_pixel = Vec::with_capacity(args.fetches);
-    for _ in 0..args.fetches {
-        let e = pick().info;
+    let mut by_pixel = Vec::with_capacity(fetches);
+    for _ in 0..fetches {
+        let e = pick()?.info;
         let t = Instant::now();
         let trees = ds.trees_at_pixel(e.pixel[0], e.pixel[1], Some(e.sample))?;
         by_pixel.push(t.elapsed().as_secs_f64());
@@ -511,9 +536,9 @@ fn store_bench(
          by pixel and sample p50 {px50:.3} ms, p99 {px99:.3} ms; tree index load {index_secs:.3} s",
         ds.encoding().name(),
         ds.ray_count(),
-        args.fetches,
+        fetches,
     );
-    if args.duckdb {
+    if duckdb {
         let ids: Vec<u64> = picked.iter().copied().take(60).collect();
         match duckdb_fetch(&ds.ray_files(), &ids) {
             Ok((d50, d99)) => println!(

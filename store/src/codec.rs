@@ -211,35 +211,39 @@ fn oct_decode(code: u32, bits: u8) -> [f32; 3] {
     [d[0] as f32, d[1] as f32, d[2] as f32]
 }
 
+/// One ray of the tree being coded, as the decoder will see it.
+#[derive(Clone, Copy)]
+struct Node {
+    origin: [f32; 3],
+    dir: [f32; 3],
+    t: f32,
+    hit: bool,
+    /// Last child (index + 1), 0 when none yet.
+    last_child: u32,
+}
+
 /// The rays of the tree being coded, as the decoder will see them.
 #[derive(Default)]
 struct TreeState {
     tree: u64,
-    origin: Vec<[f32; 3]>,
-    dir: Vec<[f32; 3]>,
-    t: Vec<Option<f32>>,
-    /// Last child (index + 1) of each ray, at index ray + 1; index 0 holds the last root.
-    last_child: Vec<u32>,
+    nodes: Vec<Node>,
+    /// Last root (index + 1), 0 when none yet.
+    last_root: u32,
 }
 
 impl TreeState {
-    fn start(&mut self, tree: u64) {
-        self.tree = tree;
-        self.origin.clear();
-        self.dir.clear();
-        self.t.clear();
-        self.last_child.clear();
-        self.last_child.push(0);
-    }
-
+    #[inline]
     fn len(&self) -> usize {
-        self.origin.len()
+        self.nodes.len()
     }
 
     /// Checks `(tree, ray, parent)` continues the current tree or starts a new one.
+    #[inline]
     fn advance(&mut self, tree: u64, ray: u32, parent: u32) -> std::result::Result<(), String> {
         if ray == 0 {
-            self.start(tree);
+            self.tree = tree;
+            self.nodes.clear();
+            self.last_root = 0;
         } else if tree != self.tree || ray as usize != self.len() {
             return Err(format!(
                 "tree {tree} ray {ray}: rays of a tree must be contiguous from ray 0 (expected ray {} of tree {})",
@@ -254,33 +258,31 @@ impl TreeState {
     }
 
     #[inline]
-    fn slot(parent: u32) -> usize {
-        if parent == NONE_U32 { 0 } else { parent as usize + 1 }
-    }
-
-    #[inline]
     fn predict_origin(&self, parent: u32) -> [f32; 3] {
-        let last = self.last_child[Self::slot(parent)];
-        if last > 0 {
-            return self.origin[last as usize - 1];
+        let last = match self.nodes.get(parent as usize) {
+            Some(p) => p.last_child,
+            None => self.last_root,
+        };
+        if let Some(sib) = last.checked_sub(1).and_then(|s| self.nodes.get(s as usize)) {
+            return sib.origin;
         }
-        if parent != NONE_U32
-            && let Some(t) = self.t[parent as usize]
-        {
-            let (o, d) = (self.origin[parent as usize], self.dir[parent as usize]);
-            return [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
+        match self.nodes.get(parent as usize) {
+            Some(p) if p.hit => {
+                let (o, d, t) = (p.origin, p.dir, p.t);
+                [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t]
+            }
+            _ => [0.0; 3],
         }
-        [0.0; 3]
     }
 
     #[inline]
     fn push(&mut self, parent: u32, origin: [f32; 3], dir: [f32; 3], t: Option<f32>) {
-        let me = self.len() as u32 + 1;
-        self.last_child[Self::slot(parent)] = me;
-        self.origin.push(origin);
-        self.dir.push(dir);
-        self.t.push(t);
-        self.last_child.push(0);
+        let me = self.nodes.len() as u32 + 1;
+        match self.nodes.get_mut(parent as usize) {
+            Some(p) => p.last_child = me,
+            None => self.last_root = me,
+        }
+        self.nodes.push(Node { origin, dir, t: t.unwrap_or(0.0), hit: t.is_some(), last_child: 0 });
     }
 }
 
@@ -352,33 +354,40 @@ fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], 
 pub(crate) fn encode(cols: &RayColumns, encoding: Encoding) -> Result<EncodedCore> {
     let n = cols.len();
     let mut out = EncodedCore {
-        origin: [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)],
-        code: Vec::with_capacity(n),
-        dir: [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)],
+        origin: [vec![0; n], vec![0; n], vec![0; n]],
+        code: vec![0; n],
+        dir: [vec![0; n], vec![0; n], vec![0; n]],
     };
     let mut st = TreeState::default();
+    let (tree, ray, parent) = (&cols.tree_id[..n], &cols.ray[..n], &cols.parent[..n]);
+    let (ox, oy, oz) = (&cols.origin[0][..n], &cols.origin[1][..n], &cols.origin[2][..n]);
+    let (dx, dy, dz) = (&cols.direction[0][..n], &cols.direction[1][..n], &cols.direction[2][..n]);
+    let (t, hit) = (&cols.t[..n], &cols.hit[..n]);
+    let [eox, eoy, eoz] = &mut out.origin;
+    let [eu, ev, er] = &mut out.dir;
+    let (eox, eoy, eoz, code_out) = (&mut eox[..n], &mut eoy[..n], &mut eoz[..n], &mut out.code[..n]);
+    let (eu, ev, er) = (&mut eu[..n], &mut ev[..n], &mut er[..n]);
     for i in 0..n {
-        let parent = cols.parent[i];
-        st.advance(cols.tree_id[i], cols.ray[i], parent).map_err(Error::Encoding)?;
-        let o = [cols.origin[0][i], cols.origin[1][i], cols.origin[2][i]];
-        let d = [cols.direction[0][i], cols.direction[1][i], cols.direction[2][i]];
-        let pred = st.predict_origin(parent);
+        let p = parent[i];
+        st.advance(tree[i], ray[i], p).map_err(Error::Encoding)?;
+        let o = [ox[i], oy[i], oz[i]];
+        let pred = st.predict_origin(p);
         let mut raw_flags = 0u8;
+        let mut res = [0u32; 3];
         for k in 0..3 {
             // Near zero a prediction a few µm off is millions of ULPs away: store such a
             // coordinate raw instead (repeated raw values are what zstd compresses well).
-            let (p, r) = (residual(o[k], pred[k]), residual(o[k], 0.0));
-            if r < p {
+            let (pr, r) = (residual(o[k], pred[k]), residual(o[k], 0.0));
+            if r < pr {
                 raw_flags |= 1 << k;
             }
-            out.origin[k].push(p.min(r));
+            res[k] = pr.min(r);
         }
-        let (code, w, decoded) = encode_dir(d, encoding);
-        out.code.push(code | (raw_flags << 3));
-        for (col, v) in out.dir.iter_mut().zip(w) {
-            col.push(v);
-        }
-        st.push(parent, o, decoded, cols.hit[i].then_some(cols.t[i]));
+        (eox[i], eoy[i], eoz[i]) = (res[0], res[1], res[2]);
+        let (code, w, decoded) = encode_dir([dx[i], dy[i], dz[i]], encoding);
+        code_out[i] = code | (raw_flags << 3);
+        (eu[i], ev[i], er[i]) = (w[0], w[1], w[2]);
+        st.push(p, o, decoded, hit[i].then_some(t[i]));
     }
     Ok(out)
 }

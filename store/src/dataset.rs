@@ -205,13 +205,20 @@ impl Dataset {
 
     /// Reads the tree table of segment `i`.
     fn read_tree_table(&self, i: usize) -> Result<Vec<TreeEntry>> {
+        let mut out = Vec::with_capacity(self.segment(i).trees.rows as usize);
+        self.read_tree_table_into(i, &mut out)?;
+        Ok(out)
+    }
+
+    /// Appends the tree table of segment `i` to `out`.
+    fn read_tree_table_into(&self, i: usize, out: &mut Vec<TreeEntry>) -> Result<()> {
+        let start = out.len();
         let seg = self.segment(i);
         let path = self.dir.join(&seg.trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
         let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path))?;
         check_schema(builder.schema(), &tree_schema(), &path)?;
         let reader = builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?;
-        let mut out = Vec::with_capacity(seg.trees.rows as usize);
         for batch in reader {
             let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
             let c = |j: usize| b.column(j);
@@ -240,30 +247,72 @@ impl Dataset {
                 });
             }
         }
-        if out.len() as u64 != seg.trees.rows {
+        let found = out.len() - start;
+        if found as u64 != seg.trees.rows {
             return Err(Error::Corrupt {
                 path,
                 what: "tree file".into(),
-                message: format!("manifest lists {} trees, file holds {}", seg.trees.rows, out.len()),
+                message: format!("manifest lists {} trees, file holds {found}", seg.trees.rows),
             });
         }
-        Ok(out)
+        Ok(())
     }
 
     fn index(&self) -> Result<Arc<TreeIndex>> {
         if let Some(ix) = self.index.get() {
             return Ok(ix.clone());
         }
-        let mut by_id = Vec::with_capacity(self.manifest.stats.trees as usize);
-        for i in 0..self.manifest.segments.len() {
-            by_id.extend(self.read_tree_table(i)?);
+        // Tree tables are read on up to 4 threads, each sorted by id already.
+        let n = self.manifest.segments.len();
+        let threads = std::thread::available_parallelism().map_or(1, |p| p.get()).clamp(1, 4).min(n.max(1));
+        let parts: Vec<Result<Vec<TreeEntry>>> = std::thread::scope(|s| {
+            let handles: Vec<_> = (0..threads)
+                .map(|t| {
+                    s.spawn(move || {
+                        let rows = (t..n).step_by(threads).map(|i| self.segment(i).trees.rows as usize).sum();
+                        let mut out = Vec::with_capacity(rows);
+                        for i in (t..n).step_by(threads) {
+                            self.read_tree_table_into(i, &mut out)?;
+                        }
+                        Ok(out)
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|_| Err(Error::Encoding("index thread panicked".into()))))
+                .collect()
+        });
+        let mut parts = parts.into_iter().collect::<Result<Vec<_>>>()?;
+        let mut by_id = parts.pop().unwrap_or_default();
+        by_id.reserve(parts.iter().map(Vec::len).sum());
+        for p in parts {
+            by_id.extend(p);
         }
         by_id.sort_unstable_by_key(|e| e.info.id);
-        let mut by_pixel: Vec<u32> = (0..by_id.len() as u32).collect();
-        by_pixel.sort_unstable_by_key(|&k| {
-            let i = &by_id[k as usize].info;
-            (i.pixel[1], i.pixel[0], i.sample, i.id)
-        });
+        // Pixel order: (y, x, sample) packed into one key when they fit (a stable sort keeps id
+        // order among equal keys); the general comparison otherwise.
+        let fits =
+            by_id.iter().all(|e| e.info.pixel[0] < 1 << 20 && e.info.pixel[1] < 1 << 20 && e.info.sample < 1 << 24);
+        let by_pixel: Vec<u32> = if fits {
+            let mut keyed: Vec<(u64, u32)> = by_id
+                .iter()
+                .enumerate()
+                .map(|(k, e)| {
+                    let i = &e.info;
+                    ((u64::from(i.pixel[1]) << 44) | (u64::from(i.pixel[0]) << 24) | u64::from(i.sample), k as u32)
+                })
+                .collect();
+            keyed.sort_unstable();
+            keyed.into_iter().map(|(_, k)| k).collect()
+        } else {
+            let mut v: Vec<u32> = (0..by_id.len() as u32).collect();
+            v.sort_unstable_by_key(|&k| {
+                let i = &by_id[k as usize].info;
+                (i.pixel[1], i.pixel[0], i.sample, i.id)
+            });
+            v
+        };
         let ix = Arc::new(TreeIndex { by_id, by_pixel });
         let _ = self.index.set(ix.clone());
         Ok(ix)

@@ -76,24 +76,52 @@ fn bump(v: &mut Vec<u64>, i: usize, by: u64) {
 impl Stats {
     /// Statistics of the rays and trees held in `cols`.
     pub fn of_columns(cols: &RayColumns, kinds: &KindTable) -> Stats {
-        let mut s = Stats { rays: cols.len() as u64, trees: cols.trees.len() as u64, ..Default::default() };
-        let mut by_kind_depth: Vec<Vec<u64>> = vec![Vec::new(); 256];
-        for i in 0..cols.len() {
-            bump(&mut by_kind_depth[cols.kind[i] as usize], cols.depth[i] as usize, 1);
-            let o = [cols.origin[0][i], cols.origin[1][i], cols.origin[2][i]];
-            let d = [cols.direction[0][i], cols.direction[1][i], cols.direction[2][i]];
-            if !(o.iter().chain(d.iter()).all(|c| c.is_finite())) {
-                s.non_finite += 1;
+        let n = cols.len();
+        let mut s = Stats { rays: n as u64, trees: cols.trees.len() as u64, ..Default::default() };
+        // Counts by kind and depth: a flat table for the usual depths, growable lists beyond.
+        const SHALLOW: usize = 32;
+        let mut shallow = vec![0u64; 256 * SHALLOW];
+        let mut deep: Vec<Vec<u64>> = vec![Vec::new(); 256];
+        for (&k, &d) in cols.kind[..n].iter().zip(&cols.depth[..n]) {
+            let d = d as usize;
+            if d < SHALLOW {
+                shallow[k as usize * SHALLOW + d] += 1;
+            } else {
+                bump(&mut deep[k as usize], d, 1);
             }
-            s.origin_bounds.add(o);
-            if cols.hit[i] {
-                let t = cols.t[i];
-                s.hit_bounds.add([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
+        }
+        let (ox, oy, oz) = (&cols.origin[0][..n], &cols.origin[1][..n], &cols.origin[2][..n]);
+        let (dx, dy, dz) = (&cols.direction[0][..n], &cols.direction[1][..n], &cols.direction[2][..n]);
+        let (t, hit) = (&cols.t[..n], &cols.hit[..n]);
+        for i in 0..n {
+            let o = [ox[i], oy[i], oz[i]];
+            let d = [dx[i], dy[i], dz[i]];
+            let finite_o = o[0].is_finite() & o[1].is_finite() & o[2].is_finite();
+            let finite_d = d[0].is_finite() & d[1].is_finite() & d[2].is_finite();
+            s.non_finite += u64::from(!(finite_o & finite_d));
+            if finite_o {
+                let b = &mut s.origin_bounds;
+                for ((lo, hi), c) in b.min.iter_mut().zip(b.max.iter_mut()).zip(o) {
+                    *lo = lo.min(c);
+                    *hi = hi.max(c);
+                }
+            }
+            if hit[i] {
+                s.hit_bounds.add([o[0] + t[i] * d[0], o[1] + t[i] * d[1], o[2] + t[i] * d[2]]);
             } else {
                 s.misses += 1;
             }
         }
-        for (code, counts) in by_kind_depth.into_iter().enumerate() {
+        for (code, mut counts) in deep.into_iter().enumerate() {
+            let row = &shallow[code * SHALLOW..(code + 1) * SHALLOW];
+            if let Some(last) = row.iter().rposition(|&c| c > 0) {
+                if counts.len() <= last {
+                    counts.resize(last + 1, 0);
+                }
+                for (d, &c) in row[..=last].iter().enumerate() {
+                    counts[d] += c;
+                }
+            }
             if !counts.is_empty() {
                 let name = kinds.name(Kind(code as u8)).map_or_else(|| format!("kind{code}"), str::to_string);
                 s.rays_by_kind_depth.insert(name, counts);

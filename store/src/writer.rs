@@ -313,9 +313,7 @@ fn ray_properties(options: &WriteOptions, dir: &Path) -> Result<WriterProperties
         for name in ENCODED_COLUMNS {
             b = b.set_column_statistics_enabled(ColumnPath::from(name), EnabledStatistics::None);
         }
-        for name in ["tree_id", "ray"] {
-            b = b.set_column_encoding(ColumnPath::from(name), Encoding_::DELTA_BINARY_PACKED);
-        }
+        b = b.set_column_encoding(ColumnPath::from("tree_id"), Encoding_::DELTA_BINARY_PACKED);
         // Raw float bits: byte planes compress better than interleaved bytes.
         for name in ["enc_dir_u", "enc_dir_v", "t"] {
             b = b.set_column_encoding(ColumnPath::from(name), Encoding_::BYTE_STREAM_SPLIT);
