@@ -81,6 +81,21 @@ pub(crate) fn check(ds: &Dataset) -> CheckReport {
                 seg.id, seg.rays.rows
             ));
         }
+        // Version 2: every row group starts with a whole tree (so each decodes on its own).
+        if m.format_version >= 2 && m.encoding != crate::Encoding::Plain {
+            match ds.row_group_starts(i) {
+                Ok(starts) => {
+                    let tree_starts: HashSet<u64> = entries.iter().map(|e| e.first_row).collect();
+                    if let Some(bad) = starts.iter().find(|s| !tree_starts.contains(s)) {
+                        r.errors.push(format!(
+                            "segment {}: a row group starts at row {bad}, inside a tree (row groups must start at trees)",
+                            seg.id
+                        ));
+                    }
+                }
+                Err(e) => r.errors.push(format!("segment {}: {e}", seg.id)),
+            }
+        }
         if r.errors.len() > before {
             continue;
         }

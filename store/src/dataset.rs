@@ -524,6 +524,11 @@ impl Dataset {
     pub(crate) fn segment_meta_checked(&self, i: usize) -> Result<()> {
         self.segment_meta(i).map(|_| ())
     }
+
+    /// First row of each row group of segment `i`'s ray file.
+    pub(crate) fn row_group_starts(&self, i: usize) -> Result<Vec<u64>> {
+        Ok(self.segment_meta(i)?.row_group_starts.clone())
+    }
 }
 
 /// Sequential iterator over every tree of a dataset.

@@ -131,7 +131,7 @@ impl DatasetWriter {
         let file = File::create(&tmp).map_err(io_err("creating a segment file", &tmp))?;
         let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
         let schema = file_schema(&ray_schema(&self.payload), self.options.encoding);
-        let writer = ArrowWriter::try_new(sink, schema.clone(), Some(ray_properties(&self.options, &self.dir)?))
+        let writer = ArrowWriter::try_new(sink, schema.clone(), Some(ray_properties(&self.options, &self.dir, None)?))
             .map_err(pq_err(&tmp))?;
         Ok(SegmentWriter {
             id,
@@ -142,6 +142,7 @@ impl DatasetWriter {
             stats: Stats::default(),
             encoding: self.options.encoding,
             schema,
+            row_group_rows: self.options.row_group_rows.max(1),
         })
     }
 
@@ -207,6 +208,7 @@ pub struct SegmentWriter {
     encoding: Encoding,
     /// Schema of the ray file (the ray table's, or the encoded layout).
     schema: arrow::datatypes::SchemaRef,
+    row_group_rows: usize,
 }
 
 impl SegmentWriter {
@@ -225,6 +227,9 @@ impl SegmentWriter {
         if n == 0 && cols.trees.is_empty() {
             return Ok(());
         }
+        // Where trees end in this chunk: row groups are only ever cut there.
+        let mut ends: Vec<usize> = cols.trees.iter().map(|t| (t.first_row + u64::from(t.ray_count)) as usize).collect();
+        ends.sort_unstable();
         self.stats.merge(&Stats::of_columns(&cols, kinds));
         let base = self.rows;
         self.trees.extend(cols.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
@@ -248,7 +253,19 @@ impl SegmentWriter {
             what: "segment writer".into(),
             message: "write after seal".into(),
         })?;
-        writer.write(&batch).map_err(pq_err(&self.tmp))?;
+        // A row group closes at the first tree end that brings it to `row_group_rows`, so every row
+        // group starts with a whole tree and decodes on its own.
+        let mut start = 0usize;
+        for &end in &ends {
+            if end > start && writer.in_progress_rows() + (end - start) >= self.row_group_rows {
+                writer.write(&batch.slice(start, end - start)).map_err(pq_err(&self.tmp))?;
+                writer.flush().map_err(pq_err(&self.tmp))?;
+                start = end;
+            }
+        }
+        if start < batch.num_rows() {
+            writer.write(&batch.slice(start, batch.num_rows() - start)).map_err(pq_err(&self.tmp))?;
+        }
         self.rows += n;
         Ok(())
     }
@@ -300,8 +317,9 @@ impl SegmentWriter {
     }
 }
 
-/// Parquet properties of the ray files.
-fn ray_properties(options: &WriteOptions, dir: &Path) -> Result<WriterProperties> {
+/// Parquet properties of the ray files. `row_group_cap`: the writer's own row-group limit (None
+/// where the caller cuts row groups itself, at tree boundaries).
+fn ray_properties(options: &WriteOptions, dir: &Path, row_group_cap: Option<usize>) -> Result<WriterProperties> {
     let level = ZstdLevel::try_new(options.zstd_level).map_err(pq_err(dir))?;
     let mut b = WriterProperties::builder()
         .set_compression(Compression::ZSTD(level))
@@ -319,7 +337,7 @@ fn ray_properties(options: &WriteOptions, dir: &Path) -> Result<WriterProperties
             b = b.set_column_encoding(ColumnPath::from(name), Encoding_::BYTE_STREAM_SPLIT);
         }
     }
-    Ok(b.set_max_row_group_row_count(Some(options.row_group_rows.max(1)))
+    Ok(b.set_max_row_group_row_count(row_group_cap)
         .set_data_page_row_count_limit(options.page_rows.max(1))
         .set_key_value_metadata(Some(vec![
             KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
@@ -391,8 +409,12 @@ pub fn export_plain(ds: &crate::Dataset, out: &Path) -> Result<Manifest> {
         let tmp = out.join(format!("{}.tmp", seg.rays.path));
         let file = File::create(&tmp).map_err(io_err("creating a segment file", &tmp))?;
         let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
-        let mut w =
-            ArrowWriter::try_new(sink, schema.clone(), Some(ray_properties(&options, out)?)).map_err(pq_err(&tmp))?;
+        let mut w = ArrowWriter::try_new(
+            sink,
+            schema.clone(),
+            Some(ray_properties(&options, out, Some(options.row_group_rows))?),
+        )
+        .map_err(pq_err(&tmp))?;
         for batch in ds.segment_batches(i)? {
             w.write(&batch?).map_err(pq_err(&tmp))?;
         }

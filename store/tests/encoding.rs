@@ -294,3 +294,33 @@ fn corrupt_encoded_rows_are_errors_that_name_the_file() {
         assert!(err.contains(expected) && err.contains("000001.rays.parquet"), "{err}");
     }
 }
+
+#[test]
+fn every_row_group_starts_at_a_tree_and_decodes_alone() {
+    let cols = trees(2000, 1.0, 0.0);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    write(&path, &cols, Encoding::Lossless, 7);
+    let ds = Dataset::open(&path).unwrap();
+    assert!(ds.check().is_ok(), "{:?}", ds.check());
+    let file = &ds.ray_files()[0];
+    let builder =
+        parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(file).unwrap())
+            .unwrap();
+    let groups = builder.metadata().num_row_groups();
+    assert!(groups > 3, "{groups} row groups");
+    let mut rows = 0;
+    for g in 0..groups {
+        let reader =
+            parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(file).unwrap())
+                .unwrap()
+                .with_row_groups(vec![g])
+                .build()
+                .unwrap();
+        let mut dec = Decoder::new(Encoding::Lossless, ds.ray_schema());
+        for b in reader {
+            rows += dec.decode(b.unwrap(), file).unwrap().num_rows();
+        }
+    }
+    assert_eq!(rows, cols.len());
+}
