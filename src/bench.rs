@@ -58,6 +58,10 @@ pub enum BenchCommand {
         /// Skip the DuckDB comparison (needs `python3` with the `duckdb` module).
         #[arg(long)]
         no_duckdb: bool,
+        /// Do not fsync sealed segments (the baseline does not either; crash safety against
+        /// power loss needs it, a killed process does not).
+        #[arg(long)]
+        no_sync: bool,
     },
     /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
     Fetch {
@@ -73,9 +77,15 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp } => crate::bench_trace::run(subdivide, rotate, width, spp),
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
-        BenchCommand::Store { rays, threads, workers, fetches, dir, scene, encodings, no_duckdb } => {
+        BenchCommand::Store { rays, threads, workers, fetches, dir, scene, encodings, no_duckdb, no_sync } => {
             let encodings = encodings.iter().map(|e| Encoding::parse(e)).collect::<Result<Vec<_>, _>>()?;
-            let args = StoreArgs { threads: threads.max(1), workers: workers.max(1), fetches, duckdb: !no_duckdb };
+            let args = StoreArgs {
+                threads: threads.max(1),
+                workers: workers.max(1),
+                fetches,
+                duckdb: !no_duckdb,
+                sync: !no_sync,
+            };
             store_bench(rays, &args, dir, scene.as_deref(), &encodings)
         }
     }
@@ -183,6 +193,7 @@ fn dir_bytes(dir: &std::path::Path) -> u64 {
 }
 
 struct StoreArgs {
+    sync: bool,
     threads: usize,
     workers: usize,
     fetches: usize,
@@ -199,6 +210,7 @@ fn record_trace(
 ) -> Result<(f64, rl::Summary, Vec<TreeId>)> {
     let mut options = RecorderOptions { workers: args.workers, ..Default::default() };
     options.write.encoding = encoding;
+    options.write.sync = args.sync;
     let threads = args.threads;
     let t = Instant::now();
     let rec = Recorder::create(path, options)?;
@@ -411,9 +423,11 @@ fn store_bench(
     println!("## rtvtk bench store ({} rays, {} trees of {source})", trace.rays, trace.trees.len());
     println!();
     println!(
-        "rtvtk: the rl recording API from {} tracing thread(s), encoding and writing on {} worker thread(s); \
-         core ray columns only (no payload).",
-        args.threads, args.workers
+        "rtvtk: the rl recording API from {} tracing thread(s), encoding and writing on {} worker thread(s), \
+         segments {}; core ray columns only (no payload).",
+        args.threads,
+        args.workers,
+        if args.sync { "fsynced when sealed" } else { "not fsynced" }
     );
     println!();
     println!(

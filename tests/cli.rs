@@ -85,27 +85,30 @@ fn bad_input_gets_clear_errors_and_exit_codes() {
 }
 
 /// DuckDB (from PyPI; `.ci/run` installs it) reads the ray and tree tables as plain Parquet and
-/// counts what rtvtk counts.
+/// counts what rtvtk counts: on the lossless files as recorded (kinds as codes) and on their plain
+/// export (kinds as names).
 #[test]
 fn duckdb_reads_the_dataset_as_plain_parquet() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("t");
     demo(&dir);
+    let plain = tmp.path().join("plain");
+    assert!(rtvtk(&["export", dir.to_str().unwrap(), plain.to_str().unwrap()]).status.success());
     let info: Value = serde_json::from_slice(&rtvtk(&["info", dir.to_str().unwrap(), "--json"]).stdout).unwrap();
     let script = r#"
 import sys, duckdb
-d = sys.argv[1]
-rays = f"read_parquet('{d}/segments/*.rays.parquet')"
-trees = f"read_parquet('{d}/segments/*.trees.parquet')"
-q = lambda s: duckdb.sql(s).fetchall()[0][0]
-print("rays", q(f"select count(*) from {rays}"))
-print("trees", q(f"select count(*) from {trees}"))
-print("shadow", q(f"select count(*) from {rays} where kind = 'shadow'"))
-print("misses", q(f"select count(*) from {rays} where t is null"))
-print("joined", q(f"select count(*) from {rays} r join {trees} t using (tree_id) where t.pixel_x = 3"))
+for tag, d, shadow in [("", sys.argv[1], "kind_code = 1"), ("plain-", sys.argv[2], "kind = 'shadow'")]:
+    rays = f"read_parquet('{d}/segments/*.rays.parquet')"
+    trees = f"read_parquet('{d}/segments/*.trees.parquet')"
+    q = lambda s: duckdb.sql(s).fetchall()[0][0]
+    print(tag + "rays", q(f"select count(*) from {rays}"))
+    print(tag + "trees", q(f"select count(*) from {trees}"))
+    print(tag + "shadow", q(f"select count(*) from {rays} where {shadow}"))
+    print(tag + "misses", q(f"select count(*) from {rays} where t is null"))
+    print(tag + "joined", q(f"select count(*) from {rays} r join {trees} t using (tree_id) where t.pixel_x = 3"))
 "#;
     let out = Command::new("python3")
-        .args(["-c", script, dir.to_str().unwrap()])
+        .args(["-c", script, dir.to_str().unwrap(), plain.to_str().unwrap()])
         .output()
         .expect("python3 is needed for this test");
     assert!(
@@ -116,10 +119,13 @@ print("joined", q(f"select count(*) from {rays} r join {trees} t using (tree_id)
     let s = String::from_utf8_lossy(&out.stdout);
     let get =
         |k: &str| -> u64 { s.lines().find_map(|l| l.strip_prefix(&format!("{k} "))).unwrap().trim().parse().unwrap() };
-    assert_eq!(get("rays"), info["rays"].as_u64().unwrap());
-    assert_eq!(get("trees"), info["trees"].as_u64().unwrap());
-    assert_eq!(get("shadow"), info["rays_by_kind"]["shadow"].as_u64().unwrap());
-    assert_eq!(get("misses"), info["misses"].as_u64().unwrap());
+    for tag in ["", "plain-"] {
+        assert_eq!(get(&format!("{tag}rays")), info["rays"].as_u64().unwrap());
+        assert_eq!(get(&format!("{tag}trees")), info["trees"].as_u64().unwrap());
+        assert_eq!(get(&format!("{tag}shadow")), info["rays_by_kind"]["shadow"].as_u64().unwrap());
+        assert_eq!(get(&format!("{tag}misses")), info["misses"].as_u64().unwrap());
+        assert_eq!(get(&format!("{tag}joined")), get("joined"));
+    }
     // Pixel column x = 3 holds 24 rows x 2 samples of trees; their rays, counted by rtvtk.
     let ds = rl::Dataset::open(&dir).unwrap();
     let mut want = 0;

@@ -26,7 +26,8 @@ use std::sync::Arc;
 use arrow::array::{Array, ArrayRef, AsArray, Float32Array, RecordBatch, UInt8Array, UInt32Array};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef, UInt8Type, UInt32Type, UInt64Type};
 
-use crate::columns::{NONE_U32, RayColumns};
+use crate::columns::{NONE_U32, RayColumns, kind_array};
+use crate::schema::KindTable;
 use crate::{Error, Result};
 
 /// How a dataset stores the origin and direction columns of its ray files.
@@ -88,6 +89,9 @@ impl<'de> serde::Deserialize<'de> for Encoding {
 pub const ENCODED_COLUMNS: [&str; 7] =
     ["enc_origin_x", "enc_origin_y", "enc_origin_z", "enc_dir_code", "enc_dir_u", "enc_dir_v", "enc_dir_r"];
 
+/// The kind column of encoded ray files: the kind code of each ray.
+pub const KIND_CODE: &str = "kind_code";
+
 /// Direction codes (low 3 bits of `enc_dir_code`): 0..=5 predicted axis (`axis + 3 * negative`),
 /// raw bits, octahedral. Bits 3..=5 flag origin components stored raw instead of predicted.
 const DIR_RAW: u8 = 6;
@@ -102,6 +106,9 @@ pub fn file_schema(plain: &SchemaRef, encoding: Encoding) -> SchemaRef {
     for f in plain.fields() {
         match f.name().as_str() {
             "origin_y" | "origin_z" | "dir_x" | "dir_y" | "dir_z" => {}
+            // Kind codes as recorded (names in the manifest's `kinds`): writing a string
+            // dictionary column costs a hash per row.
+            "kind" => fields.push(Field::new(KIND_CODE, DataType::UInt8, false)),
             // The encoded columns go where origin_x was.
             "origin_x" => {
                 for name in ENCODED_COLUMNS {
@@ -397,12 +404,14 @@ pub(crate) fn encode(cols: &RayColumns, encoding: Encoding) -> Result<EncodedCor
 pub struct Decoder {
     encoding: Encoding,
     plain: SchemaRef,
+    kinds: KindTable,
     state: TreeState,
 }
 
 impl Decoder {
-    pub fn new(encoding: Encoding, plain: SchemaRef) -> Self {
-        Self { encoding, plain, state: TreeState::default() }
+    /// A decoder to the ray table schema `plain`; `kinds` names the kind codes.
+    pub fn new(encoding: Encoding, plain: SchemaRef, kinds: KindTable) -> Self {
+        Self { encoding, plain, kinds, state: TreeState::default() }
     }
 
     /// Decodes one batch of a ray file at `path` (named in errors).
@@ -474,10 +483,16 @@ impl Decoder {
             ("dir_y", Arc::new(Float32Array::from(dy))),
             ("dir_z", Arc::new(Float32Array::from(dz))),
         ];
+        let codes = col(KIND_CODE)?
+            .as_primitive_opt::<UInt8Type>()
+            .ok_or_else(|| corrupt(format!("column {KIND_CODE} is not UInt8")))?;
+        let kind: ArrayRef = Arc::new(kind_array(codes.values(), &self.kinds)?);
         let mut columns = Vec::with_capacity(self.plain.fields().len());
         for f in self.plain.fields() {
             if let Some(pos) = floats.iter().position(|(name, _)| name == f.name()) {
                 columns.push(floats.swap_remove(pos).1);
+            } else if f.name() == "kind" {
+                columns.push(kind.clone());
             } else {
                 columns.push(col(f.name())?.clone());
             }

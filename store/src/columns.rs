@@ -453,7 +453,7 @@ impl RayColumns {
             let valid: Vec<bool> = sentinel.iter().map(|&p| p != NONE_U32).collect();
             nullable(&valid)
         };
-        let kind = self.kind_array(kinds)?;
+        let kind = kind_array(&self.kind, kinds)?;
         let parent_nulls = nulls_where(&self.parent);
         let prim_nulls = nulls_where(&self.prim);
         let mut columns: Vec<ArrayRef> = vec![
@@ -490,26 +490,6 @@ impl RayColumns {
             columns.push(arr);
         }
         RecordBatch::try_new(arrow_schema, columns).map_err(arrow_err("ray batch"))
-    }
-
-    fn kind_array(&self, kinds: &KindTable) -> Result<DictionaryArray<UInt8Type>> {
-        // Only the kinds this batch uses go into its dictionary.
-        let mut remap = [u8::MAX; 256];
-        let mut used: Vec<u8> = Vec::new();
-        for &k in &self.kind {
-            if remap[k as usize] == u8::MAX {
-                remap[k as usize] = 0;
-                used.push(k);
-            }
-        }
-        used.sort_unstable();
-        let mut names = Vec::with_capacity(used.len());
-        for (i, &k) in used.iter().enumerate() {
-            remap[k as usize] = i as u8;
-            names.push(kinds.name(Kind(k)).map_or_else(|| format!("kind{k}"), str::to_string));
-        }
-        let keys = UInt8Array::from(self.kind.iter().map(|&k| remap[k as usize]).collect::<Vec<_>>());
-        DictionaryArray::try_new(keys, Arc::new(StringArray::from(names))).map_err(arrow_err("kind column"))
     }
 
     /// The tree rows as an Arrow record batch of the tree table schema, for segment `segment`.
@@ -563,4 +543,26 @@ fn payload_array(field: &crate::PayloadField, buf: PayloadBuf, n: usize) -> Resu
             .map_err(arrow_err(context()))?,
         )),
     }
+}
+
+/// The `kind` column for kind codes: a dictionary of only the kinds `codes` uses, so plain Parquet
+/// readers see names.
+pub(crate) fn kind_array(codes: &[u8], kinds: &KindTable) -> Result<DictionaryArray<UInt8Type>> {
+    let mut seen = [false; 256];
+    let mut used: Vec<u8> = Vec::new();
+    for &k in codes {
+        if !seen[k as usize] {
+            seen[k as usize] = true;
+            used.push(k);
+        }
+    }
+    used.sort_unstable();
+    let mut remap = [0u8; 256];
+    let mut names = Vec::with_capacity(used.len());
+    for (i, &k) in used.iter().enumerate() {
+        remap[k as usize] = i as u8;
+        names.push(kinds.name(Kind(k)).map_or_else(|| format!("kind{k}"), str::to_string));
+    }
+    let keys = UInt8Array::from(codes.iter().map(|&k| remap[k as usize]).collect::<Vec<_>>());
+    DictionaryArray::try_new(keys, Arc::new(StringArray::from(names))).map_err(arrow_err("kind column"))
 }

@@ -477,7 +477,7 @@ impl Dataset {
 
     /// A decoder from ray-file batches (starting at a tree) to ray-table batches.
     pub fn decoder(&self) -> Decoder {
-        Decoder::new(self.manifest.encoding, self.schema.clone())
+        Decoder::new(self.manifest.encoding, self.schema.clone(), self.kinds.clone())
     }
 
     /// Every tree, segment by segment in file order: a sequential scan that reads each page once.

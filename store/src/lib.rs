@@ -11,7 +11,7 @@ mod stats;
 mod tree;
 mod writer;
 
-pub use codec::{Decoder, ENCODED_COLUMNS, Encoding, angle_between, file_schema};
+pub use codec::{Decoder, ENCODED_COLUMNS, Encoding, KIND_CODE, angle_between, file_schema};
 pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
 pub use dataset::{CheckReport, Dataset, TreeEntry, TreeIter};
 pub use error::{Error, Result};

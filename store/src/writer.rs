@@ -17,7 +17,7 @@ use parquet::file::metadata::KeyValue;
 use parquet::file::properties::{EnabledStatistics, WriterProperties};
 use parquet::schema::types::ColumnPath;
 
-use crate::codec::{ENCODED_COLUMNS, Encoding, encode, file_schema};
+use crate::codec::{ENCODED_COLUMNS, Encoding, KIND_CODE, encode, file_schema};
 use crate::columns::{RayColumns, TreeRow};
 use crate::error::{io_err, pq_err};
 use crate::manifest::{FileEntry, Manifest, SegmentEntry, segment_file, sync_dir};
@@ -233,14 +233,20 @@ impl SegmentWriter {
         self.stats.merge(&Stats::of_columns(&cols, kinds));
         let base = self.rows;
         self.trees.extend(cols.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
-        let encoded = if self.encoding == Encoding::Plain { None } else { Some(encode(&cols, self.encoding)?) };
+        let encoded = if self.encoding == Encoding::Plain {
+            None
+        } else {
+            Some((encode(&cols, self.encoding)?, arrow::array::UInt8Array::from(cols.kind.clone())))
+        };
         let mut batch = cols.into_ray_batch(payload, kinds)?;
-        if let Some(enc) = encoded {
+        if let Some((enc, kind_codes)) = encoded {
             let mut arrays = enc.into_arrays().into_iter();
+            let kind_codes: arrow::array::ArrayRef = std::sync::Arc::new(kind_codes);
             let mut columns = Vec::with_capacity(self.schema.fields().len());
             for f in self.schema.fields() {
                 let c = match batch.column_by_name(f.name()) {
                     Some(c) => c.clone(),
+                    None if f.name() == KIND_CODE => kind_codes.clone(),
                     None => arrays.next().ok_or_else(|| Error::Encoding(format!("no encoded column {}", f.name())))?,
                 };
                 columns.push(c);
@@ -325,6 +331,7 @@ fn ray_properties(options: &WriteOptions, dir: &Path, row_group_cap: Option<usiz
         .set_compression(Compression::ZSTD(level))
         .set_dictionary_enabled(false)
         .set_column_dictionary_enabled(ColumnPath::from("kind"), true)
+        .set_column_dictionary_enabled(ColumnPath::from(KIND_CODE), true)
         .set_statistics_enabled(EnabledStatistics::Page);
     if options.encoding != Encoding::Plain {
         // Residuals have no useful min/max; tree ids and ray indices are runs of +0/+1.

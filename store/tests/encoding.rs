@@ -272,7 +272,10 @@ fn corrupt_encoded_rows_are_errors_that_name_the_file() {
     assert!(raw.num_rows() > 4);
     // The untouched rows decode; each kind of damage is an error naming the file, not a panic.
     assert_eq!(
-        Decoder::new(Encoding::Lossless, ds.ray_schema()).decode(raw.clone(), file).unwrap().num_rows(),
+        Decoder::new(Encoding::Lossless, ds.ray_schema(), ds.kinds().clone())
+            .decode(raw.clone(), file)
+            .unwrap()
+            .num_rows(),
         raw.num_rows()
     );
     let replace = |name: &str, col: ArrayRef| {
@@ -290,7 +293,10 @@ fn corrupt_encoded_rows_are_errors_that_name_the_file() {
         (replace("enc_dir_code", Arc::new(UInt8Array::from(vec![7u8; n]))), "direction code 7"),
     ];
     for (batch, expected) in cases {
-        let err = Decoder::new(Encoding::Lossless, ds.ray_schema()).decode(batch, file).unwrap_err().to_string();
+        let err = Decoder::new(Encoding::Lossless, ds.ray_schema(), ds.kinds().clone())
+            .decode(batch, file)
+            .unwrap_err()
+            .to_string();
         assert!(err.contains(expected) && err.contains("000001.rays.parquet"), "{err}");
     }
 }
@@ -317,7 +323,7 @@ fn every_row_group_starts_at_a_tree_and_decodes_alone() {
                 .with_row_groups(vec![g])
                 .build()
                 .unwrap();
-        let mut dec = Decoder::new(Encoding::Lossless, ds.ray_schema());
+        let mut dec = Decoder::new(Encoding::Lossless, ds.ray_schema(), ds.kinds().clone());
         for b in reader {
             rows += dec.decode(b.unwrap(), file).unwrap().num_rows();
         }
