@@ -28,6 +28,7 @@ use arrow::datatypes::{DataType, Field, Schema, SchemaRef, UInt8Type, UInt32Type
 
 use crate::columns::{NONE_U32, RayColumns, kind_array};
 use crate::schema::KindTable;
+use crate::stats::Stats;
 use crate::{Error, Result};
 
 /// How a dataset stores the origin and direction columns of its ray files.
@@ -358,7 +359,8 @@ fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], 
 }
 
 /// Encodes the origin and direction columns of `cols` (whole trees, each contiguous from ray 0).
-pub(crate) fn encode(cols: &RayColumns, encoding: Encoding) -> Result<EncodedCore> {
+/// Adds every ray's bounds to `stats` on the way (one pass over the columns instead of two).
+pub(crate) fn encode(cols: &RayColumns, encoding: Encoding, stats: &mut Stats) -> Result<EncodedCore> {
     let n = cols.len();
     let mut out = EncodedCore {
         origin: [vec![0; n], vec![0; n], vec![0; n]],
@@ -378,6 +380,8 @@ pub(crate) fn encode(cols: &RayColumns, encoding: Encoding) -> Result<EncodedCor
         let p = parent[i];
         st.advance(tree[i], ray[i], p).map_err(Error::Encoding)?;
         let o = [ox[i], oy[i], oz[i]];
+        let d = [dx[i], dy[i], dz[i]];
+        stats.add_ray(o, d, t[i], hit[i]);
         let pred = st.predict_origin(p);
         let mut raw_flags = 0u8;
         let mut res = [0u32; 3];
@@ -391,7 +395,7 @@ pub(crate) fn encode(cols: &RayColumns, encoding: Encoding) -> Result<EncodedCor
             res[k] = pr.min(r);
         }
         (eox[i], eoy[i], eoz[i]) = (res[0], res[1], res[2]);
-        let (code, w, decoded) = encode_dir([dx[i], dy[i], dz[i]], encoding);
+        let (code, w, decoded) = encode_dir(d, encoding);
         code_out[i] = code | (raw_flags << 3);
         (eu[i], ev[i], er[i]) = (w[0], w[1], w[2]);
         st.push(p, o, decoded, hit[i].then_some(t[i]));

@@ -58,6 +58,8 @@ pub struct Dataset {
     file_schema: SchemaRef,
     metas: Vec<OnceLock<Arc<SegmentMeta>>>,
     index: OnceLock<Arc<TreeIndex>>,
+    /// Each segment's tree table (sorted by id), loaded on the first lookup by id that needs it.
+    segment_trees: Vec<OnceLock<Arc<Vec<TreeEntry>>>>,
 }
 
 impl Dataset {
@@ -100,6 +102,7 @@ impl Dataset {
         let kinds = manifest.kind_table();
         let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();
         let metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
+        let segment_trees = manifest.segments.iter().map(|_| OnceLock::new()).collect();
         let schema = ray_schema(&payload);
         Ok(Self {
             file_schema: file_schema(&schema, manifest.encoding),
@@ -111,6 +114,7 @@ impl Dataset {
             kinds_by_name,
             metas,
             index: OnceLock::new(),
+            segment_trees,
         })
     }
 
@@ -207,6 +211,9 @@ impl Dataset {
     fn read_tree_table(&self, i: usize) -> Result<Vec<TreeEntry>> {
         let mut out = Vec::with_capacity(self.segment(i).trees.rows as usize);
         self.read_tree_table_into(i, &mut out)?;
+        if !out.is_sorted_by_key(|e| e.info.id) {
+            out.sort_unstable_by_key(|e| e.info.id);
+        }
         Ok(out)
     }
 
@@ -345,16 +352,39 @@ impl Dataset {
 
     /// Metadata of one tree.
     pub fn tree_info(&self, id: TreeId) -> Result<TreeInfo> {
-        let ix = self.index()?;
-        let pos = ix.by_id.binary_search_by_key(&id, |e| e.info.id).map_err(|_| Error::NoSuchTree(id.0))?;
-        Ok(ix.by_id[pos].info)
+        Ok(self.entry_of(id)?.info)
     }
 
     /// One whole tree by id; reads only the pages that hold its rays.
     pub fn tree(&self, id: TreeId) -> Result<Tree> {
-        let ix = self.index()?;
-        let pos = ix.by_id.binary_search_by_key(&id, |e| e.info.id).map_err(|_| Error::NoSuchTree(id.0))?;
-        self.load_tree(&ix.by_id[pos])
+        self.load_tree(&self.entry_of(id)?)
+    }
+
+    /// Where tree `id` is: from the whole index when it is loaded, otherwise from the tree tables
+    /// of only the segments whose id range holds `id` (each loaded once), so a first lookup on a
+    /// large trace does not read every tree table.
+    pub fn entry_of(&self, id: TreeId) -> Result<TreeEntry> {
+        if let Some(ix) = self.index.get() {
+            let pos = ix.by_id.binary_search_by_key(&id, |e| e.info.id).map_err(|_| Error::NoSuchTree(id.0))?;
+            return Ok(ix.by_id[pos]);
+        }
+        for (i, seg) in self.manifest.segments.iter().enumerate() {
+            if id.0 < seg.tree_id_min || id.0 > seg.tree_id_max {
+                continue;
+            }
+            let entries = match self.segment_trees[i].get() {
+                Some(e) => e.clone(),
+                None => {
+                    let e = Arc::new(self.read_tree_table(i)?);
+                    let _ = self.segment_trees[i].set(e.clone());
+                    e
+                }
+            };
+            if let Ok(pos) = entries.binary_search_by_key(&id, |e| e.info.id) {
+                return Ok(entries[pos]);
+            }
+        }
+        Err(Error::NoSuchTree(id.0))
     }
 
     /// Every tree of a pixel (of one sample, or of all samples), ordered by sample then id.

@@ -76,6 +76,12 @@ fn bump(v: &mut Vec<u64>, i: usize, by: u64) {
 impl Stats {
     /// Statistics of the rays and trees held in `cols`.
     pub fn of_columns(cols: &RayColumns, kinds: &KindTable) -> Stats {
+        Self::of_columns_with(cols, kinds, true)
+    }
+
+    /// Counts by kind and depth, and — when `with_bounds` — bounds, misses and non-finite rays
+    /// (otherwise the caller adds every ray with [`Stats::add_ray`] in its own pass).
+    pub(crate) fn of_columns_with(cols: &RayColumns, kinds: &KindTable, with_bounds: bool) -> Stats {
         let n = cols.len();
         let mut s = Stats { rays: n as u64, trees: cols.trees.len() as u64, ..Default::default() };
         // Counts by kind and depth: a flat table for the usual depths, growable lists beyond.
@@ -90,26 +96,12 @@ impl Stats {
                 bump(&mut deep[k as usize], d, 1);
             }
         }
-        let (ox, oy, oz) = (&cols.origin[0][..n], &cols.origin[1][..n], &cols.origin[2][..n]);
-        let (dx, dy, dz) = (&cols.direction[0][..n], &cols.direction[1][..n], &cols.direction[2][..n]);
-        let (t, hit) = (&cols.t[..n], &cols.hit[..n]);
-        for i in 0..n {
-            let o = [ox[i], oy[i], oz[i]];
-            let d = [dx[i], dy[i], dz[i]];
-            let finite_o = o[0].is_finite() & o[1].is_finite() & o[2].is_finite();
-            let finite_d = d[0].is_finite() & d[1].is_finite() & d[2].is_finite();
-            s.non_finite += u64::from(!(finite_o & finite_d));
-            if finite_o {
-                let b = &mut s.origin_bounds;
-                for ((lo, hi), c) in b.min.iter_mut().zip(b.max.iter_mut()).zip(o) {
-                    *lo = lo.min(c);
-                    *hi = hi.max(c);
-                }
-            }
-            if hit[i] {
-                s.hit_bounds.add([o[0] + t[i] * d[0], o[1] + t[i] * d[1], o[2] + t[i] * d[2]]);
-            } else {
-                s.misses += 1;
+        if with_bounds {
+            let (ox, oy, oz) = (&cols.origin[0][..n], &cols.origin[1][..n], &cols.origin[2][..n]);
+            let (dx, dy, dz) = (&cols.direction[0][..n], &cols.direction[1][..n], &cols.direction[2][..n]);
+            let (t, hit) = (&cols.t[..n], &cols.hit[..n]);
+            for i in 0..n {
+                s.add_ray([ox[i], oy[i], oz[i]], [dx[i], dy[i], dz[i]], t[i], hit[i]);
             }
         }
         for (code, mut counts) in deep.into_iter().enumerate() {
@@ -131,6 +123,26 @@ impl Stats {
             bump(&mut s.trees_by_max_depth, t.max_depth as usize, 1);
         }
         s
+    }
+
+    /// Adds one ray's origin and hit point to the bounds, and counts it as a miss or non-finite.
+    #[inline]
+    pub(crate) fn add_ray(&mut self, o: [f32; 3], d: [f32; 3], t: f32, hit: bool) {
+        let finite_o = o[0].is_finite() & o[1].is_finite() & o[2].is_finite();
+        let finite_d = d[0].is_finite() & d[1].is_finite() & d[2].is_finite();
+        self.non_finite += u64::from(!(finite_o & finite_d));
+        if finite_o {
+            let b = &mut self.origin_bounds;
+            for ((lo, hi), c) in b.min.iter_mut().zip(b.max.iter_mut()).zip(o) {
+                *lo = lo.min(c);
+                *hi = hi.max(c);
+            }
+        }
+        if hit {
+            self.hit_bounds.add([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
+        } else {
+            self.misses += 1;
+        }
     }
 
     /// Adds another set of statistics into this one.

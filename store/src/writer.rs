@@ -230,14 +230,16 @@ impl SegmentWriter {
         // Where trees end in this chunk: row groups are only ever cut there.
         let mut ends: Vec<usize> = cols.trees.iter().map(|t| (t.first_row + u64::from(t.ray_count)) as usize).collect();
         ends.sort_unstable();
-        self.stats.merge(&Stats::of_columns(&cols, kinds));
+        let plain = self.encoding == Encoding::Plain;
+        let mut stats = Stats::of_columns_with(&cols, kinds, plain);
         let base = self.rows;
         self.trees.extend(cols.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
         let encoded = if self.encoding == Encoding::Plain {
             None
         } else {
-            Some((encode(&cols, self.encoding)?, arrow::array::UInt8Array::from(cols.kind.clone())))
+            Some((encode(&cols, self.encoding, &mut stats)?, arrow::array::UInt8Array::from(cols.kind.clone())))
         };
+        self.stats.merge(&stats);
         let mut batch = cols.into_ray_batch(payload, kinds)?;
         if let Some((enc, kind_codes)) = encoded {
             let mut arrays = enc.into_arrays().into_iter();

@@ -175,6 +175,7 @@ fn lossless_and_plain_round_trip_bit_exactly_at_any_scale() {
                 }
             }
             assert_eq!(seen, cols.len());
+            assert!(matches!(ds.tree(TreeId(1 << 40)), Err(store::Error::NoSuchTree(_))));
         }
     }
 }
