@@ -14,6 +14,8 @@ if ! command -v cargo-nextest >/dev/null; then
 fi
 
 cargo fmt --all --check
+# Every package of the lock file, for all targets: the layering test reads `cargo metadata --offline`.
+cargo fetch --locked
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo nextest run --workspace --locked --no-fail-fast
 cargo test --workspace --doc --locked

@@ -6,6 +6,7 @@ mod commands;
 #[cfg(feature = "embree")]
 mod embree;
 mod record;
+mod sql;
 
 use std::path::PathBuf;
 
@@ -90,6 +91,8 @@ enum Command {
         /// Where to write the plain copy (must not exist or be empty).
         out: PathBuf,
     },
+    /// SQL over datasets: `rtvtk sql TRACE "SELECT kind, count(*) FROM rays GROUP BY kind"`.
+    Sql(sql::SqlArgs),
     /// Benchmarks, each against a baseline in the same run.
     Bench {
         #[command(subcommand)]
@@ -127,6 +130,7 @@ fn main() {
         }
         Command::Check { dataset, json } => commands::check(&dataset, json),
         Command::Export { dataset, out } => commands::export(&dataset, &out).map(|_| 0),
+        Command::Sql(args) => sql::run(&args).map(|_| 0),
         Command::Bench { what } => bench::run(what).map(|_| 0),
     };
     match result {

@@ -1,1 +1,9 @@
-//! Placeholder: filled by a later issue (see README.md).
+#![doc = include_str!("../README.md")]
+
+mod error;
+mod functions;
+mod tables;
+
+pub use error::{Error, Result};
+pub use functions::{SceneContext, register_functions};
+pub use tables::{TraceSource, register_dataset, session};

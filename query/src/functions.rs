@@ -1,0 +1,259 @@
+//! Ray functions for SQL, registered in any `SessionContext` (also a Ballista one):
+//!
+//! | function | returns | meaning |
+//! |---|---|---|
+//! | `octant(dx, dy, dz)` | UInt8 | bit 0: dx < 0, bit 1: dy < 0, bit 2: dz < 0 |
+//! | `angle_between(ax, ay, az, bx, by, bz)` | Float64 | angle between two directions, radians |
+//! | `morton3(x, y, z, bits)` | UInt64 | Morton code of a point over the scene bounds, `bits` (1..=21) per axis |
+//! | `aims_at_light(ox, oy, oz, dx, dy, dz)` | Boolean | the ray's line hits an emitter triangle in front of its origin |
+//!
+//! NaN or infinite inputs give NULL, never an error. Scene-dependent functions use the scene of
+//! the session's first dataset: its bounds (origins and hit points) and its `lights` table.
+
+use std::sync::Arc;
+
+use arrow::array::{Array, ArrayRef, AsArray, BooleanArray, Float64Array, UInt8Array, UInt64Array};
+use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type};
+use datafusion::error::DataFusionError;
+use datafusion::logical_expr::{ColumnarValue, Volatility, create_udf};
+use datafusion::prelude::SessionContext;
+use store::Dataset;
+
+use crate::Result;
+
+/// What scene-dependent functions know about the scene.
+#[derive(Clone, Debug, Default)]
+pub struct SceneContext {
+    /// Bounds of the finite origins and hit points, when any.
+    pub bounds: Option<([f64; 3], [f64; 3])>,
+    /// Emitter triangles (v0, v1, v2).
+    pub lights: Vec<[[f64; 3]; 3]>,
+}
+
+impl SceneContext {
+    /// The scene of a dataset: bounds from its statistics, emitters from its `lights` table.
+    pub fn of(ds: &Dataset) -> Result<Self> {
+        let st = ds.stats();
+        let (o, h) = (&st.origin_bounds, &st.hit_bounds);
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for b in [o, h] {
+            if !b.is_empty() {
+                for k in 0..3 {
+                    lo[k] = lo[k].min(f64::from(b.min[k]));
+                    hi[k] = hi[k].max(f64::from(b.max[k]));
+                }
+            }
+        }
+        let bounds = (lo[0] <= hi[0]).then_some((lo, hi));
+        let mut lights = Vec::new();
+        if let Some(batch) = ds.table("lights")? {
+            let col =
+                |name: &str| batch.column_by_name(name).and_then(|c| c.as_primitive_opt::<Float32Type>().cloned());
+            let mut cols = Vec::with_capacity(9);
+            for v in 0..3 {
+                for axis in ["x", "y", "z"] {
+                    cols.push(col(&format!("v{v}_{axis}")));
+                }
+            }
+            if cols.iter().all(Option::is_some) {
+                let cols: Vec<_> = cols.into_iter().flatten().collect();
+                for r in 0..batch.num_rows() {
+                    let p = |v: usize| [0, 1, 2].map(|a| f64::from(cols[v * 3 + a].value(r)));
+                    lights.push([p(0), p(1), p(2)]);
+                }
+            }
+        }
+        Ok(Self { bounds, lights })
+    }
+}
+
+fn arrays(args: &[ColumnarValue]) -> datafusion::error::Result<Vec<ArrayRef>> {
+    ColumnarValue::values_to_arrays(args)
+}
+
+fn f64s(a: &ArrayRef) -> datafusion::error::Result<&Float64Array> {
+    a.as_primitive_opt::<Float64Type>()
+        .ok_or_else(|| DataFusionError::Execution(format!("expected a Float64 argument, found {}", a.data_type())))
+}
+
+/// Row `r` of `N` float columns, or None when any is null or not finite.
+fn row<const N: usize>(cols: &[&Float64Array; N], r: usize) -> Option<[f64; N]> {
+    let mut out = [0.0; N];
+    for (o, c) in out.iter_mut().zip(cols) {
+        if c.is_null(r) || !c.value(r).is_finite() {
+            return None;
+        }
+        *o = c.value(r);
+    }
+    Some(out)
+}
+
+/// The angle between two directions (atan2 of the cross and dot products: accurate for tiny
+/// angles); None for a zero direction.
+fn angle(a: [f64; 3], b: [f64; 3]) -> Option<f64> {
+    let c = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let cross = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
+    let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    (cross != 0.0 || dot != 0.0).then(|| cross.atan2(dot))
+}
+
+fn float_cols<const N: usize>(a: &[ArrayRef]) -> datafusion::error::Result<[&Float64Array; N]> {
+    let mut v = Vec::with_capacity(N);
+    for x in a.iter().take(N) {
+        v.push(f64s(x)?);
+    }
+    v.try_into().map_err(|_| DataFusionError::Execution(format!("expected {N} arguments")))
+}
+
+/// Möller–Trumbore, two-sided, with a small barycentric tolerance: true when the line of the ray
+/// hits the triangle at t > 0.
+fn hits_triangle(o: [f64; 3], d: [f64; 3], tri: &[[f64; 3]; 3]) -> bool {
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let cross =
+        |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let (e1, e2) = (sub(tri[1], tri[0]), sub(tri[2], tri[0]));
+    let p = cross(d, e2);
+    let det = dot(e1, p);
+    let scale = dot(e1, e1).sqrt() * dot(e2, e2).sqrt() * dot(d, d).sqrt();
+    // Parallel to the plane, or NaN.
+    if det.abs().partial_cmp(&(1e-12 * scale)) != Some(std::cmp::Ordering::Greater) {
+        return false;
+    }
+    let inv = 1.0 / det;
+    let s = sub(o, tri[0]);
+    let u = dot(s, p) * inv;
+    const EPS: f64 = 1e-5;
+    if !(-EPS..=1.0 + EPS).contains(&u) {
+        return false;
+    }
+    let q = cross(s, e1);
+    let v = dot(d, q) * inv;
+    if v < -EPS || u + v > 1.0 + EPS {
+        return false;
+    }
+    dot(e2, q) * inv > 0.0
+}
+
+/// Interleaves the low 21 bits of x, y, z (x in the lowest position).
+fn morton(x: u64, y: u64, z: u64) -> u64 {
+    fn spread(mut v: u64) -> u64 {
+        v &= 0x1f_ffff;
+        v = (v | (v << 32)) & 0x1f00000000ffff;
+        v = (v | (v << 16)) & 0x1f0000ff0000ff;
+        v = (v | (v << 8)) & 0x100f00f00f00f00f;
+        v = (v | (v << 4)) & 0x10c30c30c30c30c3;
+        (v | (v << 2)) & 0x1249249249249249
+    }
+    spread(x) | (spread(y) << 1) | (spread(z) << 2)
+}
+
+/// Registers every ray function in `ctx`, scene-dependent ones over `scene`.
+pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
+    // Float64 parameters: Float32 columns and float literals both coerce to them.
+    let f64x3 = vec![DataType::Float64; 3];
+    ctx.register_udf(create_udf(
+        "octant",
+        f64x3.clone(),
+        DataType::UInt8,
+        Volatility::Immutable,
+        Arc::new(|args: &[ColumnarValue]| {
+            let a = arrays(args)?;
+            let c = float_cols::<3>(&a)?;
+            let out: UInt8Array = (0..c[0].len())
+                .map(|r| {
+                    row(&c, r).map(|d| u8::from(d[0] < 0.0) | (u8::from(d[1] < 0.0) << 1) | (u8::from(d[2] < 0.0) << 2))
+                })
+                .collect();
+            Ok(ColumnarValue::Array(Arc::new(out)))
+        }),
+    ));
+    ctx.register_udf(create_udf(
+        "angle_between",
+        vec![DataType::Float64; 6],
+        DataType::Float64,
+        Volatility::Immutable,
+        Arc::new(|args: &[ColumnarValue]| {
+            let a = arrays(args)?;
+            let c = float_cols::<6>(&a)?;
+            let out: Float64Array = (0..c[0].len())
+                .map(|r| row(&c, r).and_then(|v| angle([v[0], v[1], v[2]], [v[3], v[4], v[5]])))
+                .collect();
+            Ok(ColumnarValue::Array(Arc::new(out)))
+        }),
+    ));
+    let sc = scene.clone();
+    ctx.register_udf(create_udf(
+        "morton3",
+        vec![DataType::Float64, DataType::Float64, DataType::Float64, DataType::Int64],
+        DataType::UInt64,
+        Volatility::Immutable,
+        Arc::new(move |args: &[ColumnarValue]| {
+            let a = arrays(args)?;
+            let c = float_cols::<3>(&a)?;
+            let bits = a[3]
+                .as_primitive_opt::<Int64Type>()
+                .ok_or_else(|| DataFusionError::Execution("morton3: bits must be an integer".into()))?;
+            let out: UInt64Array = (0..c[0].len())
+                .map(|r| {
+                    let (lo, hi) = sc.bounds?;
+                    let p = row(&c, r)?;
+                    if bits.is_null(r) || !(1..=21).contains(&bits.value(r)) {
+                        return None;
+                    }
+                    let max = ((1u64 << bits.value(r)) - 1) as f64;
+                    let q = |k: usize| {
+                        let ext = (hi[k] - lo[k]).max(f64::MIN_POSITIVE);
+                        (((p[k] - lo[k]) / ext).clamp(0.0, 1.0) * max).round() as u64
+                    };
+                    Some(morton(q(0), q(1), q(2)))
+                })
+                .collect();
+            Ok(ColumnarValue::Array(Arc::new(out)))
+        }),
+    ));
+    let sc = scene;
+    ctx.register_udf(create_udf(
+        "aims_at_light",
+        vec![DataType::Float64; 6],
+        DataType::Boolean,
+        Volatility::Immutable,
+        Arc::new(move |args: &[ColumnarValue]| {
+            let a = arrays(args)?;
+            let c = float_cols::<6>(&a)?;
+            let out: BooleanArray = (0..c[0].len())
+                .map(|r| {
+                    let v = row(&c, r)?;
+                    let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
+                    Some(sc.lights.iter().any(|t| hits_triangle(o, d, t)))
+                })
+                .collect();
+            Ok(ColumnarValue::Array(Arc::new(out)))
+        }),
+    ));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn morton_interleaves_bits() {
+        assert_eq!(morton(1, 0, 0), 1);
+        assert_eq!(morton(0, 1, 0), 2);
+        assert_eq!(morton(0, 0, 1), 4);
+        assert_eq!(morton(3, 0, 0), 0b1001);
+        assert_eq!(morton(0x1f_ffff, 0x1f_ffff, 0x1f_ffff), (1u64 << 63) - 1);
+    }
+
+    #[test]
+    fn triangle_hits_are_two_sided_and_forward_only() {
+        let tri = [[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 1.0]];
+        assert!(hits_triangle([0.2, 0.0, 0.2], [0.0, 1.0, 0.0], &tri));
+        assert!(hits_triangle([0.2, 2.0, 0.2], [0.0, -1.0, 0.0], &tri));
+        assert!(!hits_triangle([0.2, 0.0, 0.2], [0.0, -1.0, 0.0], &tri), "behind the origin");
+        assert!(!hits_triangle([0.9, 0.0, 0.9], [0.0, 1.0, 0.0], &tri), "outside");
+        assert!(!hits_triangle([0.2, 0.0, 0.2], [1.0, 0.0, 0.0], &tri), "parallel");
+    }
+}

@@ -1,0 +1,176 @@
+//! The tables of a trace dataset in a DataFusion session.
+//!
+//! - `rays`: plain datasets are read by DataFusion's own Parquet scan (statistics and page-index
+//!   pruning, filter pushdown); encoded datasets (format v2 `lossless` / `octN`) stream through
+//!   the store's decoder, one partition per segment, so every column reads as plain floats.
+//! - `trees`: the segments' tree tables (plain Parquet in every format version).
+//! - `bvh_nodes`, `lights`, `ray_nodes`: the optional tables, when the recording wrote them.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use arrow::array::RecordBatch;
+use arrow::datatypes::SchemaRef;
+use datafusion::catalog::MemorySchemaProvider;
+use datafusion::catalog::streaming::StreamingTable;
+use datafusion::common::TableReference;
+use datafusion::datasource::TableProvider;
+use datafusion::datasource::file_format::parquet::ParquetFormat;
+use datafusion::datasource::listing::{ListingOptions, ListingTable, ListingTableConfig, ListingTableUrl};
+use datafusion::error::DataFusionError;
+use datafusion::execution::TaskContext;
+use datafusion::physical_plan::SendableRecordBatchStream;
+use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
+use datafusion::physical_plan::streaming::PartitionStream;
+use datafusion::prelude::{SessionConfig, SessionContext};
+use store::{Dataset, Encoding};
+
+use crate::functions::{SceneContext, register_functions};
+use crate::{Error, Result};
+
+/// A dataset to query, under a name (its tables are `NAME.rays`, `NAME.trees`, ...).
+#[derive(Clone, Debug)]
+pub struct TraceSource {
+    pub name: String,
+    pub path: PathBuf,
+}
+
+impl TraceSource {
+    /// `NAME=PATH`, or a bare path named after its last component.
+    pub fn parse(arg: &str) -> Self {
+        match arg.split_once('=') {
+            Some((name, path)) if !name.is_empty() && !name.contains('/') => {
+                Self { name: name.to_string(), path: PathBuf::from(path) }
+            }
+            _ => {
+                let path = PathBuf::from(arg);
+                let stem = path.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+                let name: String = stem.chars().map(|c| if c.is_ascii_alphanumeric() { c } else { '_' }).collect();
+                let name = if name.is_empty() || name.starts_with(|c: char| c.is_ascii_digit()) {
+                    format!("t_{name}")
+                } else {
+                    name
+                };
+                Self { name, path }
+            }
+        }
+    }
+}
+
+/// A session over `sources`: each dataset's tables in the schema named after it, the first one's
+/// also unqualified (`rays`, `trees`, ...), and the ray functions (scene-dependent ones, such as
+/// `aims_at_light` and `morton3`, use the first dataset's scene).
+pub async fn session(sources: &[TraceSource]) -> Result<SessionContext> {
+    let config = SessionConfig::new()
+        .with_information_schema(true)
+        .with_parquet_pruning(true)
+        .with_parquet_page_index_pruning(true)
+        .set_bool("datafusion.execution.parquet.pushdown_filters", true);
+    let ctx = SessionContext::new_with_config(config);
+    let mut names = std::collections::HashSet::new();
+    let mut scene = None;
+    for (i, src) in sources.iter().enumerate() {
+        if !names.insert(src.name.clone()) {
+            return Err(Error::DuplicateName { name: src.name.clone() });
+        }
+        let ds = register_dataset(&ctx, src, i == 0).await?;
+        if i == 0 {
+            scene = Some(SceneContext::of(&ds)?);
+        }
+    }
+    register_functions(&ctx, Arc::new(scene.unwrap_or_default()));
+    Ok(ctx)
+}
+
+/// Registers one dataset's tables; with `unqualified`, also as `rays`, `trees`, ... Returns the
+/// opened dataset.
+pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualified: bool) -> Result<Arc<Dataset>> {
+    let valid = !src.name.is_empty()
+        && src.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+        && !src.name.starts_with(|c: char| c.is_ascii_digit());
+    if !valid {
+        return Err(Error::BadName { name: src.name.clone() });
+    }
+    let ds = Arc::new(Dataset::open(&src.path)?);
+    let catalog_name = ctx.state().config().options().catalog.default_catalog.clone();
+    if let Some(catalog) = ctx.catalog(&catalog_name) {
+        catalog.register_schema(&src.name, Arc::new(MemorySchemaProvider::new()))?;
+    }
+    let mut tables: Vec<(&str, Arc<dyn TableProvider>)> = vec![
+        ("rays", rays_table(ctx, &ds).await?),
+        ("trees", listing(ctx, &src.path.join("segments"), ".trees.parquet", Some(store::tree_schema())).await?),
+    ];
+    for name in ["bvh_nodes", "lights", "ray_nodes"] {
+        if let Some(path) = ds.table_path(name) {
+            tables.push((name, listing(ctx, &path, ".parquet", None).await?));
+        }
+    }
+    for (name, table) in tables {
+        ctx.register_table(TableReference::partial(src.name.as_str(), name), table.clone())?;
+        if unqualified {
+            ctx.register_table(name, table)?;
+        }
+    }
+    Ok(ds)
+}
+
+async fn rays_table(ctx: &SessionContext, ds: &Arc<Dataset>) -> Result<Arc<dyn TableProvider>> {
+    if ds.encoding() == Encoding::Plain {
+        return listing(ctx, &ds.dir().join("segments"), ".rays.parquet", Some(ds.ray_schema())).await;
+    }
+    let schema = ds.ray_schema();
+    let partitions: Vec<Arc<dyn PartitionStream>> = (0..ds.manifest().segments.len())
+        .map(|segment| Arc::new(SegmentPartition { ds: ds.clone(), segment, schema: schema.clone() }) as _)
+        .collect();
+    Ok(Arc::new(StreamingTable::try_new(schema, partitions)?))
+}
+
+/// A Parquet listing table over the files under `path` ending in `extension`.
+async fn listing(
+    ctx: &SessionContext,
+    path: &Path,
+    extension: &str,
+    schema: Option<SchemaRef>,
+) -> Result<Arc<dyn TableProvider>> {
+    let mut text = path.to_string_lossy().to_string();
+    if path.is_dir() && !text.ends_with('/') {
+        text.push('/');
+    }
+    let url = ListingTableUrl::parse(&text)?;
+    let options = ListingOptions::new(Arc::new(ParquetFormat::default())).with_file_extension(extension);
+    let schema = match schema {
+        Some(s) => s,
+        None => options.infer_schema(&ctx.state(), &url).await?,
+    };
+    let config = ListingTableConfig::new(url).with_listing_options(options).with_schema(schema);
+    Ok(Arc::new(ListingTable::try_new(config)?))
+}
+
+/// One segment of an encoded dataset, decoded as it streams.
+struct SegmentPartition {
+    ds: Arc<Dataset>,
+    segment: usize,
+    schema: SchemaRef,
+}
+
+impl std::fmt::Debug for SegmentPartition {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "SegmentPartition({}, segment {})", self.ds.dir().display(), self.segment)
+    }
+}
+
+impl PartitionStream for SegmentPartition {
+    fn schema(&self) -> &SchemaRef {
+        &self.schema
+    }
+
+    fn execute(&self, _ctx: Arc<TaskContext>) -> SendableRecordBatchStream {
+        let external = |e: store::Error| DataFusionError::External(Box::new(e));
+        let batches: Box<dyn Iterator<Item = datafusion::error::Result<RecordBatch>> + Send> =
+            match self.ds.segment_batches(self.segment) {
+                Ok(it) => Box::new(it.map(move |b| b.map_err(external))),
+                Err(e) => Box::new(std::iter::once(Err(external(e)))),
+            };
+        Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), futures::stream::iter(batches)))
+    }
+}

@@ -1,0 +1,115 @@
+#![allow(clippy::unwrap_used)]
+//! `rtvtk sql` end to end: the tables of encoded and plain datasets, the ray functions, the
+//! paper's shadow-ray bug as a query, several datasets side by side, and bad input.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+use serde_json::Value;
+
+fn rtvtk(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap()
+}
+
+fn record(dir: &Path, extra: &[&str]) {
+    let base = ["record", "--scene", "cornell", "--size", "40x30", "--spp", "4", "--threads", "2", "--out"];
+    let out = rtvtk(&[&base[..], &[dir.to_str().unwrap()], extra].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// The single value a query returns (CSV output, header skipped).
+fn scalar(datasets: &[&str], query: &str) -> String {
+    let out = rtvtk(&[&["sql"], datasets, &[query, "--format", "csv"]].concat());
+    assert!(out.status.success(), "{query}: {}", String::from_utf8_lossy(&out.stderr));
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    text.lines().nth(1).unwrap_or_default().trim().to_string()
+}
+
+const WRONG_SHADOWS: &str = "SELECT count(*) FROM rays WHERE kind = 'shadow' \
+     AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
+
+#[test]
+fn the_shadow_ray_bug_is_a_query() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (good, bad) = (tmp.path().join("good"), tmp.path().join("bad"));
+    record(&good, &[]);
+    record(&bad, &["--inject-bug", "shadow-dir"]);
+    let wrong_good: u64 = scalar(&[good.to_str().unwrap()], WRONG_SHADOWS).parse().unwrap();
+    let wrong_bad: u64 = scalar(&[bad.to_str().unwrap()], WRONG_SHADOWS).parse().unwrap();
+    assert_eq!(wrong_good, 0, "a correct trace has no shadow ray aiming at no light");
+    assert!(wrong_bad > 0, "the injected bug must show");
+    // Every wrong one leaves an upward-facing diffuse surface after the first bounce (the bug's condition).
+    let q = "SELECT count(*) FROM rays r JOIN rays p ON r.tree_id = p.tree_id AND r.parent = p.ray \
+             WHERE r.kind = 'shadow' AND r.depth >= 2 \
+             AND NOT aims_at_light(r.origin_x, r.origin_y, r.origin_z, r.dir_x, r.dir_y, r.dir_z)";
+    let deep: u64 = scalar(&[bad.to_str().unwrap()], q).parse().unwrap();
+    assert_eq!(deep, wrong_bad);
+}
+
+#[test]
+fn tables_match_the_store_for_encoded_and_plain_datasets() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (enc, plain) = (tmp.path().join("enc"), tmp.path().join("plain"));
+    record(&enc, &[]);
+    assert!(rtvtk(&["export", enc.to_str().unwrap(), plain.to_str().unwrap()]).status.success());
+    let info: Value = serde_json::from_slice(&rtvtk(&["info", enc.to_str().unwrap(), "--json"]).stdout).unwrap();
+    for d in [&enc, &plain] {
+        let d = d.to_str().unwrap();
+        assert_eq!(scalar(&[d], "SELECT count(*) FROM rays"), info["rays"].to_string());
+        assert_eq!(scalar(&[d], "SELECT count(*) FROM trees"), info["trees"].to_string());
+        assert_eq!(
+            scalar(&[d], "SELECT count(*) FROM rays WHERE kind = 'shadow'"),
+            info["rays_by_kind"]["shadow"].to_string()
+        );
+        assert_eq!(scalar(&[d], "SELECT count(*) FROM rays WHERE t IS NULL"), info["misses"].to_string());
+        assert!(scalar(&[d], "SELECT count(*) FROM bvh_nodes").parse::<u64>().unwrap() > 0);
+        assert_eq!(scalar(&[d], "SELECT count(*) FROM lights"), "2");
+    }
+    // The decoded floats are the exported ones, bit for bit (sums in the same order per tree).
+    let q = "SELECT sum(CAST(origin_x AS DOUBLE) * 3 + CAST(dir_y AS DOUBLE)) FROM rays WHERE tree_id < 50";
+    assert_eq!(scalar(&[enc.to_str().unwrap()], q), scalar(&[plain.to_str().unwrap()], q));
+    // Two datasets under names, compared in one query.
+    let both = [&format!("a={}", enc.display()), &format!("b={}", plain.display())].map(|s| s.to_string());
+    let q = "SELECT (SELECT count(*) FROM a.rays) - (SELECT count(*) FROM b.rays)";
+    assert_eq!(scalar(&[both[0].as_str(), both[1].as_str()], q), "0");
+}
+
+#[test]
+fn ray_functions_and_bad_input() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().join("t");
+    record(&d, &[]);
+    let d = d.to_str().unwrap();
+    assert_eq!(scalar(&[d], "SELECT octant(-1.0, 2.0, -3.0)"), "5");
+    assert_eq!(scalar(&[d], "SELECT octant(CAST('NaN' AS REAL), 1.0, 1.0) IS NULL"), "true");
+    let a: f64 = scalar(&[d], "SELECT angle_between(1.0, 0.0, 0.0, 0.0, 1.0, 0.0)").parse().unwrap();
+    assert!((a - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+    // Camera rays all start at the camera: one Morton cell; hit points spread over many.
+    assert_eq!(
+        scalar(
+            &[d],
+            "SELECT count(DISTINCT morton3(origin_x, origin_y, origin_z, 10)) FROM rays WHERE kind = 'camera'"
+        ),
+        "1"
+    );
+    let cells: u64 = scalar(
+        &[d],
+        "SELECT count(DISTINCT morton3(origin_x + dir_x * t, origin_y + dir_y * t, origin_z + dir_z * t, 4)) \
+         FROM rays WHERE t IS NOT NULL",
+    )
+    .parse()
+    .unwrap();
+    assert!(cells > 20, "{cells} cells");
+    // Bad SQL, unknown columns and writes are errors that say what is wrong, never a panic.
+    for (q, expect) in [
+        ("SELEC 1", "SELEC"),
+        ("SELECT no_such_column FROM rays", "no_such_column"),
+        ("SELECT octant(1.0, 2.0) FROM rays", "octant"),
+        ("CREATE TABLE x AS SELECT 1", "DDL"),
+    ] {
+        let out = rtvtk(&["sql", d, q]);
+        assert!(!out.status.success(), "{q} should fail");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(expect) && !err.contains("panicked"), "{q}: {err}");
+    }
+}
