@@ -113,3 +113,65 @@ fn ray_functions_and_bad_input() {
         assert!(err.contains(expect) && !err.contains("panicked"), "{q}: {err}");
     }
 }
+
+#[test]
+fn ray_paths_are_light_path_expressions() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().join("t");
+    record(&d, &[]);
+    let d = d.to_str().unwrap();
+    assert_eq!(scalar(&[d], "SELECT count(*) FROM ray_paths"), scalar(&[d], "SELECT count(*) FROM rays"));
+    // Shadow rays that reached an emitter, by path and by joining rays with lights, agree.
+    let by_path: u64 =
+        scalar(&[d], "SELECT count(*) FROM ray_paths WHERE regexp_like(path, '^C( D)* S L$')").parse().unwrap();
+    let by_join: u64 =
+        scalar(&[d], "SELECT count(*) FROM rays WHERE kind = 'shadow' AND prim IN (SELECT prim FROM lights)")
+            .parse()
+            .unwrap();
+    assert!(by_path > 0);
+    assert_eq!(by_path, by_join);
+    // A ray's path has one letter per level of depth.
+    assert_eq!(
+        scalar(
+            &[d],
+            "SELECT count(*) FROM ray_paths WHERE length(replace(replace(path, ' L', ''), ' ', '')) <> depth + 1"
+        ),
+        "0"
+    );
+}
+
+/// The same aggregate in DuckDB (on the plain export) and in rtvtk (on the lossless dataset).
+#[test]
+fn duckdb_and_rtvtk_agree() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (enc, plain) = (tmp.path().join("enc"), tmp.path().join("plain"));
+    record(&enc, &[]);
+    assert!(rtvtk(&["export", enc.to_str().unwrap(), plain.to_str().unwrap()]).status.success());
+    let q = "SELECT CAST(kind AS VARCHAR) AS k, count(*) AS n, sum(depth) AS sd, min(t) AS lo, max(t) AS hi, \
+             sum(CASE WHEN dir_y > 0 THEN 1 ELSE 0 END) AS up FROM rays GROUP BY k ORDER BY k";
+    let ours = rtvtk(&["sql", enc.to_str().unwrap(), q, "--format", "csv"]);
+    assert!(ours.status.success(), "{}", String::from_utf8_lossy(&ours.stderr));
+    let script = r#"
+import sys, duckdb
+d, q = sys.argv[1], sys.argv[2]
+duckdb.sql(f"CREATE VIEW rays AS SELECT * FROM read_parquet('{d}/segments/*.rays.parquet')")
+for r in duckdb.sql(q).fetchall():
+    print(",".join(str(v) for v in r))
+"#;
+    let theirs = Command::new("python3").args(["-c", script, plain.to_str().unwrap(), q]).output().unwrap();
+    assert!(theirs.status.success(), "{}", String::from_utf8_lossy(&theirs.stderr));
+    let parse = |text: &str| -> Vec<Vec<f64>> {
+        text.lines()
+            .filter(|l| !l.starts_with('k'))
+            .map(|l| l.split(',').skip(1).map(|v| v.parse::<f64>().unwrap()).collect())
+            .collect()
+    };
+    let (a, b) = (parse(&String::from_utf8_lossy(&ours.stdout)), parse(&String::from_utf8_lossy(&theirs.stdout)));
+    assert_eq!(a.len(), 3, "{a:?}");
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(&b) {
+        for (u, v) in x.iter().zip(y) {
+            assert!((u - v).abs() <= 1e-6 * u.abs().max(1.0), "rtvtk {x:?} vs DuckDB {y:?}");
+        }
+    }
+}

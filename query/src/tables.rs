@@ -4,6 +4,8 @@
 //!   pruning, filter pushdown); encoded datasets (format v2 `lossless` / `octN`) stream through
 //!   the store's decoder, one partition per segment, so every column reads as plain floats.
 //! - `trees`: the segments' tree tables (plain Parquet in every format version).
+//! - `ray_paths`: every ray's path from its root as kind letters (`C D D S L`), for
+//!   light-path-expression filters with `regexp_like`.
 //! - `bvh_nodes`, `lights`, `ray_nodes`: the optional tables, when the recording wrote them.
 
 use std::path::{Path, PathBuf};
@@ -99,6 +101,7 @@ pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualifi
     let mut tables: Vec<(&str, Arc<dyn TableProvider>)> = vec![
         ("rays", rays_table(ctx, &ds).await?),
         ("trees", listing(ctx, &src.path.join("segments"), ".trees.parquet", Some(store::tree_schema())).await?),
+        ("ray_paths", ray_paths_table(&ds)?),
     ];
     for name in ["bvh_nodes", "lights", "ray_nodes"] {
         if let Some(path) = ds.table_path(name) {
@@ -173,4 +176,133 @@ impl PartitionStream for SegmentPartition {
             };
         Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), futures::stream::iter(batches)))
     }
+}
+
+/// Schema of `ray_paths`: each ray's path from its root as kind letters.
+fn ray_paths_schema() -> SchemaRef {
+    use arrow::datatypes::{DataType, Field, Schema};
+    Arc::new(Schema::new(vec![
+        Field::new("tree_id", DataType::UInt64, false),
+        Field::new("ray", DataType::UInt32, false),
+        Field::new("depth", DataType::UInt16, false),
+        Field::new("path", DataType::Utf8, false),
+    ]))
+}
+
+/// The letter of a kind in a path: C camera, S shadow, D diffuse, R specular (reflection),
+/// T transmission, X any registered kind.
+fn kind_letter(kind: store::Kind) -> char {
+    match kind {
+        store::Kind::CAMERA => 'C',
+        store::Kind::SHADOW => 'S',
+        store::Kind::DIFFUSE => 'D',
+        store::Kind::SPECULAR => 'R',
+        store::Kind::TRANSMISSION => 'T',
+        _ => 'X',
+    }
+}
+
+/// `ray_paths` of one segment: for every ray, the letters of the kinds from its root down to it,
+/// space separated, with `L` appended when the ray hit an emitter (`C D D S L`: a shadow ray that
+/// reached the light after two bounces). Built a segment at a time.
+struct PathPartition {
+    ds: Arc<Dataset>,
+    segment: usize,
+    schema: SchemaRef,
+    emitters: Arc<std::collections::HashSet<u32>>,
+}
+
+impl std::fmt::Debug for PathPartition {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PathPartition({}, segment {})", self.ds.dir().display(), self.segment)
+    }
+}
+
+impl PathPartition {
+    fn batches(&self) -> store::Result<Vec<RecordBatch>> {
+        use arrow::array::{ArrayBuilder, StringBuilder, UInt16Builder, UInt32Builder, UInt64Builder};
+        let mut out = Vec::new();
+        let (mut ids, mut rays, mut depths, mut paths) =
+            (UInt64Builder::new(), UInt32Builder::new(), UInt16Builder::new(), StringBuilder::new());
+        let mut prefix: Vec<String> = Vec::new();
+        for tree in self.ds.segment_trees(self.segment)? {
+            let tree = tree?;
+            prefix.clear();
+            for r in &tree.rays {
+                let mut p = match r.parent {
+                    Some(q) => {
+                        let mut s = prefix.get(q as usize).cloned().unwrap_or_default();
+                        s.push(' ');
+                        s
+                    }
+                    None => String::new(),
+                };
+                p.push(kind_letter(r.kind));
+                let mut shown = p.clone();
+                if r.prim.is_some_and(|q| self.emitters.contains(&q)) {
+                    shown.push_str(" L");
+                }
+                ids.append_value(tree.info.id.0);
+                rays.append_value(r.index);
+                depths.append_value(r.depth);
+                paths.append_value(&shown);
+                prefix.push(p);
+            }
+            if ids.len() >= 64 * 1024 {
+                out.push(self.finish(&mut ids, &mut rays, &mut depths, &mut paths)?);
+            }
+        }
+        if !ids.is_empty() {
+            out.push(self.finish(&mut ids, &mut rays, &mut depths, &mut paths)?);
+        }
+        Ok(out)
+    }
+
+    fn finish(
+        &self,
+        ids: &mut arrow::array::UInt64Builder,
+        rays: &mut arrow::array::UInt32Builder,
+        depths: &mut arrow::array::UInt16Builder,
+        paths: &mut arrow::array::StringBuilder,
+    ) -> store::Result<RecordBatch> {
+        RecordBatch::try_new(
+            self.schema.clone(),
+            vec![Arc::new(ids.finish()), Arc::new(rays.finish()), Arc::new(depths.finish()), Arc::new(paths.finish())],
+        )
+        .map_err(|e| store::Error::Arrow { context: "ray_paths".into(), source: e })
+    }
+}
+
+impl PartitionStream for PathPartition {
+    fn schema(&self) -> &SchemaRef {
+        &self.schema
+    }
+
+    fn execute(&self, _ctx: Arc<TaskContext>) -> SendableRecordBatchStream {
+        let result: Vec<datafusion::error::Result<RecordBatch>> = match self.batches() {
+            Ok(b) => b.into_iter().map(Ok).collect(),
+            Err(e) => vec![Err(DataFusionError::External(Box::new(e)))],
+        };
+        Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), futures::stream::iter(result)))
+    }
+}
+
+/// The `ray_paths` table of a dataset (emitters from its `lights` table).
+fn ray_paths_table(ds: &Arc<Dataset>) -> Result<Arc<dyn TableProvider>> {
+    use arrow::array::AsArray;
+    let mut emitters = std::collections::HashSet::new();
+    if let Some(lights) = ds.table("lights")?
+        && let Some(prims) =
+            lights.column_by_name("prim").and_then(|c| c.as_primitive_opt::<arrow::datatypes::UInt32Type>())
+    {
+        emitters.extend(prims.values().iter().copied());
+    }
+    let emitters = Arc::new(emitters);
+    let schema = ray_paths_schema();
+    let partitions: Vec<Arc<dyn PartitionStream>> = (0..ds.manifest().segments.len())
+        .map(|segment| {
+            Arc::new(PathPartition { ds: ds.clone(), segment, schema: schema.clone(), emitters: emitters.clone() }) as _
+        })
+        .collect();
+    Ok(Arc::new(StreamingTable::try_new(schema, partitions)?))
 }

@@ -547,6 +547,13 @@ impl Dataset {
         }
     }
 
+    /// Every tree of segment `i` in file order: a sequential scan of that segment alone.
+    pub fn segment_trees(&self, i: usize) -> Result<TreeIter<'_>> {
+        let mut entries = self.read_tree_table(i)?;
+        entries.sort_unstable_by_key(|e| e.first_row);
+        Ok(self.trees_of_segment(i, entries))
+    }
+
     pub(crate) fn segment_entries(&self, i: usize) -> Result<Vec<TreeEntry>> {
         self.read_tree_table(i)
     }
