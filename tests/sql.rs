@@ -100,6 +100,17 @@ fn ray_functions_and_bad_input() {
     .parse()
     .unwrap();
     assert!(cells > 20, "{cells} cells");
+    // Every ray that hit something entered the BVH's root box; some that entered hit nothing.
+    let q = "SELECT count(*) FILTER (WHERE t IS NOT NULL AND NOT ray_aabb_hit(origin_x, origin_y, origin_z, \
+             dir_x, dir_y, dir_z, b.min_x, b.min_y, b.min_z, b.max_x, b.max_y, b.max_z)) \
+             FROM rays, bvh_nodes b WHERE b.node_id = 0";
+    assert_eq!(scalar(&[d], q), "0");
+    // Diffuse bounces spread over the octahedral cells of both hemispheres.
+    let cells: u32 =
+        scalar(&[d], "SELECT count(DISTINCT dir_bin(dir_x, dir_y, dir_z, 8)) FROM rays WHERE kind = 'diffuse'")
+            .parse()
+            .unwrap();
+    assert!(cells > 32 && cells <= 64, "{cells}");
     // Bad SQL, unknown columns and writes are errors that say what is wrong, never a panic.
     for (q, expect) in [
         ("SELEC 1", "SELEC"),

@@ -4,6 +4,8 @@
 //! |---|---|---|
 //! | `octant(dx, dy, dz)` | UInt8 | bit 0: dx < 0, bit 1: dy < 0, bit 2: dz < 0 |
 //! | `angle_between(ax, ay, az, bx, by, bz)` | Float64 | angle between two directions, radians |
+//! | `dir_bin(dx, dy, dz, n)` | UInt32 | cell of the direction on an n × n octahedral map |
+//! | `ray_aabb_hit(ox, oy, oz, dx, dy, dz, min_x, min_y, min_z, max_x, max_y, max_z)` | Boolean | the ray (t ≥ 0) enters the box |
 //! | `morton3(x, y, z, bits)` | UInt64 | Morton code of a point over the scene bounds, `bits` (1..=21) per axis |
 //! | `aims_at_light(ox, oy, oz, dx, dy, dz)` | Boolean | the ray's line hits an emitter triangle in front of its origin |
 //!
@@ -12,7 +14,7 @@
 
 use std::sync::Arc;
 
-use arrow::array::{Array, ArrayRef, AsArray, BooleanArray, Float64Array, UInt8Array, UInt64Array};
+use arrow::array::{Array, ArrayRef, AsArray, BooleanArray, Float64Array, UInt8Array, UInt32Array, UInt64Array};
 use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type};
 use datafusion::error::DataFusionError;
 use datafusion::logical_expr::{ColumnarValue, Volatility, create_udf};
@@ -136,6 +138,39 @@ fn hits_triangle(o: [f64; 3], d: [f64; 3], tri: &[[f64; 3]; 3]) -> bool {
     dot(e2, q) * inv > 0.0
 }
 
+/// Cell of a direction on an n × n octahedral map (row-major), None for a zero direction.
+fn octahedral_bin(d: [f64; 3], n: u32) -> Option<u32> {
+    let l1 = d[0].abs() + d[1].abs() + d[2].abs();
+    if l1 <= 0.0 {
+        return None;
+    }
+    let (mut x, mut y) = (d[0] / l1, d[1] / l1);
+    if d[2] < 0.0 {
+        let (ox, oy) = (x, y);
+        x = (1.0 - oy.abs()) * ox.signum();
+        y = (1.0 - ox.abs()) * oy.signum();
+    }
+    let cell = |v: f64| (((v * 0.5 + 0.5) * f64::from(n)).floor() as u32).min(n - 1);
+    Some(cell(y) * n + cell(x))
+}
+
+/// Slab test: true when the ray (t ≥ 0) enters the box.
+fn slab_hit(o: [f64; 3], d: [f64; 3], lo: [f64; 3], hi: [f64; 3]) -> bool {
+    let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
+    for k in 0..3 {
+        if d[k] == 0.0 {
+            if o[k] < lo[k] || o[k] > hi[k] {
+                return false;
+            }
+            continue;
+        }
+        let (a, b) = ((lo[k] - o[k]) / d[k], (hi[k] - o[k]) / d[k]);
+        t0 = t0.max(a.min(b));
+        t1 = t1.min(a.max(b));
+    }
+    t0 <= t1
+}
+
 /// Interleaves the low 21 bits of x, y, z (x in the lowest position).
 fn morton(x: u64, y: u64, z: u64) -> u64 {
     fn spread(mut v: u64) -> u64 {
@@ -179,6 +214,44 @@ pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
             let c = float_cols::<6>(&a)?;
             let out: Float64Array = (0..c[0].len())
                 .map(|r| row(&c, r).and_then(|v| angle([v[0], v[1], v[2]], [v[3], v[4], v[5]])))
+                .collect();
+            Ok(ColumnarValue::Array(Arc::new(out)))
+        }),
+    ));
+    ctx.register_udf(create_udf(
+        "dir_bin",
+        vec![DataType::Float64, DataType::Float64, DataType::Float64, DataType::Int64],
+        DataType::UInt32,
+        Volatility::Immutable,
+        Arc::new(|args: &[ColumnarValue]| {
+            let a = arrays(args)?;
+            let c = float_cols::<3>(&a)?;
+            let n = a[3]
+                .as_primitive_opt::<Int64Type>()
+                .ok_or_else(|| DataFusionError::Execution("dir_bin: n must be an integer".into()))?;
+            let out: UInt32Array = (0..c[0].len())
+                .map(|r| {
+                    let d = row(&c, r)?;
+                    let n = n.is_valid(r).then(|| n.value(r)).filter(|n| (1..=65535).contains(n))? as u32;
+                    octahedral_bin(d, n)
+                })
+                .collect();
+            Ok(ColumnarValue::Array(Arc::new(out)))
+        }),
+    ));
+    ctx.register_udf(create_udf(
+        "ray_aabb_hit",
+        vec![DataType::Float64; 12],
+        DataType::Boolean,
+        Volatility::Immutable,
+        Arc::new(|args: &[ColumnarValue]| {
+            let a = arrays(args)?;
+            let c = float_cols::<12>(&a)?;
+            let out: BooleanArray = (0..c[0].len())
+                .map(|r| {
+                    let v = row(&c, r)?;
+                    Some(slab_hit([v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]], [v[9], v[10], v[11]]))
+                })
                 .collect();
             Ok(ColumnarValue::Array(Arc::new(out)))
         }),
@@ -245,6 +318,34 @@ mod tests {
         assert_eq!(morton(0, 0, 1), 4);
         assert_eq!(morton(3, 0, 0), 0b1001);
         assert_eq!(morton(0x1f_ffff, 0x1f_ffff, 0x1f_ffff), (1u64 << 63) - 1);
+    }
+
+    #[test]
+    fn octahedral_bins_cover_the_sphere() {
+        let n = 8;
+        let mut seen = std::collections::HashSet::new();
+        for i in 0..4000 {
+            let z = i as f64 / 2000.0 - 1.0;
+            let a = i as f64 * 2.399_963;
+            let r = (1.0 - z * z).sqrt();
+            let b = octahedral_bin([r * a.cos(), r * a.sin(), z], n).unwrap();
+            assert!(b < n * n);
+            seen.insert(b);
+        }
+        assert!(seen.len() as u32 > n * n * 9 / 10, "{} of {} cells", seen.len(), n * n);
+        assert_eq!(octahedral_bin([0.0, 0.0, 0.0], n), None);
+        // Opposite directions land in different cells.
+        assert_ne!(octahedral_bin([0.3, 0.4, 0.866], n), octahedral_bin([-0.3, -0.4, -0.866], n));
+    }
+
+    #[test]
+    fn slab_test_handles_axis_parallel_and_inside_rays() {
+        let (lo, hi) = ([0.0; 3], [1.0; 3]);
+        assert!(slab_hit([-1.0, 0.5, 0.5], [1.0, 0.0, 0.0], lo, hi));
+        assert!(!slab_hit([-1.0, 0.5, 0.5], [-1.0, 0.0, 0.0], lo, hi), "pointing away");
+        assert!(!slab_hit([-1.0, 1.5, 0.5], [1.0, 0.0, 0.0], lo, hi), "parallel outside");
+        assert!(slab_hit([0.5, 0.5, 0.5], [0.0, 0.0, 1.0], lo, hi), "inside");
+        assert!(slab_hit([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], lo, hi), "through a corner");
     }
 
     #[test]
