@@ -2,7 +2,8 @@
 //!
 //! - `rays`: plain datasets are read by DataFusion's own Parquet scan (statistics and page-index
 //!   pruning, filter pushdown); encoded datasets (format v2 `lossless` / `octN`) stream through
-//!   the store's decoder, one partition per segment, so every column reads as plain floats.
+//!   the store, one partition per segment, reading only the projected columns and decoding
+//!   origins and directions only when the query uses them.
 //! - `trees`: the segments' tree tables (plain Parquet in every format version).
 //! - `ray_paths`: every ray's path from its root as kind letters (`C D D S L`), for
 //!   light-path-expression filters with `regexp_like`.
@@ -121,11 +122,64 @@ async fn rays_table(ctx: &SessionContext, ds: &Arc<Dataset>) -> Result<Arc<dyn T
     if ds.encoding() == Encoding::Plain {
         return listing(ctx, &ds.dir().join("segments"), ".rays.parquet", Some(ds.ray_schema())).await;
     }
-    let schema = ds.ray_schema();
-    let partitions: Vec<Arc<dyn PartitionStream>> = (0..ds.manifest().segments.len())
-        .map(|segment| Arc::new(SegmentPartition { ds: ds.clone(), segment, schema: schema.clone() }) as _)
-        .collect();
-    Ok(Arc::new(StreamingTable::try_new(schema, partitions)?))
+    Ok(Arc::new(RaysTable { ds: ds.clone() }))
+}
+
+/// The `rays` table of an encoded dataset: one partition per segment, reading only the columns the
+/// query projects and decoding origins and directions only when it uses them.
+struct RaysTable {
+    ds: Arc<Dataset>,
+}
+
+impl std::fmt::Debug for RaysTable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "RaysTable({})", self.ds.dir().display())
+    }
+}
+
+#[async_trait::async_trait]
+impl TableProvider for RaysTable {
+    fn schema(&self) -> SchemaRef {
+        self.ds.ray_schema()
+    }
+
+    fn table_type(&self) -> datafusion::datasource::TableType {
+        datafusion::datasource::TableType::Base
+    }
+
+    async fn scan(
+        &self,
+        _state: &dyn datafusion::catalog::Session,
+        projection: Option<&Vec<usize>>,
+        _filters: &[datafusion::prelude::Expr],
+        limit: Option<usize>,
+    ) -> datafusion::error::Result<Arc<dyn datafusion::physical_plan::ExecutionPlan>> {
+        let full = self.ds.ray_schema();
+        let schema = match projection {
+            Some(p) => Arc::new(full.project(p)?),
+            None => full,
+        };
+        let columns: Vec<String> = schema.fields().iter().map(|f| f.name().clone()).collect();
+        let partitions: Vec<Arc<dyn PartitionStream>> = (0..self.ds.manifest().segments.len())
+            .map(|segment| {
+                Arc::new(SegmentPartition {
+                    ds: self.ds.clone(),
+                    segment,
+                    schema: schema.clone(),
+                    columns: columns.clone(),
+                }) as _
+            })
+            .collect();
+        let exec = datafusion::physical_plan::streaming::StreamingTableExec::try_new(
+            schema,
+            partitions,
+            None,
+            Vec::new(),
+            false,
+            limit,
+        )?;
+        Ok(Arc::new(exec))
+    }
 }
 
 /// A Parquet listing table over the files under `path` ending in `extension`.
@@ -154,6 +208,8 @@ struct SegmentPartition {
     ds: Arc<Dataset>,
     segment: usize,
     schema: SchemaRef,
+    /// The ray-table columns this scan reads, in schema order.
+    columns: Vec<String>,
 }
 
 impl std::fmt::Debug for SegmentPartition {
@@ -170,7 +226,7 @@ impl PartitionStream for SegmentPartition {
     fn execute(&self, _ctx: Arc<TaskContext>) -> SendableRecordBatchStream {
         let external = |e: store::Error| DataFusionError::External(Box::new(e));
         let batches: Box<dyn Iterator<Item = datafusion::error::Result<RecordBatch>> + Send> =
-            match self.ds.segment_batches(self.segment) {
+            match self.ds.segment_columns(self.segment, &self.columns) {
                 Ok(it) => Box::new(it.map(move |b| b.map_err(external))),
                 Err(e) => Box::new(std::iter::once(Err(external(e)))),
             };

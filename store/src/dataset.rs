@@ -495,6 +495,92 @@ impl Dataset {
         }))
     }
 
+    /// The columns `names` of the ray table (in that order) for every ray of segment `i`, in file
+    /// order. Reads only the file columns they need: origins and directions are decoded only when
+    /// asked for (decoding needs the tree structure columns too), and `kind` comes from the kind
+    /// codes without touching the encoded columns.
+    pub fn segment_columns(
+        &self,
+        i: usize,
+        names: &[String],
+    ) -> Result<Box<dyn Iterator<Item = Result<RecordBatch>> + Send>> {
+        let mut fields = Vec::with_capacity(names.len());
+        for n in names {
+            let f = self.schema.field_with_name(n).map_err(|_| Error::Schema {
+                path: self.dir.join(&self.segment(i).rays.path),
+                field: n.clone(),
+                expected: "a column of the ray table".into(),
+                found: "no such column".into(),
+            })?;
+            fields.push(f.clone());
+        }
+        let out_schema = Arc::new(arrow::datatypes::Schema::new(fields));
+        let geometric = ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z"];
+        let needs_decoding =
+            self.encoding() != Encoding::Plain && names.iter().any(|n| geometric.contains(&n.as_str()));
+        let project = move |b: &RecordBatch| -> Result<RecordBatch> {
+            let cols = names_to_columns(b, out_schema.fields())?;
+            RecordBatch::try_new_with_options(
+                out_schema.clone(),
+                cols,
+                &arrow::array::RecordBatchOptions::new().with_row_count(Some(b.num_rows())),
+            )
+            .map_err(arrow_err("projected ray batch"))
+        };
+        if needs_decoding || self.encoding() == Encoding::Plain && names.len() == self.schema.fields().len() {
+            let it = self.segment_batches(i)?;
+            return Ok(Box::new(it.map(move |b| b.and_then(|b| project(&b)))));
+        }
+        // Only plain-stored columns: read them alone (kind from its codes in encoded files).
+        let meta = self.segment_meta(i)?;
+        let path = self.dir.join(&self.segment(i).rays.path);
+        let encoded = self.encoding() != Encoding::Plain;
+        let file_names: Vec<String> = names
+            .iter()
+            .map(|n| if encoded && n == "kind" { crate::codec::KIND_CODE.to_string() } else { n.clone() })
+            .collect();
+        let roots: Vec<usize> = file_names.iter().filter_map(|n| self.file_schema.index_of(n).ok()).collect();
+        let mask = parquet::arrow::ProjectionMask::roots(meta.meta.metadata().file_metadata().schema_descr(), roots);
+        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
+        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
+            .with_projection(mask)
+            .with_batch_size(64 * 1024)
+            .build()
+            .map_err(pq_err(&path))?;
+        let kinds = self.kinds.clone();
+        Ok(Box::new(reader.map(move |b| {
+            let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+            let b = if encoded {
+                let mut cols: Vec<arrow::array::ArrayRef> = Vec::with_capacity(b.num_columns());
+                let mut fields = Vec::with_capacity(b.num_columns());
+                for (f, c) in b.schema().fields().iter().zip(b.columns()) {
+                    if f.name() == crate::codec::KIND_CODE {
+                        let codes =
+                            c.as_primitive_opt::<arrow::datatypes::UInt8Type>().ok_or_else(|| Error::Corrupt {
+                                path: path.clone(),
+                                what: "ray file".into(),
+                                message: "kind_code is not UInt8".into(),
+                            })?;
+                        cols.push(Arc::new(crate::columns::kind_array(codes.values(), &kinds)?));
+                        fields.push(arrow::datatypes::Field::new("kind", crate::schema::kind_data_type(), false));
+                    } else {
+                        cols.push(c.clone());
+                        fields.push(f.as_ref().clone());
+                    }
+                }
+                RecordBatch::try_new_with_options(
+                    Arc::new(arrow::datatypes::Schema::new(fields)),
+                    cols,
+                    &arrow::array::RecordBatchOptions::new().with_row_count(Some(b.num_rows())),
+                )
+                .map_err(arrow_err("kind column"))?
+            } else {
+                b
+            };
+            project(&b)
+        })))
+    }
+
     /// How the ray files store origins and directions.
     pub fn encoding(&self) -> Encoding {
         self.manifest.encoding
@@ -770,4 +856,18 @@ pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
 
 pub(crate) fn listed_files(m: &Manifest) -> HashSet<String> {
     m.segments.iter().flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()]).collect()
+}
+
+/// The columns of `b` named by `fields`, in that order.
+fn names_to_columns(b: &RecordBatch, fields: &arrow::datatypes::Fields) -> Result<Vec<arrow::array::ArrayRef>> {
+    fields
+        .iter()
+        .map(|f| {
+            b.column_by_name(f.name()).cloned().ok_or_else(|| Error::Corrupt {
+                path: PathBuf::new(),
+                what: "ray batch".into(),
+                message: format!("no column {}", f.name()),
+            })
+        })
+        .collect()
 }
