@@ -108,15 +108,6 @@ fn main() {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
-    // Every Parquet column read creates a zstd decompression context (~160 KB) and frees it. With
-    // glibc's defaults such blocks are mmapped or trimmed back to the kernel each time, and a
-    // one-tree fetch spends most of its time faulting in freshly zeroed pages. Keep freed memory.
-    #[cfg(all(target_os = "linux", target_env = "gnu"))]
-    // SAFETY: mallopt only tunes the allocator; called at start-up before any thread exists.
-    unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 32 << 20);
-        libc::mallopt(libc::M_TRIM_THRESHOLD, 256 << 20);
-    }
     let cli = Cli::parse();
     let result: Result<i32> = match cli.command {
         Command::Demo { out, size, spp, threads } => commands::demo(out, size, spp, threads).map(|_| 0),

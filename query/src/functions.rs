@@ -17,7 +17,7 @@ use std::sync::Arc;
 use arrow::array::{Array, ArrayRef, AsArray, BooleanArray, Float64Array, UInt8Array, UInt32Array, UInt64Array};
 use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type};
 use datafusion::error::DataFusionError;
-use datafusion::logical_expr::{ColumnarValue, Volatility, create_udf};
+use datafusion::logical_expr::{ColumnarValue, ScalarUDF, Volatility, create_udf};
 use datafusion::prelude::SessionContext;
 use store::Dataset;
 
@@ -184,127 +184,82 @@ fn morton(x: u64, y: u64, z: u64) -> u64 {
     spread(x) | (spread(y) << 1) | (spread(z) << 2)
 }
 
+/// A row-wise function of `N` float arguments (and, with `int_param`, one integer last): rows
+/// with a NULL, NaN or infinite float, or a NULL integer, give NULL; `f` may give NULL too.
+fn rowwise<const N: usize, T, A>(
+    name: &str,
+    int_param: bool,
+    ret: DataType,
+    f: impl Fn([f64; N], Option<i64>) -> Option<T> + Send + Sync + 'static,
+) -> ScalarUDF
+where
+    A: Array + FromIterator<Option<T>> + 'static,
+{
+    let mut params = vec![DataType::Float64; N];
+    if int_param {
+        params.push(DataType::Int64);
+    }
+    let fname = name.to_string();
+    // Float64 parameters: Float32 columns and float literals both coerce to them.
+    create_udf(
+        name,
+        params,
+        ret,
+        Volatility::Immutable,
+        Arc::new(move |args: &[ColumnarValue]| {
+            let a = arrays(args)?;
+            let c = float_cols::<N>(&a)?;
+            let ints = match a.get(N).filter(|_| int_param) {
+                Some(i) => Some(i.as_primitive_opt::<Int64Type>().ok_or_else(|| {
+                    DataFusionError::Execution(format!("{fname}: the last argument must be an integer"))
+                })?),
+                None => None,
+            };
+            let out: A = (0..c[0].len())
+                .map(|r| {
+                    let v = row(&c, r)?;
+                    let k = match ints {
+                        Some(i) => Some(i.is_valid(r).then(|| i.value(r))?),
+                        None => None,
+                    };
+                    f(v, k)
+                })
+                .collect();
+            Ok(ColumnarValue::Array(Arc::new(out)))
+        }),
+    )
+}
+
 /// Registers every ray function in `ctx`, scene-dependent ones over `scene`.
 pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
-    // Float64 parameters: Float32 columns and float literals both coerce to them.
-    let f64x3 = vec![DataType::Float64; 3];
-    ctx.register_udf(create_udf(
-        "octant",
-        f64x3.clone(),
-        DataType::UInt8,
-        Volatility::Immutable,
-        Arc::new(|args: &[ColumnarValue]| {
-            let a = arrays(args)?;
-            let c = float_cols::<3>(&a)?;
-            let out: UInt8Array = (0..c[0].len())
-                .map(|r| {
-                    row(&c, r).map(|d| u8::from(d[0] < 0.0) | (u8::from(d[1] < 0.0) << 1) | (u8::from(d[2] < 0.0) << 2))
-                })
-                .collect();
-            Ok(ColumnarValue::Array(Arc::new(out)))
-        }),
-    ));
-    ctx.register_udf(create_udf(
-        "angle_between",
-        vec![DataType::Float64; 6],
-        DataType::Float64,
-        Volatility::Immutable,
-        Arc::new(|args: &[ColumnarValue]| {
-            let a = arrays(args)?;
-            let c = float_cols::<6>(&a)?;
-            let out: Float64Array = (0..c[0].len())
-                .map(|r| row(&c, r).and_then(|v| angle([v[0], v[1], v[2]], [v[3], v[4], v[5]])))
-                .collect();
-            Ok(ColumnarValue::Array(Arc::new(out)))
-        }),
-    ));
-    ctx.register_udf(create_udf(
-        "dir_bin",
-        vec![DataType::Float64, DataType::Float64, DataType::Float64, DataType::Int64],
-        DataType::UInt32,
-        Volatility::Immutable,
-        Arc::new(|args: &[ColumnarValue]| {
-            let a = arrays(args)?;
-            let c = float_cols::<3>(&a)?;
-            let n = a[3]
-                .as_primitive_opt::<Int64Type>()
-                .ok_or_else(|| DataFusionError::Execution("dir_bin: n must be an integer".into()))?;
-            let out: UInt32Array = (0..c[0].len())
-                .map(|r| {
-                    let d = row(&c, r)?;
-                    let n = n.is_valid(r).then(|| n.value(r)).filter(|n| (1..=65535).contains(n))? as u32;
-                    octahedral_bin(d, n)
-                })
-                .collect();
-            Ok(ColumnarValue::Array(Arc::new(out)))
-        }),
-    ));
-    ctx.register_udf(create_udf(
-        "ray_aabb_hit",
-        vec![DataType::Float64; 12],
-        DataType::Boolean,
-        Volatility::Immutable,
-        Arc::new(|args: &[ColumnarValue]| {
-            let a = arrays(args)?;
-            let c = float_cols::<12>(&a)?;
-            let out: BooleanArray = (0..c[0].len())
-                .map(|r| {
-                    let v = row(&c, r)?;
-                    Some(slab_hit([v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]], [v[9], v[10], v[11]]))
-                })
-                .collect();
-            Ok(ColumnarValue::Array(Arc::new(out)))
-        }),
-    ));
+    ctx.register_udf(rowwise::<3, _, UInt8Array>("octant", false, DataType::UInt8, |d, _| {
+        Some(u8::from(d[0] < 0.0) | (u8::from(d[1] < 0.0) << 1) | (u8::from(d[2] < 0.0) << 2))
+    }));
+    ctx.register_udf(rowwise::<6, _, Float64Array>("angle_between", false, DataType::Float64, |v, _| {
+        angle([v[0], v[1], v[2]], [v[3], v[4], v[5]])
+    }));
+    ctx.register_udf(rowwise::<3, _, UInt32Array>("dir_bin", true, DataType::UInt32, |d, n| {
+        let n = n.filter(|n| (1..=65535).contains(n))? as u32;
+        octahedral_bin(d, n)
+    }));
+    ctx.register_udf(rowwise::<12, _, BooleanArray>("ray_aabb_hit", false, DataType::Boolean, |v, _| {
+        Some(slab_hit([v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]], [v[9], v[10], v[11]]))
+    }));
     let sc = scene.clone();
-    ctx.register_udf(create_udf(
-        "morton3",
-        vec![DataType::Float64, DataType::Float64, DataType::Float64, DataType::Int64],
-        DataType::UInt64,
-        Volatility::Immutable,
-        Arc::new(move |args: &[ColumnarValue]| {
-            let a = arrays(args)?;
-            let c = float_cols::<3>(&a)?;
-            let bits = a[3]
-                .as_primitive_opt::<Int64Type>()
-                .ok_or_else(|| DataFusionError::Execution("morton3: bits must be an integer".into()))?;
-            let out: UInt64Array = (0..c[0].len())
-                .map(|r| {
-                    let (lo, hi) = sc.bounds?;
-                    let p = row(&c, r)?;
-                    if bits.is_null(r) || !(1..=21).contains(&bits.value(r)) {
-                        return None;
-                    }
-                    let max = ((1u64 << bits.value(r)) - 1) as f64;
-                    let q = |k: usize| {
-                        let ext = (hi[k] - lo[k]).max(f64::MIN_POSITIVE);
-                        (((p[k] - lo[k]) / ext).clamp(0.0, 1.0) * max).round() as u64
-                    };
-                    Some(morton(q(0), q(1), q(2)))
-                })
-                .collect();
-            Ok(ColumnarValue::Array(Arc::new(out)))
-        }),
-    ));
-    let sc = scene;
-    ctx.register_udf(create_udf(
-        "aims_at_light",
-        vec![DataType::Float64; 6],
-        DataType::Boolean,
-        Volatility::Immutable,
-        Arc::new(move |args: &[ColumnarValue]| {
-            let a = arrays(args)?;
-            let c = float_cols::<6>(&a)?;
-            let out: BooleanArray = (0..c[0].len())
-                .map(|r| {
-                    let v = row(&c, r)?;
-                    let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
-                    Some(sc.lights.iter().any(|t| hits_triangle(o, d, t)))
-                })
-                .collect();
-            Ok(ColumnarValue::Array(Arc::new(out)))
-        }),
-    ));
+    ctx.register_udf(rowwise::<3, _, UInt64Array>("morton3", true, DataType::UInt64, move |p, bits| {
+        let (lo, hi) = sc.bounds?;
+        let bits = bits.filter(|b| (1..=21).contains(b))?;
+        let max = ((1u64 << bits) - 1) as f64;
+        let q = |k: usize| {
+            let ext = (hi[k] - lo[k]).max(f64::MIN_POSITIVE);
+            (((p[k] - lo[k]) / ext).clamp(0.0, 1.0) * max).round() as u64
+        };
+        Some(morton(q(0), q(1), q(2)))
+    }));
+    ctx.register_udf(rowwise::<6, _, BooleanArray>("aims_at_light", false, DataType::Boolean, move |v, _| {
+        let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
+        Some(scene.lights.iter().any(|t| hits_triangle(o, d, t)))
+    }));
 }
 
 #[cfg(test)]

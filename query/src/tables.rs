@@ -224,13 +224,7 @@ impl PartitionStream for SegmentPartition {
     }
 
     fn execute(&self, _ctx: Arc<TaskContext>) -> SendableRecordBatchStream {
-        let external = |e: store::Error| DataFusionError::External(Box::new(e));
-        let batches: Box<dyn Iterator<Item = datafusion::error::Result<RecordBatch>> + Send> =
-            match self.ds.segment_columns(self.segment, &self.columns) {
-                Ok(it) => Box::new(it.map(move |b| b.map_err(external))),
-                Err(e) => Box::new(std::iter::once(Err(external(e)))),
-            };
-        Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), futures::stream::iter(batches)))
+        stream(&self.schema, self.ds.segment_columns(self.segment, &self.columns))
     }
 }
 
@@ -335,11 +329,7 @@ impl PartitionStream for PathPartition {
     }
 
     fn execute(&self, _ctx: Arc<TaskContext>) -> SendableRecordBatchStream {
-        let result: Vec<datafusion::error::Result<RecordBatch>> = match self.batches() {
-            Ok(b) => b.into_iter().map(Ok).collect(),
-            Err(e) => vec![Err(DataFusionError::External(Box::new(e)))],
-        };
-        Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), futures::stream::iter(result)))
+        stream(&self.schema, self.batches().map(|b| b.into_iter().map(Ok)))
     }
 }
 
@@ -361,4 +351,17 @@ fn ray_paths_table(ds: &Arc<Dataset>) -> Result<Arc<dyn TableProvider>> {
         })
         .collect();
     Ok(Arc::new(StreamingTable::try_new(schema, partitions)?))
+}
+
+/// A record-batch stream of the batches a store call yields (or of its error).
+fn stream<I>(schema: &SchemaRef, batches: store::Result<I>) -> SendableRecordBatchStream
+where
+    I: Iterator<Item = store::Result<RecordBatch>> + Send + 'static,
+{
+    let external = |e: store::Error| DataFusionError::External(Box::new(e));
+    let batches: Box<dyn Iterator<Item = datafusion::error::Result<RecordBatch>> + Send> = match batches {
+        Ok(it) => Box::new(it.map(move |b| b.map_err(external))),
+        Err(e) => Box::new(std::iter::once(Err(external(e)))),
+    };
+    Box::pin(RecordBatchStreamAdapter::new(schema.clone(), futures::stream::iter(batches)))
 }

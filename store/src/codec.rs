@@ -403,6 +403,16 @@ pub(crate) fn encode(cols: &RayColumns, encoding: Encoding, stats: &mut Stats) -
     Ok(out)
 }
 
+/// The `kind` dictionary column of a `kind_code` column.
+pub(crate) fn kinds_of_codes(codes: &ArrayRef, kinds: &KindTable, path: &Path) -> Result<ArrayRef> {
+    let codes = codes.as_primitive_opt::<UInt8Type>().ok_or_else(|| Error::Corrupt {
+        path: path.to_path_buf(),
+        what: "ray file".into(),
+        message: format!("column {KIND_CODE} is not UInt8"),
+    })?;
+    Ok(Arc::new(kind_array(codes.values(), kinds)?))
+}
+
 /// Turns ray-file batches back into ray-table batches. Keeps the tree being decoded across
 /// batches, so a file read in any batch size decodes; the first batch must start at a tree.
 pub struct Decoder {
@@ -487,10 +497,7 @@ impl Decoder {
             ("dir_y", Arc::new(Float32Array::from(dy))),
             ("dir_z", Arc::new(Float32Array::from(dz))),
         ];
-        let codes = col(KIND_CODE)?
-            .as_primitive_opt::<UInt8Type>()
-            .ok_or_else(|| corrupt(format!("column {KIND_CODE} is not UInt8")))?;
-        let kind: ArrayRef = Arc::new(kind_array(codes.values(), &self.kinds)?);
+        let kind = kinds_of_codes(col(KIND_CODE)?, &self.kinds, path)?;
         let mut columns = Vec::with_capacity(self.plain.fields().len());
         for f in self.plain.fields() {
             if let Some(pos) = floats.iter().position(|(name, _)| name == f.name()) {

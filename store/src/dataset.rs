@@ -515,31 +515,40 @@ impl Dataset {
             fields.push(f.clone());
         }
         let out_schema = Arc::new(arrow::datatypes::Schema::new(fields));
-        let geometric = ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z"];
-        let needs_decoding =
-            self.encoding() != Encoding::Plain && names.iter().any(|n| geometric.contains(&n.as_str()));
-        let project = move |b: &RecordBatch| -> Result<RecordBatch> {
-            let cols = names_to_columns(b, out_schema.fields())?;
-            RecordBatch::try_new_with_options(
-                out_schema.clone(),
-                cols,
-                &arrow::array::RecordBatchOptions::new().with_row_count(Some(b.num_rows())),
-            )
-            .map_err(arrow_err("projected ray batch"))
-        };
-        if needs_decoding || self.encoding() == Encoding::Plain && names.len() == self.schema.fields().len() {
-            let it = self.segment_batches(i)?;
-            return Ok(Box::new(it.map(move |b| b.and_then(|b| project(&b)))));
-        }
-        // Only plain-stored columns: read them alone (kind from its codes in encoded files).
-        let meta = self.segment_meta(i)?;
         let path = self.dir.join(&self.segment(i).rays.path);
+        let project = {
+            let path = path.clone();
+            move |b: RecordBatch| -> Result<RecordBatch> {
+                let cols = out_schema
+                    .fields()
+                    .iter()
+                    .map(|f| {
+                        b.column_by_name(f.name()).cloned().ok_or_else(|| Error::Corrupt {
+                            path: path.clone(),
+                            what: "ray file".into(),
+                            message: format!("no column {} after reading", f.name()),
+                        })
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                let options = arrow::array::RecordBatchOptions::new().with_row_count(Some(b.num_rows()));
+                RecordBatch::try_new_with_options(out_schema.clone(), cols, &options)
+                    .map_err(arrow_err("projected ray batch"))
+            }
+        };
         let encoded = self.encoding() != Encoding::Plain;
-        let file_names: Vec<String> = names
+        let geometric = ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z"];
+        if encoded && names.iter().any(|n| geometric.contains(&n.as_str())) {
+            // Decoding needs the tree structure columns: read everything, then project.
+            let it = self.segment_batches(i)?;
+            return Ok(Box::new(it.map(move |b| b.and_then(&project))));
+        }
+        // Only columns stored as they are (kind from its codes in encoded files): read them alone.
+        let meta = self.segment_meta(i)?;
+        let roots: Vec<usize> = names
             .iter()
-            .map(|n| if encoded && n == "kind" { crate::codec::KIND_CODE.to_string() } else { n.clone() })
+            .map(|n| if encoded && n == "kind" { crate::codec::KIND_CODE } else { n.as_str() })
+            .filter_map(|n| self.file_schema.index_of(n).ok())
             .collect();
-        let roots: Vec<usize> = file_names.iter().filter_map(|n| self.file_schema.index_of(n).ok()).collect();
         let mask = parquet::arrow::ProjectionMask::roots(meta.meta.metadata().file_metadata().schema_descr(), roots);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
         let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
@@ -550,34 +559,16 @@ impl Dataset {
         let kinds = self.kinds.clone();
         Ok(Box::new(reader.map(move |b| {
             let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
-            let b = if encoded {
-                let mut cols: Vec<arrow::array::ArrayRef> = Vec::with_capacity(b.num_columns());
-                let mut fields = Vec::with_capacity(b.num_columns());
-                for (f, c) in b.schema().fields().iter().zip(b.columns()) {
-                    if f.name() == crate::codec::KIND_CODE {
-                        let codes =
-                            c.as_primitive_opt::<arrow::datatypes::UInt8Type>().ok_or_else(|| Error::Corrupt {
-                                path: path.clone(),
-                                what: "ray file".into(),
-                                message: "kind_code is not UInt8".into(),
-                            })?;
-                        cols.push(Arc::new(crate::columns::kind_array(codes.values(), &kinds)?));
-                        fields.push(arrow::datatypes::Field::new("kind", crate::schema::kind_data_type(), false));
-                    } else {
-                        cols.push(c.clone());
-                        fields.push(f.as_ref().clone());
-                    }
-                }
-                RecordBatch::try_new_with_options(
-                    Arc::new(arrow::datatypes::Schema::new(fields)),
-                    cols,
-                    &arrow::array::RecordBatchOptions::new().with_row_count(Some(b.num_rows())),
-                )
-                .map_err(arrow_err("kind column"))?
-            } else {
-                b
-            };
-            project(&b)
+            let Ok(k) = b.schema().index_of(crate::codec::KIND_CODE) else { return project(b) };
+            // The kind codes as the kind column, under its name.
+            let mut fields: Vec<arrow::datatypes::FieldRef> = b.schema().fields().iter().cloned().collect();
+            let mut cols = b.columns().to_vec();
+            cols[k] = crate::codec::kinds_of_codes(&cols[k], &kinds, &path)?;
+            fields[k] = Arc::new(arrow::datatypes::Field::new("kind", crate::schema::kind_data_type(), false));
+            let options = arrow::array::RecordBatchOptions::new().with_row_count(Some(b.num_rows()));
+            let b = RecordBatch::try_new_with_options(Arc::new(arrow::datatypes::Schema::new(fields)), cols, &options)
+                .map_err(arrow_err("kind column"))?;
+            project(b)
         })))
     }
 
@@ -856,18 +847,4 @@ pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
 
 pub(crate) fn listed_files(m: &Manifest) -> HashSet<String> {
     m.segments.iter().flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()]).collect()
-}
-
-/// The columns of `b` named by `fields`, in that order.
-fn names_to_columns(b: &RecordBatch, fields: &arrow::datatypes::Fields) -> Result<Vec<arrow::array::ArrayRef>> {
-    fields
-        .iter()
-        .map(|f| {
-            b.column_by_name(f.name()).cloned().ok_or_else(|| Error::Corrupt {
-                path: PathBuf::new(),
-                what: "ray batch".into(),
-                message: format!("no column {}", f.name()),
-            })
-        })
-        .collect()
 }

@@ -91,12 +91,7 @@ pub struct DatasetWriter {
 impl DatasetWriter {
     /// Creates a new dataset at `dir` (which must not exist or be empty) with an empty manifest.
     pub fn create(dir: &Path, payload: PayloadSchema, options: WriteOptions) -> Result<Self> {
-        if dir.exists() {
-            let mut entries = fs::read_dir(dir).map_err(io_err("listing the dataset directory", dir))?;
-            if entries.next().is_some() {
-                return Err(Error::NotEmpty { path: dir.to_path_buf() });
-            }
-        }
+        ensure_empty(dir)?;
         let segments = dir.join("segments");
         fs::create_dir_all(&segments).map_err(io_err("creating the dataset directory", &segments))?;
         let manifest = Manifest::new(&payload, options.encoding);
@@ -325,6 +320,17 @@ impl SegmentWriter {
     }
 }
 
+/// Refuses a directory that exists and holds anything: a new dataset never overwrites a trace.
+fn ensure_empty(dir: &Path) -> Result<()> {
+    if dir.exists() {
+        let mut entries = fs::read_dir(dir).map_err(io_err("listing the dataset directory", dir))?;
+        if entries.next().is_some() {
+            return Err(Error::NotEmpty { path: dir.to_path_buf() });
+        }
+    }
+    Ok(())
+}
+
 /// Parquet properties of the ray files. `row_group_cap`: the writer's own row-group limit (None
 /// where the caller cuts row groups itself, at tree boundaries).
 fn ray_properties(options: &WriteOptions, dir: &Path, row_group_cap: Option<usize>) -> Result<WriterProperties> {
@@ -401,12 +407,7 @@ fn finish_file(sink: FileSink, path: &Path, sync: bool) -> Result<(u32, u64)> {
 /// directly. Segments, tree files and optional tables keep their names; the manifest is written
 /// last, so an interrupted export is not a dataset.
 pub fn export_plain(ds: &crate::Dataset, out: &Path) -> Result<Manifest> {
-    if out.exists() {
-        let mut entries = fs::read_dir(out).map_err(io_err("listing the export directory", out))?;
-        if entries.next().is_some() {
-            return Err(Error::NotEmpty { path: out.to_path_buf() });
-        }
-    }
+    ensure_empty(out)?;
     let options = WriteOptions { encoding: Encoding::Plain, ..WriteOptions::default() };
     fs::create_dir_all(out.join("segments")).map_err(io_err("creating the export directory", out))?;
     let mut manifest = ds.manifest().clone();
