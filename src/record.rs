@@ -61,6 +61,9 @@ pub struct RecordArgs {
     /// Background threads that encode and write segments.
     #[arg(long, default_value_t = 1)]
     pub writers: usize,
+    /// Rays per segment file (segments are the unit of parallel reads and of crash safety).
+    #[arg(long, default_value_t = 4 << 20, value_parser = clap::value_parser!(u64).range(1..))]
+    pub segment_rays: u64,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Tracing threads (default: all cores).
@@ -212,6 +215,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
                 ..Default::default()
             };
             options.write.encoding = a.encoding;
+            options.segment_rays = a.segment_rays;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
             renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
             Some(rec)

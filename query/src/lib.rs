@@ -2,6 +2,7 @@
 
 mod error;
 mod functions;
+mod scan;
 mod tables;
 
 pub use error::{Error, Result};

@@ -1,9 +1,8 @@
 //! The tables of a trace dataset in a DataFusion session.
 //!
-//! - `rays`: plain datasets are read by DataFusion's own Parquet scan (statistics and page-index
-//!   pruning, filter pushdown); encoded datasets (format v2 `lossless` / `octN`) stream through
-//!   the store, one partition per segment, reading only the projected columns and decoding
-//!   origins and directions only when the query uses them.
+//! - `rays`: every ray, streamed through the store one partition per segment (see `scan`): only
+//!   the projected columns are read, origins and directions are decoded only when used, and
+//!   filters on tree, pixel, sample, depth and kind skip segments, trees and row groups.
 //! - `trees`: the segments' tree tables (plain Parquet in every format version).
 //! - `ray_paths`: every ray's path from its root as kind letters (`C D D S L`), for
 //!   light-path-expression filters with `regexp_like`.
@@ -26,9 +25,10 @@ use datafusion::physical_plan::SendableRecordBatchStream;
 use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
 use datafusion::physical_plan::streaming::PartitionStream;
 use datafusion::prelude::{SessionConfig, SessionContext};
-use store::{Dataset, Encoding};
+use store::Dataset;
 
 use crate::functions::{SceneContext, register_functions};
+use crate::scan::RaysTable;
 use crate::{Error, Result};
 
 /// A dataset to query, under a name (its tables are `NAME.rays`, `NAME.trees`, ...).
@@ -100,7 +100,7 @@ pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualifi
         catalog.register_schema(&src.name, Arc::new(MemorySchemaProvider::new()))?;
     }
     let mut tables: Vec<(&str, Arc<dyn TableProvider>)> = vec![
-        ("rays", rays_table(ctx, &ds).await?),
+        ("rays", Arc::new(RaysTable::new(ds.clone()))),
         ("trees", listing(ctx, &src.path.join("segments"), ".trees.parquet", Some(store::tree_schema())).await?),
         ("ray_paths", ray_paths_table(&ds)?),
     ];
@@ -116,70 +116,6 @@ pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualifi
         }
     }
     Ok(ds)
-}
-
-async fn rays_table(ctx: &SessionContext, ds: &Arc<Dataset>) -> Result<Arc<dyn TableProvider>> {
-    if ds.encoding() == Encoding::Plain {
-        return listing(ctx, &ds.dir().join("segments"), ".rays.parquet", Some(ds.ray_schema())).await;
-    }
-    Ok(Arc::new(RaysTable { ds: ds.clone() }))
-}
-
-/// The `rays` table of an encoded dataset: one partition per segment, reading only the columns the
-/// query projects and decoding origins and directions only when it uses them.
-struct RaysTable {
-    ds: Arc<Dataset>,
-}
-
-impl std::fmt::Debug for RaysTable {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "RaysTable({})", self.ds.dir().display())
-    }
-}
-
-#[async_trait::async_trait]
-impl TableProvider for RaysTable {
-    fn schema(&self) -> SchemaRef {
-        self.ds.ray_schema()
-    }
-
-    fn table_type(&self) -> datafusion::datasource::TableType {
-        datafusion::datasource::TableType::Base
-    }
-
-    async fn scan(
-        &self,
-        _state: &dyn datafusion::catalog::Session,
-        projection: Option<&Vec<usize>>,
-        _filters: &[datafusion::prelude::Expr],
-        limit: Option<usize>,
-    ) -> datafusion::error::Result<Arc<dyn datafusion::physical_plan::ExecutionPlan>> {
-        let full = self.ds.ray_schema();
-        let schema = match projection {
-            Some(p) => Arc::new(full.project(p)?),
-            None => full,
-        };
-        let columns: Vec<String> = schema.fields().iter().map(|f| f.name().clone()).collect();
-        let partitions: Vec<Arc<dyn PartitionStream>> = (0..self.ds.manifest().segments.len())
-            .map(|segment| {
-                Arc::new(SegmentPartition {
-                    ds: self.ds.clone(),
-                    segment,
-                    schema: schema.clone(),
-                    columns: columns.clone(),
-                }) as _
-            })
-            .collect();
-        let exec = datafusion::physical_plan::streaming::StreamingTableExec::try_new(
-            schema,
-            partitions,
-            None,
-            Vec::new(),
-            false,
-            limit,
-        )?;
-        Ok(Arc::new(exec))
-    }
 }
 
 /// A Parquet listing table over the files under `path` ending in `extension`.
@@ -201,31 +137,6 @@ async fn listing(
     };
     let config = ListingTableConfig::new(url).with_listing_options(options).with_schema(schema);
     Ok(Arc::new(ListingTable::try_new(config)?))
-}
-
-/// One segment of an encoded dataset, decoded as it streams.
-struct SegmentPartition {
-    ds: Arc<Dataset>,
-    segment: usize,
-    schema: SchemaRef,
-    /// The ray-table columns this scan reads, in schema order.
-    columns: Vec<String>,
-}
-
-impl std::fmt::Debug for SegmentPartition {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "SegmentPartition({}, segment {})", self.ds.dir().display(), self.segment)
-    }
-}
-
-impl PartitionStream for SegmentPartition {
-    fn schema(&self) -> &SchemaRef {
-        &self.schema
-    }
-
-    fn execute(&self, _ctx: Arc<TaskContext>) -> SendableRecordBatchStream {
-        stream(&self.schema, self.ds.segment_columns(self.segment, &self.columns))
-    }
 }
 
 /// Schema of `ray_paths`: each ray's path from its root as kind letters.

@@ -372,19 +372,24 @@ impl Dataset {
             if id.0 < seg.tree_id_min || id.0 > seg.tree_id_max {
                 continue;
             }
-            let entries = match self.segment_trees[i].get() {
-                Some(e) => e.clone(),
-                None => {
-                    let e = Arc::new(self.read_tree_table(i)?);
-                    let _ = self.segment_trees[i].set(e.clone());
-                    e
-                }
-            };
+            let entries = self.segment_tree_entries(i)?;
             if let Ok(pos) = entries.binary_search_by_key(&id, |e| e.info.id) {
                 return Ok(entries[pos]);
             }
         }
         Err(Error::NoSuchTree(id.0))
+    }
+
+    /// The trees of segment `i`, sorted by id (its tree table, loaded once and kept).
+    pub fn segment_tree_entries(&self, i: usize) -> Result<Arc<Vec<TreeEntry>>> {
+        if let Some(e) = self.segment_trees.get(i).and_then(|c| c.get()) {
+            return Ok(e.clone());
+        }
+        let e = Arc::new(self.read_tree_table(i)?);
+        if let Some(cell) = self.segment_trees.get(i) {
+            let _ = cell.set(e.clone());
+        }
+        Ok(e)
     }
 
     /// Every tree of a pixel (of one sample, or of all samples), ordered by sample then id.
@@ -433,30 +438,12 @@ impl Dataset {
         if count == 0 {
             return Ok(RecordBatch::new_empty(self.schema.clone()));
         }
-        let end = first + count;
-        let mut groups = Vec::new();
-        let mut selectors = Vec::new();
-        for (g, rg) in meta.meta.metadata().row_groups().iter().enumerate() {
-            let start = meta.row_group_starts[g];
-            let n = rg.num_rows() as u64;
-            if start + n <= first || start >= end {
-                continue;
-            }
-            let lo = first.max(start) - start;
-            let hi = end.min(start + n) - start;
-            groups.push(g);
-            if lo > 0 {
-                selectors.push(RowSelector::skip(lo as usize));
-            }
-            selectors.push(RowSelector::select((hi - lo) as usize));
-            if hi < n {
-                selectors.push(RowSelector::skip((n - hi) as usize));
-            }
-        }
+        let one = [std::ops::Range { start: first, end: first + count }];
+        let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, &one);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
         let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
             .with_row_groups(groups)
-            .with_row_selection(RowSelection::from(selectors))
+            .with_row_selection(selection)
             .with_batch_size(count as usize)
             .build()
             .map_err(pq_err(&path))?;
@@ -481,13 +468,26 @@ impl Dataset {
 
     /// Every ray batch of segment `i`, in file order.
     pub fn segment_batches(&self, i: usize) -> Result<impl Iterator<Item = Result<RecordBatch>> + use<>> {
+        self.segment_batches_in(i, None)
+    }
+
+    /// The ray batches of segment `i` holding the rows `rows` (sorted, disjoint ranges of whole
+    /// trees; every row when None), in file order. Reads only the row groups and pages they touch.
+    pub fn segment_batches_in(
+        &self,
+        i: usize,
+        rows: Option<&[std::ops::Range<u64>]>,
+    ) -> Result<impl Iterator<Item = Result<RecordBatch>> + use<>> {
         let meta = self.segment_meta(i)?;
         let path = self.dir.join(&self.segment(i).rays.path);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
-            .with_batch_size(64 * 1024)
-            .build()
-            .map_err(pq_err(&path))?;
+        let mut builder =
+            ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone()).with_batch_size(64 * 1024);
+        if let Some(rows) = rows {
+            let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, rows);
+            builder = builder.with_row_groups(groups).with_row_selection(selection);
+        }
+        let reader = builder.build().map_err(pq_err(&path))?;
         let mut decoder = self.decoder();
         Ok(reader.map(move |b| {
             let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
@@ -503,6 +503,18 @@ impl Dataset {
         &self,
         i: usize,
         names: &[String],
+    ) -> Result<Box<dyn Iterator<Item = Result<RecordBatch>> + Send>> {
+        self.segment_columns_in(i, names, None)
+    }
+
+    /// [`Dataset::segment_columns`] of only the rows `rows` (sorted, disjoint ranges of whole
+    /// trees, as the tree table gives them; every row when None): row groups and pages outside
+    /// them are not read.
+    pub fn segment_columns_in(
+        &self,
+        i: usize,
+        names: &[String],
+        rows: Option<&[std::ops::Range<u64>]>,
     ) -> Result<Box<dyn Iterator<Item = Result<RecordBatch>> + Send>> {
         let mut fields = Vec::with_capacity(names.len());
         for n in names {
@@ -539,7 +551,7 @@ impl Dataset {
         let geometric = ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z"];
         if encoded && names.iter().any(|n| geometric.contains(&n.as_str())) {
             // Decoding needs the tree structure columns: read everything, then project.
-            let it = self.segment_batches(i)?;
+            let it = self.segment_batches_in(i, rows)?;
             return Ok(Box::new(it.map(move |b| b.and_then(&project))));
         }
         // Only columns stored as they are (kind from its codes in encoded files): read them alone.
@@ -551,11 +563,14 @@ impl Dataset {
             .collect();
         let mask = parquet::arrow::ProjectionMask::roots(meta.meta.metadata().file_metadata().schema_descr(), roots);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
+        let mut builder = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
             .with_projection(mask)
-            .with_batch_size(64 * 1024)
-            .build()
-            .map_err(pq_err(&path))?;
+            .with_batch_size(64 * 1024);
+        if let Some(rows) = rows {
+            let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, rows);
+            builder = builder.with_row_groups(groups).with_row_selection(selection);
+        }
+        let reader = builder.build().map_err(pq_err(&path))?;
         let kinds = self.kinds.clone();
         Ok(Box::new(reader.map(move |b| {
             let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
@@ -847,4 +862,48 @@ pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
 
 pub(crate) fn listed_files(m: &Manifest) -> HashSet<String> {
     m.segments.iter().flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()]).collect()
+}
+
+/// The row groups that `rows` (sorted, disjoint ranges) touch and the selection of those rows
+/// within them.
+fn select_rows(
+    starts: &[u64],
+    meta: &ArrowReaderMetadata,
+    rows: &[std::ops::Range<u64>],
+) -> (Vec<usize>, RowSelection) {
+    let mut groups = Vec::new();
+    let mut selectors: Vec<RowSelector> = Vec::new();
+    let mut next = 0usize;
+    for (g, rg) in meta.metadata().row_groups().iter().enumerate() {
+        let start = starts[g];
+        let end = start + rg.num_rows() as u64;
+        while next < rows.len() && rows[next].end <= start {
+            next += 1;
+        }
+        let mut pos = start;
+        let mut touched = false;
+        let mut k = next;
+        while k < rows.len() && rows[k].start < end {
+            let (lo, hi) = (rows[k].start.max(start), rows[k].end.min(end));
+            if lo < hi {
+                if !touched {
+                    groups.push(g);
+                    touched = true;
+                }
+                if lo > pos {
+                    selectors.push(RowSelector::skip((lo - pos) as usize));
+                }
+                selectors.push(RowSelector::select((hi - lo) as usize));
+                pos = hi;
+            }
+            if rows[k].end > end {
+                break;
+            }
+            k += 1;
+        }
+        if touched && pos < end {
+            selectors.push(RowSelector::skip((end - pos) as usize));
+        }
+    }
+    (groups, RowSelection::from(selectors))
 }

@@ -1,0 +1,609 @@
+//! The `rays` table: a scan through the store that reads only the projected columns and uses the
+//! tree index to skip what filters rule out.
+//!
+//! Filters on `tree_id`, `pixel_x`, `pixel_y`, `sample`, `depth` and `kind` (comparisons with
+//! constants, `IN` lists, `BETWEEN`, and `OR`s of them on one column) are pushed down:
+//! - segments are skipped by their tree-id range and their per-kind, per-depth ray counts;
+//! - within a segment, the tree table picks the trees whose id, pixel, sample and deepest ray can
+//!   match, and only their rows are read (the row groups and pages outside them are not touched).
+//!
+//! The pruning is conservative (DataFusion still applies every filter to the rows read), and
+//! `EXPLAIN` shows what it pushed and how much it kept: `RaysScanExec: ... pushed=[tree_id = 7],
+//! segments=1/12, trees=1/23692797, rows=6/100000002`.
+//!
+//! `pixel_x`, `pixel_y` and `sample` are not stored with the rays: the scan adds them from the tree
+//! table (only when the query uses them).
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::ops::Range;
+use std::sync::Arc;
+
+use arrow::array::{Array, AsArray, RecordBatch, RecordBatchOptions, UInt32Array};
+use arrow::datatypes::{DataType, Field, Schema, SchemaRef, UInt64Type};
+use datafusion::catalog::Session;
+use datafusion::common::ScalarValue;
+use datafusion::common::tree_node::TreeNodeRecursion;
+use datafusion::datasource::{TableProvider, TableType};
+use datafusion::error::DataFusionError;
+use datafusion::execution::TaskContext;
+use datafusion::logical_expr::{Expr, Operator, TableProviderFilterPushDown};
+use datafusion::physical_expr::{EquivalenceProperties, PhysicalExpr};
+use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
+use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
+use datafusion::physical_plan::{
+    DisplayAs, DisplayFormatType, ExecutionPlan, Partitioning, PlanProperties, SendableRecordBatchStream,
+};
+use store::{Dataset, TreeEntry};
+
+/// Columns the scan adds from the tree table.
+const TREE_COLUMNS: [&str; 3] = ["pixel_x", "pixel_y", "sample"];
+
+/// Integer columns whose filters prune trees or segments.
+const RANGE_COLUMNS: [&str; 5] = ["tree_id", "pixel_x", "pixel_y", "sample", "depth"];
+
+/// The `rays` table of a dataset (any encoding).
+pub(crate) struct RaysTable {
+    ds: Arc<Dataset>,
+    schema: SchemaRef,
+}
+
+impl std::fmt::Debug for RaysTable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "RaysTable({})", self.ds.dir().display())
+    }
+}
+
+impl RaysTable {
+    pub(crate) fn new(ds: Arc<Dataset>) -> Self {
+        let base = ds.ray_schema();
+        let mut fields: Vec<Arc<Field>> = base.fields().iter().cloned().collect();
+        for name in TREE_COLUMNS {
+            if base.index_of(name).is_err() {
+                let meta = [("description".to_string(), "of the ray's tree, from the tree table".to_string())];
+                fields.push(Arc::new(Field::new(name, DataType::UInt32, false).with_metadata(meta.into())));
+            }
+        }
+        let schema = Arc::new(Schema::new_with_metadata(fields, base.metadata().clone()));
+        Self { ds, schema }
+    }
+}
+
+#[async_trait::async_trait]
+impl TableProvider for RaysTable {
+    fn schema(&self) -> SchemaRef {
+        self.schema.clone()
+    }
+
+    fn table_type(&self) -> TableType {
+        TableType::Base
+    }
+
+    fn supports_filters_pushdown(
+        &self,
+        filters: &[&Expr],
+    ) -> datafusion::error::Result<Vec<TableProviderFilterPushDown>> {
+        Ok(filters
+            .iter()
+            .map(|f| match constraint(f) {
+                Some(_) => TableProviderFilterPushDown::Inexact,
+                None => TableProviderFilterPushDown::Unsupported,
+            })
+            .collect())
+    }
+
+    async fn scan(
+        &self,
+        _state: &dyn Session,
+        projection: Option<&Vec<usize>>,
+        filters: &[Expr],
+        _limit: Option<usize>,
+    ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
+        let schema = match projection {
+            Some(p) => Arc::new(self.schema.project(p)?),
+            None => self.schema.clone(),
+        };
+        let pushdown = Pushdown::of(filters);
+        let ds = self.ds.clone();
+        // Loading tree tables reads files: off the async threads.
+        let parts = tokio::task::spawn_blocking(move || pushdown.plan(&ds).map(|p| (pushdown, p)))
+            .await
+            .map_err(|e| DataFusionError::External(Box::new(e)))?
+            .map_err(|e| DataFusionError::External(Box::new(e)))?;
+        Ok(Arc::new(RaysScanExec::new(self.ds.clone(), schema, parts.0, parts.1)))
+    }
+}
+
+/// What a filter says about one column.
+#[derive(Clone, Debug, PartialEq)]
+enum Constraint {
+    /// The column's value lies in one of these inclusive ranges.
+    Range(&'static str, Vec<(u64, u64)>),
+    /// The ray's kind is one of these names.
+    Kind(BTreeSet<String>),
+}
+
+fn column_of(e: &Expr) -> Option<&str> {
+    match e {
+        Expr::Column(c) => Some(c.name.as_str()),
+        // A cast keeps equal values equal and fails (NULL) on values it cannot hold, so a filter
+        // through it still implies the constraint on the column.
+        Expr::Cast(c) => column_of(&c.expr),
+        Expr::TryCast(c) => column_of(&c.expr),
+        _ => None,
+    }
+}
+
+fn int_of(v: &ScalarValue) -> Option<i128> {
+    Some(match v {
+        ScalarValue::Int8(Some(x)) => i128::from(*x),
+        ScalarValue::Int16(Some(x)) => i128::from(*x),
+        ScalarValue::Int32(Some(x)) => i128::from(*x),
+        ScalarValue::Int64(Some(x)) => i128::from(*x),
+        ScalarValue::UInt8(Some(x)) => i128::from(*x),
+        ScalarValue::UInt16(Some(x)) => i128::from(*x),
+        ScalarValue::UInt32(Some(x)) => i128::from(*x),
+        ScalarValue::UInt64(Some(x)) => i128::from(*x),
+        ScalarValue::Dictionary(_, v) => return int_of(v),
+        _ => return None,
+    })
+}
+
+fn str_of(v: &ScalarValue) -> Option<String> {
+    match v {
+        ScalarValue::Utf8(Some(s)) | ScalarValue::LargeUtf8(Some(s)) | ScalarValue::Utf8View(Some(s)) => {
+            Some(s.clone())
+        }
+        ScalarValue::Dictionary(_, v) => str_of(v),
+        _ => None,
+    }
+}
+
+fn literal(e: &Expr) -> Option<&ScalarValue> {
+    match e {
+        Expr::Literal(v, _) => Some(v),
+        _ => None,
+    }
+}
+
+fn range_column(name: &str) -> Option<&'static str> {
+    RANGE_COLUMNS.into_iter().find(|c| *c == name)
+}
+
+/// The inclusive range of u64 values an integer comparison `col op v` allows (None: no value).
+fn compare_range(op: Operator, v: i128) -> Option<Option<(u64, u64)>> {
+    let clamp = |x: i128| x.clamp(0, i128::from(u64::MAX)) as u64;
+    let (lo, hi) = match op {
+        Operator::Eq => (v, v),
+        Operator::Lt => (i128::MIN, v - 1),
+        Operator::LtEq => (i128::MIN, v),
+        Operator::Gt => (v + 1, i128::MAX),
+        Operator::GtEq => (v, i128::MAX),
+        _ => return None,
+    };
+    Some((lo <= hi && hi >= 0 && lo <= i128::from(u64::MAX)).then(|| (clamp(lo), clamp(hi))))
+}
+
+fn swap(op: Operator) -> Option<Operator> {
+    Some(match op {
+        Operator::Eq => Operator::Eq,
+        Operator::Lt => Operator::Gt,
+        Operator::LtEq => Operator::GtEq,
+        Operator::Gt => Operator::Lt,
+        Operator::GtEq => Operator::LtEq,
+        _ => return None,
+    })
+}
+
+/// What a filter constrains, when it is one the scan can use.
+fn constraint(e: &Expr) -> Option<Constraint> {
+    match e {
+        Expr::BinaryExpr(b) if b.op == Operator::Or => match (constraint(&b.left)?, constraint(&b.right)?) {
+            (Constraint::Range(a, mut x), Constraint::Range(c, y)) if a == c => {
+                x.extend(y);
+                Some(Constraint::Range(a, x))
+            }
+            (Constraint::Kind(mut x), Constraint::Kind(y)) => {
+                x.extend(y);
+                Some(Constraint::Kind(x))
+            }
+            _ => None,
+        },
+        Expr::BinaryExpr(b) => {
+            let (col, v, op) = match (column_of(&b.left), literal(&b.right), column_of(&b.right), literal(&b.left)) {
+                (Some(c), Some(v), _, _) => (c, v, b.op),
+                (_, _, Some(c), Some(v)) => (c, v, swap(b.op)?),
+                _ => return None,
+            };
+            if col == "kind" {
+                return (op == Operator::Eq).then(|| str_of(v)).flatten().map(|k| Constraint::Kind([k].into()));
+            }
+            let col = range_column(col)?;
+            let r = compare_range(op, int_of(v)?)?;
+            Some(Constraint::Range(col, r.into_iter().collect()))
+        }
+        Expr::InList(l) if !l.negated => {
+            let col = column_of(&l.expr)?;
+            if col == "kind" {
+                let names = l.list.iter().map(|x| literal(x).and_then(str_of)).collect::<Option<BTreeSet<_>>>()?;
+                return Some(Constraint::Kind(names));
+            }
+            let col = range_column(col)?;
+            let mut out = Vec::new();
+            for x in &l.list {
+                if let Some(r) = compare_range(Operator::Eq, int_of(literal(x)?)?)? {
+                    out.push(r);
+                }
+            }
+            Some(Constraint::Range(col, out))
+        }
+        Expr::Between(b) if !b.negated => {
+            let col = range_column(column_of(&b.expr)?)?;
+            let (lo, hi) = (int_of(literal(&b.low)?)?, int_of(literal(&b.high)?)?);
+            let lo = compare_range(Operator::GtEq, lo)?;
+            let hi = compare_range(Operator::LtEq, hi)?;
+            let r = match (lo, hi) {
+                (Some((a, _)), Some((_, b))) if a <= b => vec![(a, b)],
+                _ => Vec::new(),
+            };
+            Some(Constraint::Range(col, r))
+        }
+        _ => None,
+    }
+}
+
+/// Sorted, disjoint inclusive ranges.
+fn normalize(mut v: Vec<(u64, u64)>) -> Vec<(u64, u64)> {
+    v.sort_unstable();
+    let mut out: Vec<(u64, u64)> = Vec::with_capacity(v.len());
+    for (lo, hi) in v {
+        match out.last_mut() {
+            Some(last) if lo <= last.1.saturating_add(1) => last.1 = last.1.max(hi),
+            _ => out.push((lo, hi)),
+        }
+    }
+    out
+}
+
+fn intersect(a: &[(u64, u64)], b: &[(u64, u64)]) -> Vec<(u64, u64)> {
+    let mut out = Vec::new();
+    for &(a0, a1) in a {
+        for &(b0, b1) in b {
+            let (lo, hi) = (a0.max(b0), a1.min(b1));
+            if lo <= hi {
+                out.push((lo, hi));
+            }
+        }
+    }
+    normalize(out)
+}
+
+fn contains(ranges: Option<&Vec<(u64, u64)>>, v: u64) -> bool {
+    ranges.is_none_or(|r| {
+        let i = r.partition_point(|&(_, hi)| hi < v);
+        i < r.len() && r[i].0 <= v
+    })
+}
+
+fn overlaps(ranges: Option<&Vec<(u64, u64)>>, lo: u64, hi: u64) -> bool {
+    ranges.is_none_or(|r| r.iter().any(|&(a, b)| a <= hi && lo <= b))
+}
+
+/// The filters the scan uses, combined.
+#[derive(Clone, Debug, Default)]
+struct Pushdown {
+    ranges: BTreeMap<&'static str, Vec<(u64, u64)>>,
+    kinds: Option<BTreeSet<String>>,
+    /// The pushed filters as SQL, for `EXPLAIN`.
+    shown: Vec<String>,
+}
+
+/// One segment to read, with the rows to read when not all.
+#[derive(Clone, Debug)]
+struct SegmentPlan {
+    segment: usize,
+    rows: Option<Arc<Vec<Range<u64>>>>,
+    trees: u64,
+    rays: u64,
+}
+
+impl Pushdown {
+    fn of(filters: &[Expr]) -> Self {
+        let mut p = Pushdown::default();
+        for f in filters {
+            let Some(c) = constraint(f) else { continue };
+            p.shown.push(f.to_string());
+            match c {
+                Constraint::Range(col, r) => {
+                    let r = normalize(r);
+                    let merged = match p.ranges.get(col) {
+                        Some(old) => intersect(old, &r),
+                        None => r,
+                    };
+                    p.ranges.insert(col, merged);
+                }
+                Constraint::Kind(k) => {
+                    p.kinds = Some(match p.kinds.take() {
+                        Some(old) => old.intersection(&k).cloned().collect(),
+                        None => k,
+                    });
+                }
+            }
+        }
+        p
+    }
+
+    /// Whether a filter needs the tree table (anything but kind and an upper bound on depth).
+    fn needs_trees(&self) -> bool {
+        let deep = self.ranges.get("depth").is_some_and(|r| r.first().is_none_or(|f| f.0 > 0));
+        deep || ["tree_id", "pixel_x", "pixel_y", "sample"].iter().any(|c| self.ranges.contains_key(c))
+    }
+
+    /// The segments (and rows within them) that can hold matching rays.
+    fn plan(&self, ds: &Dataset) -> store::Result<Vec<SegmentPlan>> {
+        let mut out = Vec::new();
+        let depths = self.ranges.get("depth");
+        for (i, seg) in ds.manifest().segments.iter().enumerate() {
+            if !overlaps(self.ranges.get("tree_id"), seg.tree_id_min, seg.tree_id_max) {
+                continue;
+            }
+            let by_kind = &seg.stats.rays_by_kind_depth;
+            if !by_kind.is_empty() {
+                let any = by_kind.iter().any(|(kind, counts)| {
+                    self.kinds.as_ref().is_none_or(|k| k.contains(kind))
+                        && counts.iter().enumerate().any(|(d, &n)| n > 0 && contains(depths, d as u64))
+                });
+                if !any {
+                    continue;
+                }
+            }
+            if !self.needs_trees() {
+                out.push(SegmentPlan { segment: i, rows: None, trees: seg.trees.rows, rays: seg.rays.rows });
+                continue;
+            }
+            let entries = ds.segment_tree_entries(i)?;
+            let min_depth = depths.and_then(|r| r.first()).map_or(0, |r| r.0);
+            let keep = |e: &TreeEntry| {
+                contains(self.ranges.get("tree_id"), e.info.id.0)
+                    && contains(self.ranges.get("pixel_x"), u64::from(e.info.pixel[0]))
+                    && contains(self.ranges.get("pixel_y"), u64::from(e.info.pixel[1]))
+                    && contains(self.ranges.get("sample"), u64::from(e.info.sample))
+                    && u64::from(e.info.max_depth) >= min_depth
+            };
+            let mut rows: Vec<Range<u64>> = Vec::new();
+            let mut rays = 0u64;
+            for e in entries.iter().filter(|e| keep(e)) {
+                let n = u64::from(e.info.ray_count);
+                rays += n;
+                rows.push(e.first_row..e.first_row + n);
+            }
+            if rows.is_empty() {
+                continue;
+            }
+            let trees = rows.len() as u64;
+            let rows = if trees == entries.len() as u64 {
+                None
+            } else {
+                rows.sort_unstable_by_key(|r| r.start);
+                let mut merged: Vec<Range<u64>> = Vec::with_capacity(rows.len());
+                for r in rows {
+                    match merged.last_mut() {
+                        Some(last) if last.end == r.start => last.end = r.end,
+                        _ => merged.push(r),
+                    }
+                }
+                Some(Arc::new(merged))
+            };
+            out.push(SegmentPlan { segment: i, rows, trees, rays });
+        }
+        Ok(out)
+    }
+}
+
+/// Reads the `rays` table's partitions: one per segment left after pruning.
+pub(crate) struct RaysScanExec {
+    ds: Arc<Dataset>,
+    schema: SchemaRef,
+    pushdown: Pushdown,
+    parts: Vec<SegmentPlan>,
+    properties: Arc<PlanProperties>,
+}
+
+impl std::fmt::Debug for RaysScanExec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "RaysScanExec({})", self.ds.dir().display())
+    }
+}
+
+impl RaysScanExec {
+    fn new(ds: Arc<Dataset>, schema: SchemaRef, pushdown: Pushdown, parts: Vec<SegmentPlan>) -> Self {
+        let properties = Arc::new(PlanProperties::new(
+            EquivalenceProperties::new(schema.clone()),
+            Partitioning::UnknownPartitioning(parts.len().max(1)),
+            EmissionType::Incremental,
+            Boundedness::Bounded,
+        ));
+        Self { ds, schema, pushdown, parts, properties }
+    }
+
+    /// The batches of one partition, with the tree columns added.
+    fn batches(&self, partition: usize) -> store::Result<Box<dyn Iterator<Item = store::Result<RecordBatch>> + Send>> {
+        let Some(part) = self.parts.get(partition) else {
+            return Ok(Box::new(std::iter::empty()));
+        };
+        let names: Vec<String> = self.schema.fields().iter().map(|f| f.name().clone()).collect();
+        let base = self.ds.ray_schema();
+        let virtual_cols: Vec<&str> =
+            TREE_COLUMNS.into_iter().filter(|c| names.iter().any(|n| n == c) && base.index_of(c).is_err()).collect();
+        let mut read: Vec<String> = names.iter().filter(|n| !virtual_cols.contains(&n.as_str())).cloned().collect();
+        if !virtual_cols.is_empty() && !read.iter().any(|n| n == "tree_id") {
+            read.push("tree_id".into());
+        }
+        let it = self.ds.segment_columns_in(part.segment, &read, part.rows.as_deref().map(|v| v.as_slice()))?;
+        if virtual_cols.is_empty() {
+            return Ok(it);
+        }
+        let entries = self.ds.segment_tree_entries(part.segment)?;
+        let schema = self.schema.clone();
+        let path = self.ds.dir().join(&self.ds.manifest().segments[part.segment].rays.path);
+        Ok(Box::new(it.map(move |b| {
+            let b = b?;
+            let ids = b
+                .column_by_name("tree_id")
+                .and_then(|c| c.as_primitive_opt::<UInt64Type>())
+                .ok_or_else(|| corrupt(&path, "no tree_id column".into()))?;
+            let (mut px, mut py, mut ps) =
+                (Vec::with_capacity(b.num_rows()), Vec::with_capacity(b.num_rows()), Vec::with_capacity(b.num_rows()));
+            let mut last: Option<&TreeEntry> = None;
+            for &id in ids.values() {
+                let e = match last {
+                    Some(e) if e.info.id.0 == id => e,
+                    _ => {
+                        let pos = entries
+                            .binary_search_by_key(&id, |e| e.info.id.0)
+                            .map_err(|_| corrupt(&path, format!("tree {id} is not in the segment's tree table")))?;
+                        &entries[pos]
+                    }
+                };
+                last = Some(e);
+                px.push(e.info.pixel[0]);
+                py.push(e.info.pixel[1]);
+                ps.push(e.info.sample);
+            }
+            let mut extra = [Some(px), Some(py), Some(ps)];
+            let cols = schema
+                .fields()
+                .iter()
+                .map(|f| {
+                    if let Some(k) = TREE_COLUMNS.iter().position(|c| c == f.name())
+                        && b.column_by_name(f.name()).is_none()
+                    {
+                        let v = extra[k].take().unwrap_or_default();
+                        return Ok(Arc::new(UInt32Array::from(v)) as Arc<dyn Array>);
+                    }
+                    b.column_by_name(f.name()).cloned().ok_or_else(|| corrupt(&path, format!("no column {}", f.name())))
+                })
+                .collect::<store::Result<Vec<_>>>()?;
+            let options = RecordBatchOptions::new().with_row_count(Some(b.num_rows()));
+            RecordBatch::try_new_with_options(schema.clone(), cols, &options)
+                .map_err(|e| store::Error::Arrow { context: "rays with tree columns".into(), source: e })
+        })))
+    }
+}
+
+fn corrupt(path: &std::path::Path, message: String) -> store::Error {
+    store::Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message }
+}
+
+impl DisplayAs for RaysScanExec {
+    fn fmt_as(&self, _t: DisplayFormatType, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        let m = self.ds.manifest();
+        let names: Vec<&str> = self.schema.fields().iter().map(|f| f.name().as_str()).collect();
+        let trees: u64 = self.parts.iter().map(|p| p.trees).sum();
+        let rays: u64 = self.parts.iter().map(|p| p.rays).sum();
+        write!(
+            f,
+            "RaysScanExec: dataset={}, encoding={}, projection=[{}], pushed=[{}], segments={}/{}, trees={}/{}, rows={}/{}",
+            self.ds.dir().display(),
+            self.ds.encoding().name(),
+            names.join(", "),
+            self.pushdown.shown.join(", "),
+            self.parts.len(),
+            m.segments.len(),
+            trees,
+            self.ds.tree_count(),
+            rays,
+            self.ds.ray_count(),
+        )
+    }
+}
+
+impl ExecutionPlan for RaysScanExec {
+    fn name(&self) -> &str {
+        "RaysScanExec"
+    }
+
+    fn properties(&self) -> &Arc<PlanProperties> {
+        &self.properties
+    }
+
+    fn children(&self) -> Vec<&Arc<dyn ExecutionPlan>> {
+        Vec::new()
+    }
+
+    fn apply_expressions(
+        &self,
+        _f: &mut dyn FnMut(&Arc<dyn PhysicalExpr>) -> datafusion::error::Result<TreeNodeRecursion>,
+    ) -> datafusion::error::Result<TreeNodeRecursion> {
+        Ok(TreeNodeRecursion::Continue)
+    }
+
+    fn with_new_children(
+        self: Arc<Self>,
+        _children: Vec<Arc<dyn ExecutionPlan>>,
+    ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
+        Ok(self)
+    }
+
+    fn execute(
+        &self,
+        partition: usize,
+        _context: Arc<TaskContext>,
+    ) -> datafusion::error::Result<SendableRecordBatchStream> {
+        let external = |e: store::Error| DataFusionError::External(Box::new(e));
+        let batches: Box<dyn Iterator<Item = datafusion::error::Result<RecordBatch>> + Send> =
+            match self.batches(partition) {
+                Ok(it) => Box::new(it.map(move |b| b.map_err(external))),
+                Err(e) => Box::new(std::iter::once(Err(external(e)))),
+            };
+        Ok(Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), futures::stream::iter(batches))))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use datafusion::prelude::{col, lit};
+
+    #[test]
+    fn comparisons_become_ranges() {
+        assert_eq!(constraint(&col("tree_id").eq(lit(7u64))), Some(Constraint::Range("tree_id", vec![(7, 7)])));
+        assert_eq!(constraint(&lit(3i64).lt(col("depth"))), Some(Constraint::Range("depth", vec![(4, u64::MAX)])));
+        assert_eq!(constraint(&col("depth").lt(lit(0i64))), Some(Constraint::Range("depth", vec![])));
+        assert_eq!(constraint(&col("depth").gt_eq(lit(-5i64))), Some(Constraint::Range("depth", vec![(0, u64::MAX)])));
+        assert_eq!(
+            constraint(&col("pixel_x").between(lit(2i64), lit(4i64))),
+            Some(Constraint::Range("pixel_x", vec![(2, 4)]))
+        );
+        assert_eq!(
+            constraint(&col("sample").in_list(vec![lit(1i64), lit(5i64)], false)),
+            Some(Constraint::Range("sample", vec![(1, 1), (5, 5)]))
+        );
+        assert_eq!(
+            constraint(&col("kind").eq(lit("shadow")).or(col("kind").eq(lit("camera")))),
+            Some(Constraint::Kind(["camera".to_string(), "shadow".to_string()].into()))
+        );
+        // Not usable: other columns, inequality, negation, mixed columns, float literals.
+        assert_eq!(constraint(&col("t").lt(lit(1.0))), None);
+        assert_eq!(constraint(&col("depth").not_eq(lit(1i64))), None);
+        assert_eq!(constraint(&col("depth").in_list(vec![lit(1i64)], true)), None);
+        assert_eq!(constraint(&col("depth").eq(lit(1i64)).or(col("sample").eq(lit(1i64)))), None);
+        assert_eq!(constraint(&col("depth").lt(lit(2.5))), None);
+    }
+
+    #[test]
+    fn conjunctions_intersect() {
+        let p = Pushdown::of(&[
+            col("depth").gt_eq(lit(2i64)),
+            col("depth").lt(lit(5i64)),
+            col("kind").in_list(vec![lit("shadow"), lit("diffuse")], false),
+            col("kind").eq(lit("shadow")),
+        ]);
+        assert_eq!(p.ranges["depth"], vec![(2, 4)]);
+        assert_eq!(p.kinds, Some(["shadow".to_string()].into()));
+        assert!(p.needs_trees(), "a lower bound on depth prunes trees by their deepest ray");
+        assert!(!Pushdown::of(&[col("depth").lt(lit(2i64))]).needs_trees());
+        assert!(contains(Some(&vec![(1, 3), (7, 9)]), 8));
+        assert!(!contains(Some(&vec![(1, 3), (7, 9)]), 5));
+        assert_eq!(normalize(vec![(5, 6), (1, 2), (3, 3)]), vec![(1, 3), (5, 6)]);
+    }
+}
