@@ -9,6 +9,10 @@
 //! `bvh_nodes` table (collapsed intermediate nodes are not entered, hence not counted).
 //! `rtvtk bench trace` compares it with obvhs's stock traversals and Embree on the same rays.
 
+/// Set on a visited leaf's id in a visit list when one of its triangles was hit (in the ray's
+/// interval at that moment): leaf visits without it are false-positive box tests.
+pub const VISIT_HIT: u32 = 1 << 31;
+
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -359,6 +363,11 @@ impl Bvh {
         Some(inv)
     }
 
+    /// Whether binary node `id` is a leaf (false for an id out of range).
+    pub fn is_leaf(&self, id: u32) -> bool {
+        self.nodes.get(id as usize).is_some_and(|n| n.count > 0)
+    }
+
     pub fn node_count(&self) -> usize {
         self.nodes.len()
     }
@@ -368,7 +377,8 @@ impl Bvh {
         self.depth
     }
 
-    /// Closest hit in (tmin, tmax), counting the work; lists visited nodes when `visits` is given.
+    /// Closest hit in (tmin, tmax), counting the work; lists visited nodes when `visits` is given
+    /// (in visit order; a leaf whose triangles gave a closer hit carries [`VISIT_HIT`]).
     pub fn intersect(
         &self,
         ray: &Ray,
@@ -386,6 +396,11 @@ impl Bvh {
         if root.count > 0 {
             stats.tris += root.count;
             self.leaf_closest((root.first, root.count), ray, tmin, &mut tmax, &mut best);
+            if best.is_some()
+                && let Some(last) = visits.as_deref_mut().and_then(|v| v.last_mut())
+            {
+                *last |= VISIT_HIT;
+            }
             return best.map(|(h, p)| Hit { t: h.t, prim: p, u: h.u, v: h.v });
         }
         let (org4, inv4) = lanes(ray.origin, inv);
@@ -425,6 +440,7 @@ impl Bvh {
                 if n.count[c] > 0 {
                     stats.tris += n.count[c];
                 }
+                let before = tmax;
                 if n.count[c] > 4 {
                     self.leaf_closest((n.child[c], n.count[c]), ray, tmin, &mut tmax, &mut best);
                 } else if n.count[c] > 0 {
@@ -436,6 +452,13 @@ impl Bvh {
                         }
                         Ok(None) => {}
                         Err(()) => self.leaf_closest((b.first, b.count), ray, tmin, &mut tmax, &mut best),
+                    }
+                }
+                if n.count[c] > 0 {
+                    if tmax < before
+                        && let Some(last) = visits.as_deref_mut().and_then(|v| v.last_mut())
+                    {
+                        *last |= VISIT_HIT;
                     }
                 } else if next.is_none() {
                     next = Some((n.child[c], dist));
@@ -471,7 +494,7 @@ impl Bvh {
 
     /// Whether anything lies in (tmin, tmax): stops at the first hit. Returns the hit found.
     pub fn any_hit(&self, ray: &Ray, tmin: f32, tmax: f32, stats: &mut TraversalStats) -> Option<Hit> {
-        self.any_hit_except(ray, tmin, tmax, u32::MAX, stats)
+        self.any_hit_except(ray, tmin, tmax, u32::MAX, stats, None)
     }
 
     /// Like [`Bvh::any_hit`], ignoring triangle `skip`: a shadow ray's target emitter cannot occlude
@@ -483,12 +506,25 @@ impl Bvh {
         tmax: f32,
         skip: u32,
         stats: &mut TraversalStats,
+        mut visits: Option<&mut Vec<u32>>,
     ) -> Option<Hit> {
         let inv = self.enter_root(ray, tmin, tmax, stats)?;
+        if let Some(v) = visits.as_deref_mut() {
+            v.push(0);
+        }
+        let mark = |visits: Option<&mut Vec<u32>>, found: &Option<Hit>| {
+            if found.is_some()
+                && let Some(last) = visits.and_then(|v| v.last_mut())
+            {
+                *last |= VISIT_HIT;
+            }
+        };
         let root = &self.nodes[0];
         if root.count > 0 {
             stats.tris += root.count;
-            return self.leaf_any((root.first, root.count), ray, tmin, tmax, skip);
+            let found = self.leaf_any((root.first, root.count), ray, tmin, tmax, skip);
+            mark(visits, &found);
+            return found;
         }
         let (org4, inv4) = lanes(ray.origin, inv);
         let mut stack = [0u32; 96];
@@ -503,6 +539,9 @@ impl Bvh {
                     continue;
                 }
                 stats.nodes += 1;
+                if let Some(v) = visits.as_deref_mut() {
+                    v.push(n.id[c]);
+                }
                 if n.count[c] > 0 {
                     stats.tris += n.count[c];
                     let found = if n.count[c] > 4 {
@@ -515,6 +554,7 @@ impl Bvh {
                         }
                     };
                     if found.is_some() {
+                        mark(visits, &found);
                         return found;
                     }
                 } else if sp < stack.len() {

@@ -4,7 +4,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Instant;
 
-use arrow::array::{RecordBatch, UInt32Array, UInt64Array};
+use arrow::array::{BooleanArray, RecordBatch, UInt32Array, UInt64Array};
 use arrow::datatypes::{DataType, Field, Schema};
 use glam::Vec3A;
 use rl::{Kind, ListValue, Payload, PayloadField, PayloadSchema, RayFields, RayId, Recorder, Value};
@@ -289,18 +289,34 @@ pub fn render(
     if let Some(rec) = rec
         && opts.record_visits
     {
-        visits.sort_unstable();
+        // By ray, keeping each ray's visit order.
+        visits.sort_by_key(|v| (v.0, v.1));
+        let mut steps = Vec::with_capacity(visits.len());
+        let mut prev = None;
+        let mut step = 0u32;
+        for v in &visits {
+            step = if prev == Some((v.0, v.1)) { step + 1 } else { 0 };
+            prev = Some((v.0, v.1));
+            steps.push(step);
+        }
         let schema = Arc::new(Schema::new(vec![
             Field::new("tree_id", DataType::UInt64, false),
             Field::new("ray", DataType::UInt32, false),
+            Field::new("step", DataType::UInt32, false),
             Field::new("node_id", DataType::UInt32, false),
+            Field::new("leaf_hit", DataType::Boolean, true),
         ]));
+        let node = |v: &(u64, u32, u32)| v.2 & !crate::bvh::VISIT_HIT;
         let batch = RecordBatch::try_new(
             schema,
             vec![
                 Arc::new(UInt64Array::from_iter_values(visits.iter().map(|v| v.0))),
                 Arc::new(UInt32Array::from_iter_values(visits.iter().map(|v| v.1))),
-                Arc::new(UInt32Array::from_iter_values(visits.iter().map(|v| v.2))),
+                Arc::new(UInt32Array::from(steps)),
+                Arc::new(UInt32Array::from_iter_values(visits.iter().map(node))),
+                Arc::new(BooleanArray::from_iter(
+                    visits.iter().map(|v| bvh.is_leaf(node(v)).then_some(v.2 & crate::bvh::VISIT_HIT != 0)),
+                )),
             ],
         )?;
         rec.write_table("ray_nodes", batch)?;

@@ -79,6 +79,7 @@ impl RecRay {
         occluder: Option<Hit>,
         throughput: Vec3A,
         stats: TraversalStats,
+        visits: (u32, u32),
     ) -> RecRay {
         let prim = occluder.map_or(target, |o| o.prim);
         RecRay {
@@ -92,7 +93,7 @@ impl RecRay {
             radiance: if occluder.is_none() { scene.material_of(target).emission } else { Vec3A::ZERO },
             material: Some(scene.tri_material[prim as usize]),
             stats,
-            visits: (0, 0),
+            visits,
         }
     }
 }
@@ -137,6 +138,26 @@ impl TraceCtx<'_> {
                 (h, st, (start, r.visits.len() as u32))
             }
             _ => (self.bvh.intersect(ray, 0.0, f32::INFINITY, &mut st, None), st, (0, 0)),
+        }
+    }
+
+    /// Any hit of a shadow ray towards emitter `target` closer than `tmax`, listing its visits when
+    /// recorded.
+    fn occluded(
+        &self,
+        ray: &Ray,
+        tmax: f32,
+        target: u32,
+        rec: &mut Option<&mut SampleRecord>,
+    ) -> (Option<Hit>, TraversalStats, (u32, u32)) {
+        let mut st = TraversalStats::default();
+        match rec {
+            Some(r) if self.record_visits && r.keep => {
+                let start = r.visits.len() as u32;
+                let h = self.bvh.any_hit_except(ray, 0.0, tmax, target, &mut st, Some(&mut r.visits));
+                (h, st, (start, r.visits.len() as u32))
+            }
+            _ => (self.bvh.any_hit_except(ray, 0.0, tmax, target, &mut st, None), st, (0, 0)),
         }
     }
 
@@ -232,14 +253,13 @@ pub fn path_sample(
                         sdir = Vec3A::new(-wi.x, wi.y, -wi.z);
                     }
                     let sray = Ray::new(origin, sdir);
-                    let mut sst = TraversalStats::default();
-                    let occ = ctx.bvh.any_hit_except(&sray, 0.0, dist * (1.0 - 1e-4), lprim, &mut sst);
+                    let (occ, sst, svis) = ctx.occluded(&sray, dist * (1.0 - 1e-4), lprim, &mut rec);
                     let f = material::eval(m, n, -ray.dir, wi);
                     let weight = beta * f * (cos_x * cos_l / (dist2 * pdf_area));
                     if occ.is_none() {
                         l += weight * scene.material_of(lprim).emission;
                     }
-                    push(&mut rec, RecRay::shadow(scene, idx, &sray, lprim, dist, occ, weight, sst));
+                    push(&mut rec, RecRay::shadow(scene, idx, &sray, lprim, dist, occ, weight, sst, svis));
                 }
             }
         }
@@ -333,15 +353,14 @@ fn whitted(
                         continue;
                     }
                     let sray = Ray::new(origin, wi);
-                    let mut sst = TraversalStats::default();
-                    let occ = ctx.bvh.any_hit_except(&sray, 0.0, d2.sqrt() * (1.0 - 1e-4), prim, &mut sst);
+                    let (occ, sst, svis) = ctx.occluded(&sray, d2.sqrt() * (1.0 - 1e-4), prim, rec);
                     let le = scene.material_of(prim).emission;
                     let cos_l = scene.normals[prim as usize].dot(wi).abs();
                     let g = m.diffuse / std::f32::consts::PI * (area * scale * cos_x * cos_l / d2);
                     if occ.is_none() {
                         l += g * le;
                     }
-                    push(rec, RecRay::shadow(scene, idx, &sray, prim, d2.sqrt(), occ, weight * g, sst));
+                    push(rec, RecRay::shadow(scene, idx, &sray, prim, d2.sqrt(), occ, weight * g, sst, svis));
                 }
                 if m.kind == MaterialKind::Glossy && m.specular.max_element() > 0.0 {
                     let r = Ray::new(offset_point(p, n), reflect(ray.dir, n));

@@ -197,6 +197,28 @@ fn every_traced_ray_is_recorded_with_its_costs() {
     assert_eq!(ds.manifest().attributes["scene"], "cornell-glass");
     // Visited-node lists agree with the per-ray counts.
     let visits = ds.table("ray_nodes").unwrap().unwrap();
+    // Leaf visits that found a triangle, per ray.
+    let mut leaf_hits = std::collections::HashMap::<(u64, u32), u32>::new();
+    {
+        use arrow::array::{Array, AsArray};
+        use arrow::datatypes::{UInt32Type, UInt64Type};
+        let ids = visits.column_by_name("tree_id").unwrap().as_primitive::<UInt64Type>();
+        let rays = visits.column_by_name("ray").unwrap().as_primitive::<UInt32Type>();
+        let steps = visits.column_by_name("step").unwrap().as_primitive::<UInt32Type>();
+        let nodes = visits.column_by_name("node_id").unwrap().as_primitive::<UInt32Type>();
+        let hit = visits.column_by_name("leaf_hit").unwrap().as_boolean();
+        let leaves = nodes_table_leaves(&ds);
+        for i in 0..visits.num_rows() {
+            if steps.value(i) == 0 {
+                assert_eq!(nodes.value(i), 0, "every visit list starts at the root");
+            }
+            let leaf = leaves[nodes.value(i) as usize];
+            assert_eq!(hit.is_valid(i), leaf, "leaf_hit is set exactly on leaves");
+            if hit.is_valid(i) && hit.value(i) {
+                *leaf_hits.entry((ids.value(i), rays.value(i))).or_default() += 1;
+            }
+        }
+    }
     let mut sum_nodes = 0u64;
     for t in ds.trees() {
         let t = t.unwrap();
@@ -204,8 +226,12 @@ fn every_traced_ray_is_recorded_with_its_costs() {
             arrow::array::AsArray::as_primitive::<arrow::datatypes::UInt32Type>(t.column("nodes_visited").unwrap());
         for r in &t.rays {
             let n = u64::from(nv.value(r.index as usize));
-            if r.kind != Kind::SHADOW {
-                sum_nodes += n;
+            sum_nodes += n;
+            let hits = leaf_hits.get(&(t.info.id.0, r.index)).copied().unwrap_or(0);
+            if r.kind == Kind::SHADOW {
+                assert!(hits <= 1, "an any-hit traversal stops at its first hit");
+            } else {
+                assert_eq!(hits > 0, r.t.is_some(), "a closest-hit ray hits in some leaf exactly when it hits");
             }
             let boxes =
                 arrow::array::AsArray::as_primitive::<arrow::datatypes::UInt32Type>(t.column("box_tests").unwrap());
@@ -317,4 +343,12 @@ fn error_falls_as_one_over_root_samples() {
     let tmp = tempfile::tempdir().unwrap();
     renderers::converge::write_plot(&points, &tmp.path().join("c.png")).unwrap();
     assert!(tmp.path().join("c.png").metadata().unwrap().len() > 1000);
+}
+
+/// Leaf flags of the `bvh_nodes` table, by node id.
+fn nodes_table_leaves(ds: &Dataset) -> Vec<bool> {
+    use arrow::array::AsArray;
+    let nodes = ds.table("bvh_nodes").unwrap().unwrap();
+    let leaf = nodes.column_by_name("is_leaf").unwrap().as_boolean();
+    (0..nodes.num_rows()).map(|i| leaf.value(i)).collect()
 }
