@@ -8,6 +8,14 @@
 //! | `ray_aabb_hit(ox, oy, oz, dx, dy, dz, min_x, min_y, min_z, max_x, max_y, max_z)` | Boolean | the ray (t ≥ 0) enters the box |
 //! | `morton3(x, y, z, bits)` | UInt64 | Morton code of a point over the scene bounds, `bits` (1..=21) per axis |
 //! | `aims_at_light(ox, oy, oz, dx, dy, dz)` | Boolean | the ray's line hits an emitter triangle in front of its origin |
+//! | `ray_point(ox, oy, oz, dx, dy, dz, t)` | Struct {x, y, z} | the point `o + t·d` (`ray_point(..)['x']`); NULL for a miss |
+//!
+//! Aggregates:
+//!
+//! | function | returns | meaning |
+//! |---|---|---|
+//! | `dir_coherence(dx, dy, dz)` | Float64 | mean resultant length of the normalized directions: 1 when all are parallel, near 0 for directions spread over the sphere |
+//! | `origin_spread(x, y, z)` | Float64 | root-mean-square distance of the points from their centroid (numerically stable far from the origin) |
 //!
 //! NaN or infinite inputs give NULL, never an error. Scene-dependent functions use the scene of
 //! the session's first dataset: its bounds (origins and hit points) and its `lights` table.
@@ -15,9 +23,10 @@
 use std::sync::Arc;
 
 use arrow::array::{Array, ArrayRef, AsArray, BooleanArray, Float64Array, UInt8Array, UInt32Array, UInt64Array};
-use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type};
+use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type, UInt64Type};
+use datafusion::common::ScalarValue;
 use datafusion::error::DataFusionError;
-use datafusion::logical_expr::{ColumnarValue, ScalarUDF, Volatility, create_udf};
+use datafusion::logical_expr::{Accumulator, ColumnarValue, ScalarUDF, Volatility, create_udaf, create_udf};
 use datafusion::prelude::SessionContext;
 use store::Dataset;
 
@@ -230,8 +239,198 @@ where
     )
 }
 
+/// `ray_point(ox, oy, oz, dx, dy, dz, t)`: the point at `t` along the ray, as a struct.
+fn ray_point_udf() -> ScalarUDF {
+    let fields = point_fields();
+    create_udf(
+        "ray_point",
+        vec![DataType::Float64; 7],
+        DataType::Struct(fields.clone()),
+        Volatility::Immutable,
+        Arc::new(move |args: &[ColumnarValue]| {
+            let a = arrays(args)?;
+            let c = float_cols::<7>(&a)?;
+            let n = c[0].len();
+            let (mut xs, mut ys, mut zs) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+            let mut valid = Vec::with_capacity(n);
+            for r in 0..n {
+                match row(&c, r) {
+                    Some(v) => {
+                        xs.push(v[0] + v[6] * v[3]);
+                        ys.push(v[1] + v[6] * v[4]);
+                        zs.push(v[2] + v[6] * v[5]);
+                        valid.push(true);
+                    }
+                    None => {
+                        xs.push(0.0);
+                        ys.push(0.0);
+                        zs.push(0.0);
+                        valid.push(false);
+                    }
+                }
+            }
+            let out = arrow::array::StructArray::try_new(
+                fields.clone(),
+                vec![
+                    Arc::new(Float64Array::from(xs)) as ArrayRef,
+                    Arc::new(Float64Array::from(ys)),
+                    Arc::new(Float64Array::from(zs)),
+                ],
+                Some(arrow::buffer::NullBuffer::from(valid)),
+            )?;
+            Ok(ColumnarValue::Array(Arc::new(out)))
+        }),
+    )
+}
+
+fn point_fields() -> arrow::datatypes::Fields {
+    use arrow::datatypes::Field;
+    vec![
+        Field::new("x", DataType::Float64, true),
+        Field::new("y", DataType::Float64, true),
+        Field::new("z", DataType::Float64, true),
+    ]
+    .into()
+}
+
+/// Mean resultant length of directions: sums of the normalized vectors and their count.
+#[derive(Debug, Default)]
+struct Coherence {
+    sum: [f64; 3],
+    n: u64,
+}
+
+impl Accumulator for Coherence {
+    fn update_batch(&mut self, values: &[ArrayRef]) -> datafusion::error::Result<()> {
+        let c = float_cols::<3>(values)?;
+        for r in 0..c[0].len() {
+            if let Some(d) = row(&c, r) {
+                let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                if len > 0.0 && len.is_finite() {
+                    for k in 0..3 {
+                        self.sum[k] += d[k] / len;
+                    }
+                    self.n += 1;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn evaluate(&mut self) -> datafusion::error::Result<ScalarValue> {
+        let s = self.sum;
+        Ok(ScalarValue::Float64((self.n > 0).then(|| (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt() / self.n as f64)))
+    }
+
+    fn size(&self) -> usize {
+        std::mem::size_of_val(self)
+    }
+
+    fn state(&mut self) -> datafusion::error::Result<Vec<ScalarValue>> {
+        let mut v: Vec<ScalarValue> = self.sum.iter().map(|x| ScalarValue::Float64(Some(*x))).collect();
+        v.push(ScalarValue::UInt64(Some(self.n)));
+        Ok(v)
+    }
+
+    fn merge_batch(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
+        let c = float_cols::<3>(states)?;
+        let n = states
+            .get(3)
+            .and_then(|a| a.as_primitive_opt::<UInt64Type>())
+            .ok_or_else(|| DataFusionError::Internal("dir_coherence: bad state".into()))?;
+        for r in 0..n.len() {
+            for k in 0..3 {
+                self.sum[k] += c[k].value(r);
+            }
+            self.n += n.value(r);
+        }
+        Ok(())
+    }
+}
+
+/// Spread of points about their centroid: count, mean and sum of squared distances (merged with
+/// Chan et al.'s formula, so points far from the origin lose no precision).
+#[derive(Debug, Default)]
+struct Spread {
+    n: u64,
+    mean: [f64; 3],
+    m2: f64,
+}
+
+impl Spread {
+    fn merge(&mut self, n: u64, mean: [f64; 3], m2: f64) {
+        if n == 0 {
+            return;
+        }
+        let total = self.n + n;
+        let w = n as f64 / total as f64;
+        let mut d2 = 0.0;
+        for k in 0..3 {
+            let d = mean[k] - self.mean[k];
+            d2 += d * d;
+            self.mean[k] += d * w;
+        }
+        self.m2 += m2 + d2 * (self.n as f64) * (n as f64) / total as f64;
+        self.n = total;
+    }
+}
+
+impl Accumulator for Spread {
+    fn update_batch(&mut self, values: &[ArrayRef]) -> datafusion::error::Result<()> {
+        let c = float_cols::<3>(values)?;
+        for r in 0..c[0].len() {
+            if let Some(p) = row(&c, r) {
+                self.merge(1, p, 0.0);
+            }
+        }
+        Ok(())
+    }
+
+    fn evaluate(&mut self) -> datafusion::error::Result<ScalarValue> {
+        Ok(ScalarValue::Float64((self.n > 0).then(|| (self.m2 / self.n as f64).max(0.0).sqrt())))
+    }
+
+    fn size(&self) -> usize {
+        std::mem::size_of_val(self)
+    }
+
+    fn state(&mut self) -> datafusion::error::Result<Vec<ScalarValue>> {
+        let mut v = vec![ScalarValue::UInt64(Some(self.n))];
+        v.extend(self.mean.iter().map(|x| ScalarValue::Float64(Some(*x))));
+        v.push(ScalarValue::Float64(Some(self.m2)));
+        Ok(v)
+    }
+
+    fn merge_batch(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
+        let bad = || DataFusionError::Internal("origin_spread: bad state".into());
+        let n = states.first().and_then(|a| a.as_primitive_opt::<UInt64Type>()).ok_or_else(bad)?;
+        let c = float_cols::<4>(states.get(1..).ok_or_else(bad)?)?;
+        for r in 0..n.len() {
+            self.merge(n.value(r), [c[0].value(r), c[1].value(r), c[2].value(r)], c[3].value(r));
+        }
+        Ok(())
+    }
+}
+
 /// Registers every ray function in `ctx`, scene-dependent ones over `scene`.
 pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
+    ctx.register_udf(ray_point_udf());
+    ctx.register_udaf(create_udaf(
+        "dir_coherence",
+        vec![DataType::Float64; 3],
+        Arc::new(DataType::Float64),
+        Volatility::Immutable,
+        Arc::new(|_| Ok(Box::new(Coherence::default()))),
+        Arc::new(vec![DataType::Float64, DataType::Float64, DataType::Float64, DataType::UInt64]),
+    ));
+    ctx.register_udaf(create_udaf(
+        "origin_spread",
+        vec![DataType::Float64; 3],
+        Arc::new(DataType::Float64),
+        Volatility::Immutable,
+        Arc::new(|_| Ok(Box::new(Spread::default()))),
+        Arc::new(vec![DataType::UInt64, DataType::Float64, DataType::Float64, DataType::Float64, DataType::Float64]),
+    ));
     ctx.register_udf(rowwise::<3, _, UInt8Array>("octant", false, DataType::UInt8, |d, _| {
         Some(u8::from(d[0] < 0.0) | (u8::from(d[1] < 0.0) << 1) | (u8::from(d[2] < 0.0) << 2))
     }));
@@ -265,6 +464,24 @@ pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn spread_is_exact_far_from_the_origin_and_merges() {
+        // Points 1e7 from the origin, 1 apart: the naive sum-of-squares formula loses it all.
+        let pts: Vec<[f64; 3]> = (0..1000).map(|i| [1e7 + f64::from(i % 2), 1e7, -1e7]).collect();
+        let mut whole = Spread::default();
+        for p in &pts {
+            whole.merge(1, *p, 0.0);
+        }
+        let rms = (whole.m2 / whole.n as f64).sqrt();
+        assert!((rms - 0.5).abs() < 1e-9, "{rms}");
+        let (mut a, mut b) = (Spread::default(), Spread::default());
+        for (i, p) in pts.iter().enumerate() {
+            if i < 300 { a.merge(1, *p, 0.0) } else { b.merge(1, *p, 0.0) }
+        }
+        a.merge(b.n, b.mean, b.m2);
+        assert!((a.m2 - whole.m2).abs() < 1e-6 && a.n == whole.n);
+    }
 
     #[test]
     fn morton_interleaves_bits() {
