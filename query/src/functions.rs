@@ -307,8 +307,8 @@ impl Accumulator for Coherence {
             if let Some(d) = row(&c, r) {
                 let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
                 if len > 0.0 && len.is_finite() {
-                    for k in 0..3 {
-                        self.sum[k] += d[k] / len;
+                    for (s, x) in self.sum.iter_mut().zip(d) {
+                        *s += x / len;
                     }
                     self.n += 1;
                 }
@@ -339,8 +339,8 @@ impl Accumulator for Coherence {
             .and_then(|a| a.as_primitive_opt::<UInt64Type>())
             .ok_or_else(|| DataFusionError::Internal("dir_coherence: bad state".into()))?;
         for r in 0..n.len() {
-            for k in 0..3 {
-                self.sum[k] += c[k].value(r);
+            for (s, col) in self.sum.iter_mut().zip(c) {
+                *s += col.value(r);
             }
             self.n += n.value(r);
         }
@@ -365,10 +365,10 @@ impl Spread {
         let total = self.n + n;
         let w = n as f64 / total as f64;
         let mut d2 = 0.0;
-        for k in 0..3 {
-            let d = mean[k] - self.mean[k];
+        for (m, x) in self.mean.iter_mut().zip(mean) {
+            let d = x - *m;
             d2 += d * d;
-            self.mean[k] += d * w;
+            *m += d * w;
         }
         self.m2 += m2 + d2 * (self.n as f64) * (n as f64) / total as f64;
         self.n = total;
