@@ -1,5 +1,6 @@
 //! `rtvtk`: the command line of the ray tracing visualization toolkit.
 
+mod analyze;
 mod bench;
 mod bench_trace;
 mod commands;
@@ -93,6 +94,8 @@ enum Command {
     },
     /// SQL over datasets: `rtvtk sql TRACE "SELECT kind, count(*) FROM rays GROUP BY kind"`.
     Sql(sql::SqlArgs),
+    /// Canned analyses (coherence, bvh, bugs, diff) as a markdown report with PNG heatmaps.
+    Analyze(analyze::AnalyzeArgs),
     /// Benchmarks, each against a baseline in the same run.
     Bench {
         #[command(subcommand)]
@@ -122,6 +125,7 @@ fn main() {
         Command::Check { dataset, json } => commands::check(&dataset, json),
         Command::Export { dataset, out } => commands::export(&dataset, &out).map(|_| 0),
         Command::Sql(args) => sql::run(&args).map(|_| 0),
+        Command::Analyze(args) => analyze::run(&args).map(|_| 0),
         Command::Bench { what } => bench::run(what).map(|_| 0),
     };
     match result {

@@ -12,6 +12,9 @@ pub enum Error {
     #[error("dataset name {name:?} is not valid: expected letters, digits or '_', not starting with a digit")]
     BadName { name: String },
 
+    #[error("{0}")]
+    BadArgument(String),
+
     #[error("dataset name {name:?} is given twice")]
     DuplicateName { name: String },
 }

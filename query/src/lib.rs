@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 
+pub mod analyze;
 mod error;
 mod functions;
 mod scan;

@@ -1,0 +1,70 @@
+#![allow(clippy::unwrap_used)]
+//! `rtvtk analyze`: the canned reports on small traces, their plots, and bad input.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn rtvtk(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap()
+}
+
+fn ok(args: &[&str]) -> String {
+    let out = rtvtk(args);
+    assert!(out.status.success(), "rtvtk {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout).to_string()
+}
+
+fn record(dir: &Path, extra: &[&str]) {
+    let base = ["record", "--scene", "cornell", "--size", "32x24", "--spp", "2", "--threads", "2", "--record-visits"];
+    ok(&[&base[..], &["--out", dir.to_str().unwrap()], extra].concat());
+}
+
+/// The number after `**` in the bug report's summary line.
+fn wrong_count(report: &str) -> u64 {
+    let line = report.lines().find(|l| l.contains("point at no emitter")).unwrap();
+    line.split("**").nth(1).unwrap().parse().unwrap()
+}
+
+#[test]
+fn reports_find_the_bug_and_draw_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let (good, bad) = (tmp.path().join("good"), tmp.path().join("bad"));
+    record(&good, &[]);
+    record(&bad, &["--inject-bug", "shadow-dir"]);
+    let (g, b) = (good.to_str().unwrap(), bad.to_str().unwrap());
+
+    assert_eq!(wrong_count(&ok(&["analyze", "bugs", g])), 0);
+    let out = tmp.path().join("bugs");
+    ok(&["analyze", "bugs", b, "--out", out.to_str().unwrap()]);
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(wrong_count(&report) > 0, "{report}");
+    // The bug's condition: shadow rays leaving diffuse surfaces after the first bounce.
+    assert!(report.contains("| diffuse |"), "{report}");
+    let png = image::open(out.join("wrong_shadow_rays.png")).unwrap().to_rgb8();
+    assert!(png.pixels().any(|p| p.0 != [0, 0, 0]), "some pixel has wrong shadow rays");
+
+    let report = ok(&["analyze", "coherence", g, "--width", "4"]);
+    for order in ["trace", "morton", "octant", "material"] {
+        assert!(report.contains(&format!("| {order} | camera |")), "{report}");
+    }
+    assert!(report.contains("simd_utilization"), "{report}");
+
+    let report = ok(&["analyze", "bvh", g]);
+    assert!(report.contains("False-positive leaf tests") && report.contains("| shadow |"), "{report}");
+
+    let out = tmp.path().join("diff");
+    ok(&["analyze", "diff", g, b, "--tile", "8", "--out", out.to_str().unwrap()]);
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("lit_change"), "{report}");
+    assert!(out.join("rays_change_per_tile.png").exists() && out.join("lit_change_per_tile.png").exists());
+
+    // Bad input: a clear error, no panic.
+    for (args, expect) in [
+        (vec!["analyze", "coherence", g, "--orders", "zigzag"], "expected trace, morton, octant or material"),
+        (vec!["analyze", "bugs", "/no/such/trace"], "/no/such/trace"),
+    ] {
+        let out = rtvtk(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(expect) && !err.contains("panicked"), "{args:?}: {err}");
+    }
+}
