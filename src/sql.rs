@@ -18,8 +18,9 @@ pub enum Format {
 #[derive(Args, Debug)]
 pub struct SqlArgs {
     /// Datasets (`PATH` or `NAME=PATH`; the first one's tables are also unqualified: `rays`,
-    /// `trees`, `bvh_nodes`, `lights`, `ray_nodes`), then the query.
-    #[arg(required = true, num_args = 2..)]
+    /// `trees`, `bvh_nodes`, `lights`, `ray_nodes`), then the query. Without a query (the last
+    /// item is a dataset), an interactive prompt with history reads queries ending in `;`.
+    #[arg(required = true, num_args = 1..)]
     items: Vec<String>,
     #[arg(long, value_enum, default_value = "table")]
     format: Format,
@@ -31,22 +32,116 @@ pub struct SqlArgs {
     explain: bool,
 }
 
+/// Whether a command-line item names a dataset (rather than being the query).
+fn is_dataset(item: &str) -> bool {
+    let path = query::TraceSource::parse(item).path;
+    path.join(store::MANIFEST_FILE).is_file()
+}
+
+/// Read-only: no DDL, DML or SET from the command line.
+fn read_only() -> datafusion::execution::context::SQLOptions {
+    datafusion::execution::context::SQLOptions::new()
+        .with_allow_ddl(false)
+        .with_allow_dml(false)
+        .with_allow_statements(false)
+}
+
 pub fn run(a: &SqlArgs) -> Result<()> {
-    let (query, datasets) = a.items.split_last().context("expected datasets and a query")?;
+    let (last, rest) = a.items.split_last().context("expected datasets and a query")?;
+    let interactive = is_dataset(last);
+    let datasets = if interactive { &a.items[..] } else { rest };
+    if datasets.is_empty() {
+        bail!("no dataset given: expected `rtvtk sql DATASET... \"QUERY\"` ({last:?} is not a dataset directory)");
+    }
     let sources: Vec<query::TraceSource> = datasets.iter().map(|d| query::TraceSource::parse(d)).collect();
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")?;
     rt.block_on(async {
         let ctx = query::session(&sources).await?;
-        // Read-only: no DDL, DML or SET from the command line.
-        let options = datafusion::execution::context::SQLOptions::new()
-            .with_allow_ddl(false)
-            .with_allow_dml(false)
-            .with_allow_statements(false);
-        let text = if a.explain { format!("EXPLAIN {query}") } else { query.clone() };
-        let df = ctx.sql_with_options(&text, options).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        if interactive {
+            return prompt(&ctx, a).await;
+        }
+        let text = if a.explain { format!("EXPLAIN {last}") } else { last.clone() };
+        let df = ctx.sql_with_options(&text, read_only()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
         let batches = df.collect().await.map_err(|e| anyhow::anyhow!("{e}"))?;
         write(&batches, a.format, a.out.as_deref())
     })
+}
+
+/// The interactive prompt: statements end with `;`; `\d` lists the tables, `\d TABLE` shows
+/// one's columns, `\q` quits. History is kept in `$HOME/.rtvtk_history`.
+async fn prompt(ctx: &datafusion::prelude::SessionContext, a: &SqlArgs) -> Result<()> {
+    use rustyline::error::ReadlineError;
+    let mut rl = rustyline::DefaultEditor::new().context("starting the prompt")?;
+    let history = std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".rtvtk_history"));
+    if let Some(h) = &history {
+        let _ = rl.load_history(h);
+    }
+    eprintln!("rtvtk sql: statements end with ';'. \\d lists tables, \\d TABLE its columns, \\q quits.");
+    let mut buffer = String::new();
+    loop {
+        let line = match rl.readline(if buffer.is_empty() { "rtvtk> " } else { "   ... " }) {
+            Ok(l) => l,
+            Err(ReadlineError::Interrupted) => {
+                buffer.clear();
+                continue;
+            }
+            Err(ReadlineError::Eof) => break,
+            Err(e) => return Err(e).context("reading the prompt"),
+        };
+        let trimmed = line.trim();
+        if buffer.is_empty() && trimmed.starts_with('\\') {
+            let _ = rl.add_history_entry(trimmed);
+            let mut words = trimmed.split_whitespace();
+            let query = match (words.next(), words.next()) {
+                (Some("\\q"), _) => break,
+                (Some("\\d"), None) => "SELECT table_schema, table_name FROM information_schema.tables \
+                    WHERE table_schema <> 'information_schema' ORDER BY table_schema, table_name"
+                    .to_string(),
+                (Some("\\d"), Some(t)) => {
+                    let (schema, table) = t.split_once('.').unwrap_or(("public", t));
+                    format!(
+                        "SELECT column_name, data_type, is_nullable FROM information_schema.columns \
+                         WHERE table_schema = '{}' AND table_name = '{}' ORDER BY ordinal_position",
+                        schema.replace('\'', "''"),
+                        table.replace('\'', "''")
+                    )
+                }
+                _ => {
+                    eprintln!("unknown command {trimmed:?}: \\d, \\d TABLE or \\q");
+                    continue;
+                }
+            };
+            run_one(ctx, &query, a).await;
+            continue;
+        }
+        if !buffer.is_empty() {
+            buffer.push('\n');
+        }
+        buffer.push_str(&line);
+        if trimmed.ends_with(';') {
+            let statement = std::mem::take(&mut buffer);
+            let _ = rl.add_history_entry(statement.as_str());
+            run_one(ctx, statement.trim().trim_end_matches(';'), a).await;
+        }
+    }
+    if let Some(h) = &history {
+        let _ = rl.save_history(h);
+    }
+    Ok(())
+}
+
+/// Runs one statement of the prompt, printing its result or its error (the prompt goes on).
+async fn run_one(ctx: &datafusion::prelude::SessionContext, query: &str, a: &SqlArgs) {
+    let result = async {
+        let text = if a.explain { format!("EXPLAIN {query}") } else { query.to_string() };
+        let df = ctx.sql_with_options(&text, read_only()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let batches = df.collect().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let format = if matches!(a.format, Format::Parquet) { Format::Table } else { a.format };
+        write(&batches, format, None)
+    };
+    if let Err(e) = result.await {
+        eprintln!("error: {e:#}");
+    }
 }
 
 fn write(batches: &[RecordBatch], format: Format, out: Option<&std::path::Path>) -> Result<()> {

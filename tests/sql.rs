@@ -259,3 +259,31 @@ fn pushed_filters_prune_and_keep_answers() {
     // A filter the scan cannot use reads everything and still answers right.
     assert_eq!(explain("t > 1.0").1, format!("{0}/{0}", ds.tree_count()));
 }
+
+/// Without a query, `rtvtk sql DATASET` reads statements ending in `;` (here from a pipe); an
+/// error is printed and the prompt goes on.
+#[test]
+fn prompt_reads_statements_until_quit() {
+    use std::io::Write;
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().join("t");
+    record(&d, &[]);
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
+        .args(["sql", d.to_str().unwrap(), "--format", "csv"])
+        .env("HOME", tmp.path())
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let input = "SELECT nosuch FROM rays;\nSELECT count(*) AS n\n  FROM trees;\n\\d trees\n\\q\nSELECT 1;\n";
+    child.stdin.take().unwrap().write_all(input.as_bytes()).unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success());
+    let (stdout, stderr) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("n\n4800\n"), "{stdout}");
+    assert_eq!(stdout.matches("tree_id,UInt64").count(), 1, "{stdout}");
+    assert!(stdout.contains("pixel_x,UInt32"), "{stdout}");
+    assert!(stderr.contains("nosuch") && !stderr.contains("panicked"), "{stderr}");
+    assert!(!stdout.contains("Int64(1)"), "nothing runs after \\q: {stdout}");
+}
