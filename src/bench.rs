@@ -63,6 +63,23 @@ pub enum BenchCommand {
         #[arg(long)]
         no_sync: bool,
     },
+    /// A fixed query suite (anchors' six queries, coherence, BVH cost) on a dataset, beside
+    /// DuckDB on the same Parquet files: time and peak-memory ratios.
+    Query {
+        dataset: PathBuf,
+        /// A plain export of the dataset for DuckDB (made in a temporary directory when absent and
+        /// the dataset is encoded).
+        #[arg(long)]
+        plain: Option<PathBuf>,
+        /// Timed runs per query (after one untimed).
+        #[arg(long, default_value_t = 3)]
+        runs: usize,
+        /// rtvtk's memory limit, e.g. 2GiB.
+        #[arg(long)]
+        memory_limit: Option<String>,
+        #[arg(long)]
+        no_duckdb: bool,
+    },
     /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
     Fetch {
         dataset: PathBuf,
@@ -77,6 +94,12 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp } => crate::bench_trace::run(subdivide, rotate, width, spp),
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
+        BenchCommand::Query { dataset, plain, runs, memory_limit, no_duckdb } => {
+            if let Some(m) = &memory_limit {
+                crate::sql::parse_bytes(m).map_err(anyhow::Error::msg)?;
+            }
+            crate::bench_query::run(&dataset, plain, runs.max(1), memory_limit.as_deref(), !no_duckdb)
+        }
         BenchCommand::Store { rays, threads, workers, fetches, dir, scene, encodings, no_duckdb, no_sync } => {
             let encodings = encodings.iter().map(|e| Encoding::parse(e)).collect::<Result<Vec<_>, _>>()?;
             let args = StoreArgs {

@@ -2,6 +2,7 @@
 
 mod analyze;
 mod bench;
+mod bench_query;
 mod bench_trace;
 mod commands;
 #[cfg(feature = "embree")]

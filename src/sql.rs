@@ -30,6 +30,31 @@ pub struct SqlArgs {
     /// Print the plan (logical and physical, with pushed-down filters) instead of running.
     #[arg(long)]
     explain: bool,
+    /// Memory the query's operators may hold, e.g. `2GiB` or `512MiB` (unlimited by default).
+    #[arg(long, value_parser = parse_bytes)]
+    memory_limit: Option<usize>,
+    /// Print the query's wall time (seconds, after the session is open) to stderr.
+    #[arg(long)]
+    timing: bool,
+}
+
+/// `123`, `512KiB`, `64MiB`, `2GiB` (also KB/MB/GB as powers of 1000).
+pub fn parse_bytes(s: &str) -> std::result::Result<usize, String> {
+    let t = s.trim();
+    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let n: f64 = num.parse().map_err(|_| format!("{s:?}: expected a size such as 512MiB or 2GiB"))?;
+    let mult = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1.0,
+        "kib" | "k" => 1024.0,
+        "mib" | "m" => 1024.0 * 1024.0,
+        "gib" | "g" => 1024.0 * 1024.0 * 1024.0,
+        "kb" => 1e3,
+        "mb" => 1e6,
+        "gb" => 1e9,
+        u => return Err(format!("{s:?}: unknown unit {u:?} (expected B, KiB, MiB, GiB, KB, MB or GB)")),
+    };
+    Ok((n * mult) as usize)
 }
 
 /// Whether a command-line item names a dataset (rather than being the query).
@@ -56,13 +81,18 @@ pub fn run(a: &SqlArgs) -> Result<()> {
     let sources: Vec<query::TraceSource> = datasets.iter().map(|d| query::TraceSource::parse(d)).collect();
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")?;
     rt.block_on(async {
-        let ctx = query::session(&sources).await?;
+        let options = query::SessionOptions { memory_limit: a.memory_limit };
+        let ctx = query::session_with(&sources, &options).await?;
         if interactive {
             return prompt(&ctx, a).await;
         }
         let text = if a.explain { format!("EXPLAIN {last}") } else { last.clone() };
+        let start = std::time::Instant::now();
         let df = ctx.sql_with_options(&text, read_only()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
         let batches = df.collect().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        if a.timing {
+            eprintln!("query seconds: {:.6}", start.elapsed().as_secs_f64());
+        }
         write(&batches, a.format, a.out.as_deref())
     })
 }

@@ -8,4 +8,4 @@ mod tables;
 
 pub use error::{Error, Result};
 pub use functions::{SceneContext, register_functions};
-pub use tables::{TraceSource, register_dataset, session};
+pub use tables::{SessionOptions, TraceSource, register_dataset, session, session_with};

@@ -64,12 +64,29 @@ impl TraceSource {
 /// also unqualified (`rays`, `trees`, ...), and the ray functions (scene-dependent ones, such as
 /// `aims_at_light` and `morton3`, use the first dataset's scene).
 pub async fn session(sources: &[TraceSource]) -> Result<SessionContext> {
+    session_with(sources, &SessionOptions::default()).await
+}
+
+/// Settings of a session.
+#[derive(Clone, Debug, Default)]
+pub struct SessionOptions {
+    /// Bytes the operators may hold (sorts, joins and aggregations spill or fail beyond it);
+    /// unlimited when None.
+    pub memory_limit: Option<usize>,
+}
+
+/// [`session`] with settings.
+pub async fn session_with(sources: &[TraceSource], options: &SessionOptions) -> Result<SessionContext> {
     let config = SessionConfig::new()
         .with_information_schema(true)
         .with_parquet_pruning(true)
         .with_parquet_page_index_pruning(true)
         .set_bool("datafusion.execution.parquet.pushdown_filters", true);
-    let ctx = SessionContext::new_with_config(config);
+    let mut runtime = datafusion::execution::runtime_env::RuntimeEnvBuilder::new();
+    if let Some(limit) = options.memory_limit {
+        runtime = runtime.with_memory_limit(limit, 1.0);
+    }
+    let ctx = SessionContext::new_with_config_rt(config, runtime.build_arc()?);
     let mut names = std::collections::HashSet::new();
     let mut scene = None;
     for (i, src) in sources.iter().enumerate() {

@@ -1,0 +1,270 @@
+//! `rtvtk bench query`: a fixed suite of queries on a trace, timed in rtvtk (DataFusion through
+//! the store) and in DuckDB on the same Parquet files in the same run, with peak memory.
+//!
+//! Each query runs in its own process (`rtvtk sql --timing` / `python3 -c` with duckdb), warm
+//! (once untimed, then `runs` times); the time is the median of the query alone, as each engine
+//! reports it, and the memory the process's peak resident set (`wait4`), so both include their
+//! runtime (DuckDB's includes the Python interpreter, ~30 MB). Both engines read the plain export
+//! (same files, same columns); rtvtk also reads the encoded dataset when given one. The row
+//! counts of the two engines' answers are compared: a query whose answers differ is reported.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use anyhow::{Context, Result, bail};
+
+/// One query of the suite: rtvtk's form and DuckDB's (which lacks the ray functions: octants
+/// and Morton codes by SQL arithmetic).
+struct Case {
+    name: &'static str,
+    ours: String,
+    duckdb: String,
+}
+
+/// Morton code of a point's 10-bit cells over [lo, hi], by SQL arithmetic (what a DuckDB user writes).
+fn duckdb_morton(lo: [f64; 3], hi: [f64; 3]) -> String {
+    let axes = ["origin_x", "origin_y", "origin_z"];
+    let q: Vec<String> = (0..3)
+        .map(|k| {
+            let ext = (hi[k] - lo[k]).max(f64::MIN_POSITIVE);
+            format!("CAST(round(least(greatest(({} - ({})) / ({ext}), 0), 1) * 1023) AS BIGINT)", axes[k], lo[k])
+        })
+        .collect();
+    let mut terms = Vec::new();
+    for bit in 0..10 {
+        for (k, qk) in q.iter().enumerate() {
+            terms.push(format!("(((({qk}) >> {bit}) & 1) << {})", 3 * bit + k));
+        }
+    }
+    terms.join(" | ")
+}
+
+fn suite(tree: u64, lo: [f64; 3], hi: [f64; 3]) -> Vec<Case> {
+    let same = |name, q: &str| Case { name, ours: q.to_string(), duckdb: q.to_string() };
+    let coherence_duckdb = "SELECT kind, depth, sqrt(power(sum(dir_x / l), 2) + power(sum(dir_y / l), 2) + \
+        power(sum(dir_z / l), 2)) / count(*) AS c FROM (SELECT kind, depth, dir_x, dir_y, dir_z, \
+        sqrt(dir_x * dir_x + dir_y * dir_y + dir_z * dir_z) AS l FROM rays) WHERE l > 0 GROUP BY kind, depth";
+    vec![
+        same("count shadow rays with depth >= 2", "SELECT count(*) FROM rays WHERE kind = 'shadow' AND depth >= 2"),
+        Case {
+            name: "group by direction octant",
+            ours: "SELECT octant(dir_x, dir_y, dir_z) AS o, count(*) FROM rays GROUP BY o".into(),
+            duckdb: "SELECT (CASE WHEN dir_x < 0 THEN 1 ELSE 0 END) + (CASE WHEN dir_y < 0 THEN 2 ELSE 0 END) + \
+                     (CASE WHEN dir_z < 0 THEN 4 ELSE 0 END) AS o, count(*) FROM rays GROUP BY o"
+                .into(),
+        },
+        Case {
+            name: "30-bit Morton cell of origin, top 20",
+            ours: "SELECT morton3(origin_x, origin_y, origin_z, 10) AS m, count(*) AS n FROM rays \
+                   GROUP BY m ORDER BY n DESC, m LIMIT 20"
+                .into(),
+            duckdb: format!(
+                "SELECT {} AS m, count(*) AS n FROM rays GROUP BY m ORDER BY n DESC, m LIMIT 20",
+                duckdb_morton(lo, hi)
+            ),
+        },
+        same("all rays of one tree", &format!("SELECT * FROM rays WHERE tree_id = {tree}")),
+        Case {
+            name: "average depth per pixel",
+            ours: "SELECT pixel_x, pixel_y, avg(depth) FROM rays GROUP BY pixel_x, pixel_y".into(),
+            duckdb: "SELECT t.pixel_x, t.pixel_y, avg(r.depth) FROM rays r JOIN trees t USING (tree_id) \
+                     GROUP BY t.pixel_x, t.pixel_y"
+                .into(),
+        },
+        Case {
+            name: "direction coherence by kind and depth",
+            ours: "SELECT kind, depth, dir_coherence(dir_x, dir_y, dir_z) FROM rays GROUP BY kind, depth".into(),
+            duckdb: coherence_duckdb.into(),
+        },
+        same(
+            "BVH cost by kind and depth",
+            "SELECT kind, depth, avg(nodes_visited), avg(box_tests), avg(tri_tests) FROM rays GROUP BY kind, depth",
+        ),
+    ]
+}
+
+/// Median seconds and peak RSS (bytes) of a command that prints `query seconds: S` per run on
+/// stderr, and the rows of its last answer.
+struct Measured {
+    secs: f64,
+    rss: u64,
+    rows: usize,
+}
+
+/// Runs `cmd`, returning its output and peak resident set size.
+#[cfg(unix)]
+fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
+    use std::os::unix::process::ExitStatusExt;
+    let child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn()?;
+    let pid = child.id() as libc::pid_t;
+    // Read the pipes on threads while waiting with wait4 (for the child's rusage).
+    let mut child = child;
+    let (mut so, mut se) = (child.stdout.take(), child.stderr.take());
+    let t1 = std::thread::spawn(move || {
+        let mut v = Vec::new();
+        if let Some(s) = so.as_mut() {
+            let _ = std::io::Read::read_to_end(s, &mut v);
+        }
+        v
+    });
+    let t2 = std::thread::spawn(move || {
+        let mut v = Vec::new();
+        if let Some(s) = se.as_mut() {
+            let _ = std::io::Read::read_to_end(s, &mut v);
+        }
+        v
+    });
+    let mut status = 0;
+    // SAFETY: an all-zero rusage is a valid value, and wait4 writes it for our own child.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    // SAFETY: pid is our child's; status and usage are valid for writes.
+    let r = unsafe { libc::wait4(pid, &mut status, 0, &mut usage) };
+    if r < 0 {
+        bail!("wait4 failed: {}", std::io::Error::last_os_error());
+    }
+    let stdout = t1.join().unwrap_or_default();
+    let stderr = t2.join().unwrap_or_default();
+    let status = std::process::ExitStatus::from_raw(status);
+    Ok((std::process::Output { status, stdout, stderr }, usage.ru_maxrss as u64 * 1024))
+}
+
+#[cfg(not(unix))]
+fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
+    Ok((cmd.output()?, 0))
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+fn ours(dataset: &Path, query: &str, runs: usize, memory_limit: Option<&str>) -> Result<Measured> {
+    let exe = std::env::current_exe().context("finding the rtvtk executable")?;
+    let mut times = Vec::new();
+    let mut rss = 0;
+    let mut rows = 0;
+    for i in 0..=runs {
+        let mut cmd = Command::new(&exe);
+        cmd.args(["sql"]).arg(dataset).args([query, "--format", "json", "--timing"]);
+        if let Some(m) = memory_limit {
+            cmd.args(["--memory-limit", m]);
+        }
+        let (out, peak) = run_measured(&mut cmd)?;
+        if !out.status.success() {
+            bail!("rtvtk sql failed on {query:?}: {}", String::from_utf8_lossy(&out.stderr));
+        }
+        let err = String::from_utf8_lossy(&out.stderr);
+        let secs: f64 = err
+            .lines()
+            .find_map(|l| l.strip_prefix("query seconds: "))
+            .and_then(|s| s.trim().parse().ok())
+            .context("no timing from rtvtk sql")?;
+        if i > 0 {
+            times.push(secs);
+            rss = rss.max(peak);
+        }
+        rows = String::from_utf8_lossy(&out.stdout).lines().filter(|l| !l.trim().is_empty()).count();
+    }
+    Ok(Measured { secs: median(times), rss, rows })
+}
+
+fn duckdb(plain: &Path, query: &str, runs: usize) -> Result<Measured> {
+    let script = r#"
+import sys, time
+import duckdb
+d, q, runs = sys.argv[1], sys.argv[2], int(sys.argv[3])
+con = duckdb.connect()
+con.execute(f"CREATE VIEW rays AS SELECT * FROM read_parquet('{d}/segments/*.rays.parquet')")
+con.execute(f"CREATE VIEW trees AS SELECT * FROM read_parquet('{d}/segments/*.trees.parquet')")
+rows = con.execute(q).fetchall()
+times = []
+for _ in range(runs):
+    t = time.perf_counter(); rows = con.execute(q).fetchall(); times.append(time.perf_counter() - t)
+times.sort()
+print(times[len(times) // 2], len(rows))
+"#;
+    let mut cmd = Command::new("python3");
+    cmd.arg("-c").arg(script).arg(plain).arg(query).arg(runs.to_string());
+    let (out, rss) = run_measured(&mut cmd)?;
+    if !out.status.success() {
+        let err = String::from_utf8_lossy(&out.stderr);
+        bail!("python3/duckdb failed on {query:?}: {}", err.lines().last().unwrap_or(""));
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let v: Vec<f64> = text.split_whitespace().filter_map(|x| x.parse().ok()).collect();
+    match v[..] {
+        [secs, rows] => Ok(Measured { secs, rss, rows: rows as usize }),
+        _ => bail!("unexpected output from the DuckDB script: {text}"),
+    }
+}
+
+pub fn run(
+    dataset: &Path,
+    plain: Option<PathBuf>,
+    runs: usize,
+    memory_limit: Option<&str>,
+    with_duckdb: bool,
+) -> Result<()> {
+    let ds = store::Dataset::open(dataset).with_context(|| format!("opening {}", dataset.display()))?;
+    let (plain, _tmp) = match (plain, ds.encoding()) {
+        (Some(p), _) => (p, None),
+        (None, store::Encoding::Plain) => (dataset.to_path_buf(), None),
+        (None, _) => {
+            let tmp =
+                tempfile::tempdir_in(dataset.parent().unwrap_or(Path::new("."))).context("temporary directory")?;
+            let p = tmp.path().join("plain");
+            eprintln!("exporting a plain copy for DuckDB to {} ...", p.display());
+            store::export_plain(&ds, &p).with_context(|| format!("exporting {}", dataset.display()))?;
+            (p, Some(tmp))
+        }
+    };
+    let (o, h) = (&ds.stats().origin_bounds, &ds.stats().hit_bounds);
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for b in [o, h] {
+        if !b.is_empty() {
+            for k in 0..3 {
+                lo[k] = lo[k].min(f64::from(b.min[k]));
+                hi[k] = hi[k].max(f64::from(b.max[k]));
+            }
+        }
+    }
+    let tree = ds.tree_entry_at(ds.tree_count() as usize / 2)?.map_or(0, |e| e.info.id.0);
+    let encoded = ds.encoding() != store::Encoding::Plain && plain != dataset;
+    println!(
+        "query suite on {} ({} rays, {} trees, {} encoding); median of {runs} warm runs; peak RSS per process{}",
+        dataset.display(),
+        ds.ray_count(),
+        ds.tree_count(),
+        ds.encoding().name(),
+        memory_limit.map(|m| format!("; rtvtk memory limit {m}")).unwrap_or_default()
+    );
+    println!(
+        "\n| query | rtvtk s | rtvtk MB |{} DuckDB s | DuckDB MB | time ratio (rtvtk/DuckDB) | memory ratio |",
+        if encoded { " rtvtk lossless s | lossless MB |" } else { "" }
+    );
+    println!("|---|---|---|{}---|---|---|---|", if encoded { "---|---|" } else { "" });
+    for case in suite(tree, lo, hi) {
+        let a = ours(&plain, &case.ours, runs, memory_limit)?;
+        let enc = if encoded { Some(ours(dataset, &case.ours, runs, memory_limit)?) } else { None };
+        let d = if with_duckdb { Some(duckdb(&plain, &case.duckdb, runs)?) } else { None };
+        let mb = |b: u64| b as f64 / (1 << 20) as f64;
+        let enc_cols = enc.as_ref().map(|e| format!(" {:.3} | {:.0} |", e.secs, mb(e.rss))).unwrap_or_default();
+        let (ds_, dm, tr, mr) = match &d {
+            Some(d) => (
+                format!("{:.3}", d.secs),
+                format!("{:.0}", mb(d.rss)),
+                format!("{:.2}x", a.secs / d.secs),
+                format!("{:.2}x", a.rss as f64 / d.rss as f64),
+            ),
+            None => ("—".into(), "—".into(), "—".into(), "—".into()),
+        };
+        println!("| {} | {:.3} | {:.0} |{enc_cols} {ds_} | {dm} | {tr} | {mr} |", case.name, a.secs, mb(a.rss));
+        if let Some(d) = &d
+            && d.rows != a.rows
+        {
+            println!("|   ↳ rows differ: rtvtk {} vs DuckDB {} | | | | | | |", a.rows, d.rows);
+        }
+    }
+    Ok(())
+}
