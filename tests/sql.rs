@@ -287,3 +287,18 @@ fn prompt_reads_statements_until_quit() {
     assert!(stderr.contains("nosuch") && !stderr.contains("panicked"), "{stderr}");
     assert!(!stdout.contains("Int64(1)"), "nothing runs after \\q: {stdout}");
 }
+
+/// `rtvtk bench query` runs its suite in rtvtk (plain export and encoded dataset) and in DuckDB
+/// on the same files, and fails when any answer differs: a cross-engine test of seven queries
+/// (octants and Morton codes against DuckDB's SQL arithmetic, coherence, per-pixel averages).
+#[test]
+fn bench_query_answers_agree_with_duckdb() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().join("t");
+    record(&d, &[]);
+    let out = rtvtk(&["bench", "query", d.to_str().unwrap(), "--runs", "1"]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains("gave the same answers to every query"), "{text}");
+    assert_eq!(text.lines().filter(|l| l.contains("x |")).count(), 7, "{text}");
+}
