@@ -256,17 +256,8 @@ pub fn run(
             (p, Some(tmp))
         }
     };
-    let (o, h) = (&ds.stats().origin_bounds, &ds.stats().hit_bounds);
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for b in [o, h] {
-        if !b.is_empty() {
-            for k in 0..3 {
-                lo[k] = lo[k].min(f64::from(b.min[k]));
-                hi[k] = hi[k].max(f64::from(b.max[k]));
-            }
-        }
-    }
+    // The bounds `morton3` uses, so DuckDB's arithmetic quantizes the same way.
+    let (lo, hi) = query::SceneContext::of(&ds)?.bounds.unwrap_or(([0.0; 3], [1.0; 3]));
     let tree = ds.tree_entry_at(ds.tree_count() as usize / 2)?.map_or(0, |e| e.info.id.0);
     let encoded = ds.encoding() != store::Encoding::Plain && plain != dataset;
     println!(
