@@ -19,6 +19,19 @@ struct Case {
     name: &'static str,
     ours: String,
     duckdb: String,
+    /// Answers compared by row count only (whole rays: rtvtk adds the pixel columns and prints
+    /// payload lists as JSON, since CSV cannot hold them).
+    counts_only: bool,
+}
+
+impl Case {
+    fn new(name: &'static str, ours: impl Into<String>, duckdb: impl Into<String>) -> Self {
+        Self { name, ours: ours.into(), duckdb: duckdb.into(), counts_only: false }
+    }
+
+    fn agree(&self, a: &Measured, b: &Measured) -> bool {
+        if self.counts_only { a.rows.len() == b.rows.len() } else { same_answer(&a.rows, &b.rows) }
+    }
 }
 
 /// Morton code of a point's 10-bit cells over [lo, hi], by SQL arithmetic (what a DuckDB user writes).
@@ -40,42 +53,42 @@ fn duckdb_morton(lo: [f64; 3], hi: [f64; 3]) -> String {
 }
 
 fn suite(tree: u64, lo: [f64; 3], hi: [f64; 3]) -> Vec<Case> {
-    let same = |name, q: &str| Case { name, ours: q.to_string(), duckdb: q.to_string() };
+    let same = |name, q: &str| Case::new(name, q, q);
     let coherence_duckdb = "SELECT kind, depth, sqrt(power(sum(dir_x / l), 2) + power(sum(dir_y / l), 2) + \
         power(sum(dir_z / l), 2)) / count(*) AS c FROM (SELECT kind, depth, dir_x, dir_y, dir_z, \
         sqrt(dir_x * dir_x + dir_y * dir_y + dir_z * dir_z) AS l FROM rays) WHERE l > 0 GROUP BY kind, depth";
     vec![
         same("count shadow rays with depth >= 2", "SELECT count(*) FROM rays WHERE kind = 'shadow' AND depth >= 2"),
-        Case {
-            name: "group by direction octant",
-            ours: "SELECT octant(dir_x, dir_y, dir_z) AS o, count(*) FROM rays GROUP BY o".into(),
-            duckdb: "SELECT (CASE WHEN dir_x < 0 THEN 1 ELSE 0 END) + (CASE WHEN dir_y < 0 THEN 2 ELSE 0 END) + \
-                     (CASE WHEN dir_z < 0 THEN 4 ELSE 0 END) AS o, count(*) FROM rays GROUP BY o"
-                .into(),
-        },
-        Case {
-            name: "30-bit Morton cell of origin, top 20",
-            ours: "SELECT morton3(origin_x, origin_y, origin_z, 10) AS m, count(*) AS n FROM rays \
-                   GROUP BY m ORDER BY n DESC, m LIMIT 20"
-                .into(),
-            duckdb: format!(
+        Case::new(
+            "group by direction octant",
+            "SELECT octant(dir_x, dir_y, dir_z) AS o, count(*) FROM rays GROUP BY o",
+            "SELECT (CASE WHEN dir_x < 0 THEN 1 ELSE 0 END) + (CASE WHEN dir_y < 0 THEN 2 ELSE 0 END) + \
+                     (CASE WHEN dir_z < 0 THEN 4 ELSE 0 END) AS o, count(*) FROM rays GROUP BY o",
+        ),
+        Case::new(
+            "30-bit Morton cell of origin, top 20",
+            "SELECT morton3(origin_x, origin_y, origin_z, 10) AS m, count(*) AS n FROM rays \
+                   GROUP BY m ORDER BY n DESC, m LIMIT 20",
+            format!(
                 "SELECT {} AS m, count(*) AS n FROM rays GROUP BY m ORDER BY n DESC, m LIMIT 20",
                 duckdb_morton(lo, hi)
             ),
-        },
-        same("all rays of one tree", &format!("SELECT * FROM rays WHERE tree_id = {tree}")),
+        ),
         Case {
-            name: "average depth per pixel",
-            ours: "SELECT pixel_x, pixel_y, avg(depth) FROM rays GROUP BY pixel_x, pixel_y".into(),
-            duckdb: "SELECT t.pixel_x, t.pixel_y, avg(r.depth) FROM rays r JOIN trees t USING (tree_id) \
-                     GROUP BY t.pixel_x, t.pixel_y"
-                .into(),
+            counts_only: true,
+            ..same("all rays of one tree", &format!("SELECT * FROM rays WHERE tree_id = {tree}"))
         },
-        Case {
-            name: "direction coherence by kind and depth",
-            ours: "SELECT kind, depth, dir_coherence(dir_x, dir_y, dir_z) FROM rays GROUP BY kind, depth".into(),
-            duckdb: coherence_duckdb.into(),
-        },
+        Case::new(
+            "average depth per pixel",
+            "SELECT pixel_x, pixel_y, avg(depth) FROM rays GROUP BY pixel_x, pixel_y",
+            "SELECT t.pixel_x, t.pixel_y, avg(r.depth) FROM rays r JOIN trees t USING (tree_id) \
+                     GROUP BY t.pixel_x, t.pixel_y",
+        ),
+        Case::new(
+            "direction coherence by kind and depth",
+            "SELECT kind, depth, dir_coherence(dir_x, dir_y, dir_z) FROM rays GROUP BY kind, depth",
+            coherence_duckdb,
+        ),
         same(
             "BVH cost by kind and depth",
             "SELECT kind, depth, avg(nodes_visited), avg(box_tests), avg(tri_tests) FROM rays GROUP BY kind, depth",
@@ -122,25 +135,19 @@ pub fn same_answer(a: &[Vec<String>], b: &[Vec<String>]) -> bool {
 #[cfg(unix)]
 fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
     use std::os::unix::process::ExitStatusExt;
-    let child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn()?;
+    let mut child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn()?;
     let pid = child.id() as libc::pid_t;
     // Read the pipes on threads while waiting with wait4 (for the child's rusage).
-    let mut child = child;
-    let (mut so, mut se) = (child.stdout.take(), child.stderr.take());
-    let t1 = std::thread::spawn(move || {
-        let mut v = Vec::new();
-        if let Some(s) = so.as_mut() {
-            let _ = std::io::Read::read_to_end(s, &mut v);
-        }
-        v
-    });
-    let t2 = std::thread::spawn(move || {
-        let mut v = Vec::new();
-        if let Some(s) = se.as_mut() {
-            let _ = std::io::Read::read_to_end(s, &mut v);
-        }
-        v
-    });
+    fn drain(pipe: Option<impl std::io::Read + Send + 'static>) -> std::thread::JoinHandle<Vec<u8>> {
+        std::thread::spawn(move || {
+            let mut v = Vec::new();
+            if let Some(mut p) = pipe {
+                let _ = p.read_to_end(&mut v);
+            }
+            v
+        })
+    }
+    let (t1, t2) = (drain(child.stdout.take()), drain(child.stderr.take()));
     let mut status = 0;
     // SAFETY: an all-zero rusage is a valid value, and wait4 writes it for our own child.
     let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
@@ -165,9 +172,8 @@ fn median(mut v: Vec<f64>) -> f64 {
     v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
-fn ours(dataset: &Path, query: &str, runs: usize, memory_limit: Option<&str>) -> Result<Measured> {
-    // Nested payload columns cannot be CSV: such answers come as JSON lines (compared by count).
-    let json = query.starts_with("SELECT *");
+/// rtvtk's answer as CSV rows, or with `json` as JSON lines (for nested payload columns).
+fn ours(dataset: &Path, query: &str, json: bool, runs: usize, memory_limit: Option<&str>) -> Result<Measured> {
     let exe = std::env::current_exe().context("finding the rtvtk executable")?;
     let mut times = Vec::new();
     let mut rss = 0;
@@ -275,8 +281,8 @@ pub fn run(
     println!("|---|---|---|{}---|---|---|---|", if encoded { "---|---|" } else { "" });
     let mut disagreements = Vec::new();
     for case in suite(tree, lo, hi) {
-        let a = ours(&plain, &case.ours, runs, memory_limit)?;
-        let enc = if encoded { Some(ours(dataset, &case.ours, runs, memory_limit)?) } else { None };
+        let a = ours(&plain, &case.ours, case.counts_only, runs, memory_limit)?;
+        let enc = if encoded { Some(ours(dataset, &case.ours, case.counts_only, runs, memory_limit)?) } else { None };
         let d = if with_duckdb { Some(duckdb(&plain, &case.duckdb, runs)?) } else { None };
         let mb = |b: u64| b as f64 / (1 << 20) as f64;
         let enc_cols = enc.as_ref().map(|e| format!(" {:.3} | {:.0} |", e.secs, mb(e.rss))).unwrap_or_default();
@@ -291,22 +297,13 @@ pub fn run(
         };
         println!("| {} | {:.3} | {:.0} |{enc_cols} {ds_} | {dm} | {tr} | {mr} |", case.name, a.secs, mb(a.rss));
         if let Some(e) = &enc
-            && !(if case.name == "all rays of one tree" {
-                e.rows.len() == a.rows.len()
-            } else {
-                same_answer(&e.rows, &a.rows)
-            })
+            && !case.agree(e, &a)
         {
             disagreements.push(case.name);
             println!("|   ↳ the encoded dataset and its plain export answer differently | | | | | | |");
         }
         if let Some(d) = &d {
-            // One tree's rays: DuckDB lacks the pixel columns and prints lists differently; compare counts.
-            let agree = if case.name == "all rays of one tree" {
-                a.rows.len() == d.rows.len()
-            } else {
-                same_answer(&a.rows, &d.rows)
-            };
+            let agree = case.agree(&a, d);
             if !agree {
                 disagreements.push(case.name);
                 println!(

@@ -86,10 +86,8 @@ pub fn run(a: &SqlArgs) -> Result<()> {
         if interactive {
             return prompt(&ctx, a).await;
         }
-        let text = if a.explain { format!("EXPLAIN {last}") } else { last.clone() };
         let start = std::time::Instant::now();
-        let df = ctx.sql_with_options(&text, read_only()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-        let batches = df.collect().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let batches = execute(&ctx, last, a).await?;
         if a.timing {
             eprintln!("query seconds: {:.6}", start.elapsed().as_secs_f64());
         }
@@ -160,12 +158,17 @@ async fn prompt(ctx: &datafusion::prelude::SessionContext, a: &SqlArgs) -> Resul
     Ok(())
 }
 
+/// Runs a read-only query (its plan with `--explain`) to completion.
+async fn execute(ctx: &datafusion::prelude::SessionContext, query: &str, a: &SqlArgs) -> Result<Vec<RecordBatch>> {
+    let text = if a.explain { format!("EXPLAIN {query}") } else { query.to_string() };
+    let df = ctx.sql_with_options(&text, read_only()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    df.collect().await.map_err(|e| anyhow::anyhow!("{e}"))
+}
+
 /// Runs one statement of the prompt, printing its result or its error (the prompt goes on).
 async fn run_one(ctx: &datafusion::prelude::SessionContext, query: &str, a: &SqlArgs) {
     let result = async {
-        let text = if a.explain { format!("EXPLAIN {query}") } else { query.to_string() };
-        let df = ctx.sql_with_options(&text, read_only()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
-        let batches = df.collect().await.map_err(|e| anyhow::anyhow!("{e}"))?;
+        let batches = execute(ctx, query, a).await?;
         let format = if matches!(a.format, Format::Parquet) { Format::Table } else { a.format };
         write(&batches, format, None)
     };

@@ -17,6 +17,14 @@ fn record(dir: &Path, extra: &[&str]) {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
+/// A lossless recording under `dir` and its plain export: (encoded, plain).
+fn record_and_export(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    let (enc, plain) = (dir.join("enc"), dir.join("plain"));
+    record(&enc, &[]);
+    assert!(rtvtk(&["export", enc.to_str().unwrap(), plain.to_str().unwrap()]).status.success());
+    (enc, plain)
+}
+
 /// The single value a query returns (CSV output, header skipped).
 fn scalar(datasets: &[&str], query: &str) -> String {
     let out = rtvtk(&[&["sql"], datasets, &[query, "--format", "csv"]].concat());
@@ -49,9 +57,7 @@ fn the_shadow_ray_bug_is_a_query() {
 #[test]
 fn tables_match_the_store_for_encoded_and_plain_datasets() {
     let tmp = tempfile::tempdir().unwrap();
-    let (enc, plain) = (tmp.path().join("enc"), tmp.path().join("plain"));
-    record(&enc, &[]);
-    assert!(rtvtk(&["export", enc.to_str().unwrap(), plain.to_str().unwrap()]).status.success());
+    let (enc, plain) = record_and_export(tmp.path());
     let info: Value = serde_json::from_slice(&rtvtk(&["info", enc.to_str().unwrap(), "--json"]).stdout).unwrap();
     for d in [&enc, &plain] {
         let d = d.to_str().unwrap();
@@ -158,9 +164,7 @@ fn ray_paths_are_light_path_expressions() {
 #[test]
 fn duckdb_and_rtvtk_agree() {
     let tmp = tempfile::tempdir().unwrap();
-    let (enc, plain) = (tmp.path().join("enc"), tmp.path().join("plain"));
-    record(&enc, &[]);
-    assert!(rtvtk(&["export", enc.to_str().unwrap(), plain.to_str().unwrap()]).status.success());
+    let (enc, plain) = record_and_export(tmp.path());
     let q = "SELECT CAST(kind AS VARCHAR) AS k, count(*) AS n, sum(depth) AS sd, min(t) AS lo, max(t) AS hi, \
              sum(CASE WHEN dir_y > 0 THEN 1 ELSE 0 END) AS up FROM rays GROUP BY k ORDER BY k";
     let ours = rtvtk(&["sql", enc.to_str().unwrap(), q, "--format", "csv"]);

@@ -22,6 +22,7 @@ use arrow::datatypes::{DataType, Float64Type, UInt32Type, UInt64Type};
 use arrow::util::display::{ArrayFormatter, FormatOptions};
 use datafusion::prelude::SessionContext;
 
+use crate::functions::{Coherence, Spread};
 use crate::{Error, Result};
 
 /// A grid of values to draw (NaN where there is no data), row-major from the top-left pixel.
@@ -59,6 +60,28 @@ impl Report {
 
     fn para(&mut self, text: &str) {
         let _ = writeln!(self.markdown, "{text}\n");
+    }
+
+    /// Adds a picture of the rows (x, y, value) of `sql` on a `size` grid under `heading`; nothing
+    /// when the grid is empty (a trace without trees).
+    async fn add_grid(
+        &mut self,
+        ctx: &SessionContext,
+        heading: Option<&str>,
+        sql: &str,
+        size: (usize, usize),
+        name: &str,
+        title: &str,
+    ) -> Result<()> {
+        if size.0 == 0 || size.1 == 0 {
+            return Ok(());
+        }
+        if let Some(h) = heading {
+            self.heading(h);
+        }
+        let g = grid(ctx, sql, size, name, title).await?;
+        self.grid(g);
+        Ok(())
     }
 
     fn grid(&mut self, grid: Grid) {
@@ -122,28 +145,21 @@ fn markdown(batches: &[RecordBatch]) -> Result<String> {
     let _ = writeln!(out, "|{}", "---|".repeat(names.len()));
     let mut rows = 0;
     for b in batches {
-        let cols: Vec<(&dyn Array, Option<ArrayFormatter>)> = b
+        let formatters = b
             .columns()
             .iter()
-            .map(|c| {
-                let f = (!c.data_type().is_floating())
-                    .then(|| ArrayFormatter::try_new(c.as_ref(), &FormatOptions::default()));
-                (c.as_ref(), f.transpose())
-            })
-            .map(|(c, f)| f.map(|f| (c, f)))
-            .collect::<std::result::Result<_, _>>()
+            .map(|c| ArrayFormatter::try_new(c.as_ref(), &FormatOptions::default()))
+            .collect::<std::result::Result<Vec<_>, _>>()
             .map_err(|e| Error::DataFusion(e.into()))?;
         for r in 0..b.num_rows() {
-            let cells: Vec<String> = cols
+            // Floats with 4 significant digits, the rest as Arrow displays them; NULL as empty.
+            let cells: Vec<String> = b
+                .columns()
                 .iter()
-                .map(|(c, f)| {
-                    if c.is_null(r) {
-                        return String::new();
-                    }
-                    match f {
-                        Some(f) => f.value(r).to_string(),
-                        None => float_at(*c, r).map(num).unwrap_or_default(),
-                    }
+                .zip(&formatters)
+                .map(|(c, f)| match c.is_null(r) {
+                    true => String::new(),
+                    false => float_at(c.as_ref(), r).map_or_else(|| f.value(r).to_string(), num),
                 })
                 .collect();
             let _ = writeln!(out, "| {} |", cells.join(" | "));
@@ -184,7 +200,7 @@ async fn image_size(ctx: &SessionContext, schema: &str) -> Result<(usize, usize)
     Ok((w as usize, h as usize))
 }
 
-/// A grid from rows (x, y, value) of a query, cells of `cell` pixels.
+/// A `w` × `h` grid from rows (x, y, value) of a query.
 async fn grid(ctx: &SessionContext, sql: &str, (w, h): (usize, usize), name: &str, title: &str) -> Result<Grid> {
     let mut values = vec![f64::NAN; w * h];
     for b in run(ctx, sql).await? {
@@ -277,18 +293,15 @@ pub async fn coherence(ctx: &SessionContext, opts: &CoherenceOptions) -> Result<
     }
     rep.para(&table);
     let size = image_size(ctx, "").await?;
-    if size.0 > 0 {
-        rep.heading("Coherence of each pixel's secondary rays");
-        let g = grid(
-            ctx,
-            "SELECT pixel_x, pixel_y, dir_coherence(dir_x, dir_y, dir_z) FROM rays WHERE depth = 1 GROUP BY pixel_x, pixel_y",
-            size,
-            "coherence_per_pixel",
-            "dir_coherence of the depth-1 rays of each pixel",
-        )
-        .await?;
-        rep.grid(g);
-    }
+    rep.add_grid(
+        ctx,
+        Some("Coherence of each pixel's secondary rays"),
+        "SELECT pixel_x, pixel_y, dir_coherence(dir_x, dir_y, dir_z) FROM rays WHERE depth = 1 GROUP BY pixel_x, pixel_y",
+        size,
+        "coherence_per_pixel",
+        "dir_coherence of the depth-1 rays of each pixel",
+    )
+    .await?;
     Ok(rep)
 }
 
@@ -424,35 +437,16 @@ fn packet_stats(
 
 /// Mean resultant length of finite, non-zero directions (1 for an empty packet).
 fn packet_coherence(dirs: impl Iterator<Item = [f64; 3]>) -> f64 {
-    let (mut s, mut n) = ([0.0; 3], 0u32);
-    for d in dirs {
-        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        if len > 0.0 && len.is_finite() {
-            for (a, x) in s.iter_mut().zip(d) {
-                *a += x / len;
-            }
-            n += 1;
-        }
-    }
-    if n == 0 { 1.0 } else { (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt() / f64::from(n) }
+    let mut c = Coherence::default();
+    dirs.for_each(|d| c.add(d));
+    c.value().unwrap_or(1.0)
 }
 
-/// RMS distance of finite points from their centroid (two passes: exact far from the origin).
-fn packet_spread(points: impl Iterator<Item = [f64; 3]> + Clone) -> f64 {
-    let finite = |p: &[f64; 3]| p.iter().all(|c| c.is_finite());
-    let (mut c, mut n) = ([0.0; 3], 0u32);
-    for p in points.clone().filter(finite) {
-        for (a, x) in c.iter_mut().zip(p) {
-            *a += x;
-        }
-        n += 1;
-    }
-    if n == 0 {
-        return 0.0;
-    }
-    let c = c.map(|v| v / f64::from(n));
-    let ss: f64 = points.filter(finite).map(|p| (0..3).map(|k| (p[k] - c[k]).powi(2)).sum::<f64>()).sum();
-    (ss / f64::from(n)).sqrt()
+/// RMS distance of finite points from their centroid (0 for an empty packet).
+fn packet_spread(points: impl Iterator<Item = [f64; 3]>) -> f64 {
+    let mut s = Spread::default();
+    points.for_each(|p| s.add(p));
+    s.value().unwrap_or(0.0)
 }
 
 /// BVH traversal: cost per ray, false-positive leaf tests, hottest subtrees, cost per pixel.
@@ -514,18 +508,15 @@ pub async fn bvh(ctx: &SessionContext, subtree_level: u16) -> Result<Report> {
         rep.para("*(record with `--record-visits` for false-positive tests and subtree heat)*");
     }
     let size = image_size(ctx, "").await?;
-    if size.0 > 0 {
-        rep.heading("Nodes visited per camera ray");
-        let g = grid(
-            ctx,
-            "SELECT pixel_x, pixel_y, avg(nodes_visited) FROM rays WHERE kind = 'camera' GROUP BY pixel_x, pixel_y",
-            size,
-            "nodes_per_pixel",
-            "mean nodes visited by the camera rays of each pixel",
-        )
-        .await?;
-        rep.grid(g);
-    }
+    rep.add_grid(
+        ctx,
+        Some("Nodes visited per camera ray"),
+        "SELECT pixel_x, pixel_y, avg(nodes_visited) FROM rays WHERE kind = 'camera' GROUP BY pixel_x, pixel_y",
+        size,
+        "nodes_per_pixel",
+        "mean nodes visited by the camera rays of each pixel",
+    )
+    .await?;
     Ok(rep)
 }
 
@@ -616,19 +607,10 @@ pub async fn bugs(ctx: &SessionContext) -> Result<Report> {
             .await?;
             rep.para(&markdown(&t)?);
             let size = image_size(ctx, "").await?;
-            if size.0 > 0 {
-                let g = grid(
-                    ctx,
-                    &format!(
-                        "SELECT pixel_x, pixel_y, count(*) FROM rays WHERE {WRONG_SHADOW} GROUP BY pixel_x, pixel_y"
-                    ),
-                    size,
-                    "wrong_shadow_rays",
-                    "shadow rays aiming at no light, per pixel",
-                )
-                .await?;
-                rep.grid(g);
-            }
+            let sql =
+                format!("SELECT pixel_x, pixel_y, count(*) FROM rays WHERE {WRONG_SHADOW} GROUP BY pixel_x, pixel_y");
+            let title = "shadow rays aiming at no light, per pixel";
+            rep.add_grid(ctx, None, &sql, size, "wrong_shadow_rays", title).await?;
         }
     }
     rep.heading("Broken rays");
@@ -733,28 +715,14 @@ pub async fn diff(ctx: &SessionContext, a: &str, b: &str, tile: usize) -> Result
     .await?;
     rep.para(&markdown(&t)?);
     let (w, h) = image_size(ctx, &format!("{a}.")).await?;
-    if w > 0 {
-        let size = (w.div_ceil(tile), h.div_ceil(tile));
-        let g = grid(
-            ctx,
-            &format!("SELECT tile_x, tile_y, rays_change FROM ({joined})"),
-            size,
-            "rays_change_per_tile",
-            &format!("relative change of the ray count per {tile}×{tile} tile, {b} over {a} minus 1"),
-        )
-        .await?;
-        rep.grid(g);
-        if lights {
-            let g = grid(
-                ctx,
-                &format!("SELECT tile_x, tile_y, lit_change FROM ({joined})"),
-                size,
-                "lit_change_per_tile",
-                &format!("change of the share of rays hitting an emitter per {tile}×{tile} tile, {b} minus {a}"),
-            )
-            .await?;
-            rep.grid(g);
-        }
+    let size = (w.div_ceil(tile), h.div_ceil(tile));
+    let title = format!("relative change of the ray count per {tile}×{tile} tile, {b} over {a} minus 1");
+    let sql = format!("SELECT tile_x, tile_y, rays_change FROM ({joined})");
+    rep.add_grid(ctx, None, &sql, size, "rays_change_per_tile", &title).await?;
+    if lights {
+        let title = format!("change of the share of rays hitting an emitter per {tile}×{tile} tile, {b} minus {a}");
+        let sql = format!("SELECT tile_x, tile_y, lit_change FROM ({joined})");
+        rep.add_grid(ctx, None, &sql, size, "lit_change_per_tile", &title).await?;
     }
     Ok(rep)
 }

@@ -295,9 +295,28 @@ fn point_fields() -> arrow::datatypes::Fields {
 
 /// Mean resultant length of directions: sums of the normalized vectors and their count.
 #[derive(Debug, Default)]
-struct Coherence {
+pub(crate) struct Coherence {
     sum: [f64; 3],
     n: u64,
+}
+
+impl Coherence {
+    /// Adds a direction (zero, NaN or infinite ones are left out).
+    pub(crate) fn add(&mut self, d: [f64; 3]) {
+        let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+        if len > 0.0 && len.is_finite() {
+            for (s, x) in self.sum.iter_mut().zip(d) {
+                *s += x / len;
+            }
+            self.n += 1;
+        }
+    }
+
+    /// The mean resultant length, None without directions.
+    pub(crate) fn value(&self) -> Option<f64> {
+        let s = self.sum;
+        (self.n > 0).then(|| (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt() / self.n as f64)
+    }
 }
 
 impl Accumulator for Coherence {
@@ -305,21 +324,14 @@ impl Accumulator for Coherence {
         let c = float_cols::<3>(values)?;
         for r in 0..c[0].len() {
             if let Some(d) = row(&c, r) {
-                let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                if len > 0.0 && len.is_finite() {
-                    for (s, x) in self.sum.iter_mut().zip(d) {
-                        *s += x / len;
-                    }
-                    self.n += 1;
-                }
+                self.add(d);
             }
         }
         Ok(())
     }
 
     fn evaluate(&mut self) -> datafusion::error::Result<ScalarValue> {
-        let s = self.sum;
-        Ok(ScalarValue::Float64((self.n > 0).then(|| (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt() / self.n as f64)))
+        Ok(ScalarValue::Float64(self.value()))
     }
 
     fn size(&self) -> usize {
@@ -351,7 +363,7 @@ impl Accumulator for Coherence {
 /// Spread of points about their centroid: count, mean and sum of squared distances (merged with
 /// Chan et al.'s formula, so points far from the origin lose no precision).
 #[derive(Debug, Default)]
-struct Spread {
+pub(crate) struct Spread {
     n: u64,
     mean: [f64; 3],
     m2: f64,
@@ -373,6 +385,18 @@ impl Spread {
         self.m2 += m2 + d2 * (self.n as f64) * (n as f64) / total as f64;
         self.n = total;
     }
+
+    /// Adds a point (ones with a NaN or infinite coordinate are left out).
+    pub(crate) fn add(&mut self, p: [f64; 3]) {
+        if p.iter().all(|c| c.is_finite()) {
+            self.merge(1, p, 0.0);
+        }
+    }
+
+    /// The RMS distance from the centroid, None without points.
+    pub(crate) fn value(&self) -> Option<f64> {
+        (self.n > 0).then(|| (self.m2 / self.n as f64).max(0.0).sqrt())
+    }
 }
 
 impl Accumulator for Spread {
@@ -380,14 +404,14 @@ impl Accumulator for Spread {
         let c = float_cols::<3>(values)?;
         for r in 0..c[0].len() {
             if let Some(p) = row(&c, r) {
-                self.merge(1, p, 0.0);
+                self.add(p);
             }
         }
         Ok(())
     }
 
     fn evaluate(&mut self) -> datafusion::error::Result<ScalarValue> {
-        Ok(ScalarValue::Float64((self.n > 0).then(|| (self.m2 / self.n as f64).max(0.0).sqrt())))
+        Ok(ScalarValue::Float64(self.value()))
     }
 
     fn size(&self) -> usize {
@@ -415,21 +439,25 @@ impl Accumulator for Spread {
 /// Registers every ray function in `ctx`, scene-dependent ones over `scene`.
 pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
     ctx.register_udf(ray_point_udf());
-    ctx.register_udaf(create_udaf(
-        "dir_coherence",
-        vec![DataType::Float64; 3],
-        Arc::new(DataType::Float64),
-        Volatility::Immutable,
-        Arc::new(|_| Ok(Box::new(Coherence::default()))),
-        Arc::new(vec![DataType::Float64, DataType::Float64, DataType::Float64, DataType::UInt64]),
-    ));
-    ctx.register_udaf(create_udaf(
+    // Aggregates of three Float64 arguments giving a Float64, with their accumulator's state types.
+    let xyz_aggregate = |name: &str, state: Vec<DataType>, new: fn() -> Box<dyn Accumulator>| {
+        create_udaf(
+            name,
+            vec![DataType::Float64; 3],
+            Arc::new(DataType::Float64),
+            Volatility::Immutable,
+            Arc::new(move |_| Ok(new())),
+            Arc::new(state),
+        )
+    };
+    let f = DataType::Float64;
+    ctx.register_udaf(xyz_aggregate("dir_coherence", vec![f.clone(), f.clone(), f.clone(), DataType::UInt64], || {
+        Box::new(Coherence::default())
+    }));
+    ctx.register_udaf(xyz_aggregate(
         "origin_spread",
-        vec![DataType::Float64; 3],
-        Arc::new(DataType::Float64),
-        Volatility::Immutable,
-        Arc::new(|_| Ok(Box::new(Spread::default()))),
-        Arc::new(vec![DataType::UInt64, DataType::Float64, DataType::Float64, DataType::Float64, DataType::Float64]),
+        vec![DataType::UInt64, f.clone(), f.clone(), f.clone(), f],
+        || Box::new(Spread::default()),
     ));
     ctx.register_udf(rowwise::<3, _, UInt8Array>("octant", false, DataType::UInt8, |d, _| {
         Some(u8::from(d[0] < 0.0) | (u8::from(d[1] < 0.0) << 1) | (u8::from(d[2] < 0.0) << 2))

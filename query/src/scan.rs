@@ -29,7 +29,6 @@ use datafusion::execution::TaskContext;
 use datafusion::logical_expr::{Expr, Operator, TableProviderFilterPushDown};
 use datafusion::physical_expr::{EquivalenceProperties, PhysicalExpr};
 use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
-use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
 use datafusion::physical_plan::{
     DisplayAs, DisplayFormatType, ExecutionPlan, Partitioning, PlanProperties, SendableRecordBatchStream,
 };
@@ -549,13 +548,7 @@ impl ExecutionPlan for RaysScanExec {
         partition: usize,
         _context: Arc<TaskContext>,
     ) -> datafusion::error::Result<SendableRecordBatchStream> {
-        let external = |e: store::Error| DataFusionError::External(Box::new(e));
-        let batches: Box<dyn Iterator<Item = datafusion::error::Result<RecordBatch>> + Send> =
-            match self.batches(partition) {
-                Ok(it) => Box::new(it.map(move |b| b.map_err(external))),
-                Err(e) => Box::new(std::iter::once(Err(external(e)))),
-            };
-        Ok(Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), futures::stream::iter(batches))))
+        Ok(crate::tables::stream(&self.schema, self.batches(partition)))
     }
 }
 

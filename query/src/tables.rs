@@ -282,7 +282,7 @@ fn ray_paths_table(ds: &Arc<Dataset>) -> Result<Arc<dyn TableProvider>> {
 }
 
 /// A record-batch stream of the batches a store call yields (or of its error).
-fn stream<I>(schema: &SchemaRef, batches: store::Result<I>) -> SendableRecordBatchStream
+pub(crate) fn stream<I>(schema: &SchemaRef, batches: store::Result<I>) -> SendableRecordBatchStream
 where
     I: Iterator<Item = store::Result<RecordBatch>> + Send + 'static,
 {

@@ -439,22 +439,20 @@ impl Bvh {
                 }
                 if n.count[c] > 0 {
                     stats.tris += n.count[c];
-                }
-                let before = tmax;
-                if n.count[c] > 4 {
-                    self.leaf_closest((n.child[c], n.count[c]), ray, tmin, &mut tmax, &mut best);
-                } else if n.count[c] > 0 {
-                    let b = &self.blocks[n.child[c] as usize];
-                    match intersect_block(b, ray, tmin, tmax, u32::MAX) {
-                        Ok(Some(hit)) => {
-                            tmax = hit.0.t;
-                            best = Some(hit);
+                    let before = tmax;
+                    if n.count[c] > 4 {
+                        self.leaf_closest((n.child[c], n.count[c]), ray, tmin, &mut tmax, &mut best);
+                    } else {
+                        let b = &self.blocks[n.child[c] as usize];
+                        match intersect_block(b, ray, tmin, tmax, u32::MAX) {
+                            Ok(Some(hit)) => {
+                                tmax = hit.0.t;
+                                best = Some(hit);
+                            }
+                            Ok(None) => {}
+                            Err(()) => self.leaf_closest((b.first, b.count), ray, tmin, &mut tmax, &mut best),
                         }
-                        Ok(None) => {}
-                        Err(()) => self.leaf_closest((b.first, b.count), ray, tmin, &mut tmax, &mut best),
                     }
-                }
-                if n.count[c] > 0 {
                     if tmax < before
                         && let Some(last) = visits.as_deref_mut().and_then(|v| v.last_mut())
                     {

@@ -431,22 +431,40 @@ impl Dataset {
         Ok(Tree { info, rays, batch })
     }
 
-    /// Reads `count` rows from `first` of segment `i`'s ray file, touching only the pages needed.
-    pub fn read_rows(&self, i: usize, first: u64, count: u64) -> Result<RecordBatch> {
+    /// A reader of segment `i`'s ray file: the `roots` columns (all when None), only the row
+    /// groups and pages of `rows` (sorted, disjoint; every row when None), in batches of
+    /// `batch_size`. Returns the file's path with it, for errors.
+    fn ray_reader(
+        &self,
+        i: usize,
+        roots: Option<Vec<usize>>,
+        rows: Option<&[std::ops::Range<u64>]>,
+        batch_size: usize,
+    ) -> Result<(PathBuf, parquet::arrow::arrow_reader::ParquetRecordBatchReader)> {
         let meta = self.segment_meta(i)?;
         let path = self.dir.join(&self.segment(i).rays.path);
+        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
+        let mut builder =
+            ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone()).with_batch_size(batch_size);
+        if let Some(roots) = roots {
+            let schema = meta.meta.metadata().file_metadata().schema_descr();
+            builder = builder.with_projection(parquet::arrow::ProjectionMask::roots(schema, roots));
+        }
+        if let Some(rows) = rows {
+            let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, rows);
+            builder = builder.with_row_groups(groups).with_row_selection(selection);
+        }
+        let reader = builder.build().map_err(pq_err(&path))?;
+        Ok((path, reader))
+    }
+
+    /// Reads `count` rows from `first` of segment `i`'s ray file, touching only the pages needed.
+    pub fn read_rows(&self, i: usize, first: u64, count: u64) -> Result<RecordBatch> {
         if count == 0 {
             return Ok(RecordBatch::new_empty(self.schema.clone()));
         }
         let one = [std::ops::Range { start: first, end: first + count }];
-        let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, &one);
-        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
-            .with_row_groups(groups)
-            .with_row_selection(selection)
-            .with_batch_size(count as usize)
-            .build()
-            .map_err(pq_err(&path))?;
+        let (path, reader) = self.ray_reader(i, None, Some(&one), count as usize)?;
         let mut batches = Vec::new();
         for b in reader {
             batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
@@ -478,16 +496,7 @@ impl Dataset {
         i: usize,
         rows: Option<&[std::ops::Range<u64>]>,
     ) -> Result<impl Iterator<Item = Result<RecordBatch>> + use<>> {
-        let meta = self.segment_meta(i)?;
-        let path = self.dir.join(&self.segment(i).rays.path);
-        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let mut builder =
-            ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone()).with_batch_size(64 * 1024);
-        if let Some(rows) = rows {
-            let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, rows);
-            builder = builder.with_row_groups(groups).with_row_selection(selection);
-        }
-        let reader = builder.build().map_err(pq_err(&path))?;
+        let (path, reader) = self.ray_reader(i, None, rows, 64 * 1024)?;
         let mut decoder = self.decoder();
         Ok(reader.map(move |b| {
             let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
@@ -555,22 +564,12 @@ impl Dataset {
             return Ok(Box::new(it.map(move |b| b.and_then(&project))));
         }
         // Only columns stored as they are (kind from its codes in encoded files): read them alone.
-        let meta = self.segment_meta(i)?;
         let roots: Vec<usize> = names
             .iter()
             .map(|n| if encoded && n == "kind" { crate::codec::KIND_CODE } else { n.as_str() })
             .filter_map(|n| self.file_schema.index_of(n).ok())
             .collect();
-        let mask = parquet::arrow::ProjectionMask::roots(meta.meta.metadata().file_metadata().schema_descr(), roots);
-        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let mut builder = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone())
-            .with_projection(mask)
-            .with_batch_size(64 * 1024);
-        if let Some(rows) = rows {
-            let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, rows);
-            builder = builder.with_row_groups(groups).with_row_selection(selection);
-        }
-        let reader = builder.build().map_err(pq_err(&path))?;
+        let (path, reader) = self.ray_reader(i, Some(roots), rows, 64 * 1024)?;
         let kinds = self.kinds.clone();
         Ok(Box::new(reader.map(move |b| {
             let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
