@@ -8,6 +8,11 @@ if ! python3 -c "import duckdb" 2>/dev/null; then
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore duckdb ||
     python3 -m pip install --quiet --disable-pip-version-check --break-system-packages duckdb
 fi
+if ! python3 -c "import adbc_driver_flightsql.dbapi, pyarrow" 2>/dev/null; then
+  echo "installing adbc-driver-flightsql and pyarrow (PyPI) for the Flight SQL client test"
+  python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore adbc-driver-flightsql pyarrow ||
+    python3 -m pip install --quiet --disable-pip-version-check --break-system-packages adbc-driver-flightsql pyarrow
+fi
 command -v cc >/dev/null || { echo "a C compiler (cc) is needed for the C ABI test" >&2; exit 1; }
 if ! command -v cargo-nextest >/dev/null; then
   cargo install --locked cargo-nextest

@@ -22,11 +22,15 @@ struct Case {
     /// Answers compared by row count only (whole rays: rtvtk adds the pixel columns and prints
     /// payload lists as JSON, since CSV cannot hold them).
     counts_only: bool,
+    /// DuckDB reads a copy of the plain files written without Parquet statistics (the anchors'
+    /// "same file without statistics"); rtvtk finds a tree's rows through its tree table, which
+    /// statistics do not change, so it reads the dataset as usual.
+    duckdb_without_statistics: bool,
 }
 
 impl Case {
     fn new(name: &'static str, ours: impl Into<String>, duckdb: impl Into<String>) -> Self {
-        Self { name, ours: ours.into(), duckdb: duckdb.into(), counts_only: false }
+        Self { name, ours: ours.into(), duckdb: duckdb.into(), counts_only: false, duckdb_without_statistics: false }
     }
 
     fn agree(&self, a: &Measured, b: &Measured) -> bool {
@@ -77,6 +81,11 @@ fn suite(tree: u64, lo: [f64; 3], hi: [f64; 3]) -> Vec<Case> {
         Case {
             counts_only: true,
             ..same("all rays of one tree", &format!("SELECT * FROM rays WHERE tree_id = {tree}"))
+        },
+        Case {
+            counts_only: true,
+            duckdb_without_statistics: true,
+            ..same("one tree, DuckDB's files without statistics", &format!("SELECT * FROM rays WHERE tree_id = {tree}"))
         },
         Case::new(
             "average depth per pixel",
@@ -208,6 +217,45 @@ fn ours(dataset: &Path, query: &str, json: bool, runs: usize, memory_limit: Opti
     Ok(Measured { secs: median(times), rss, rows })
 }
 
+/// Rewrites the plain export's ray files under `out/segments` with no Parquet statistics (no
+/// row-group or page min/max), same row groups and zstd-1; the tree files are copied.
+fn copy_without_statistics(plain: &Path, out: &Path) -> Result<()> {
+    use arrow::array::RecordBatchReader as _;
+    use parquet::arrow::ArrowWriter;
+    use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+    use parquet::basic::{Compression, ZstdLevel};
+    use parquet::file::properties::{EnabledStatistics, WriterProperties};
+    let segments = plain.join("segments");
+    std::fs::create_dir_all(out.join("segments")).with_context(|| format!("creating {}", out.display()))?;
+    let entries = std::fs::read_dir(&segments).with_context(|| format!("listing {}", segments.display()))?;
+    for entry in entries {
+        let path = entry.with_context(|| format!("listing {}", segments.display()))?.path();
+        let Some(name) = path.file_name().map(|n| n.to_string_lossy().to_string()) else { continue };
+        let target = out.join("segments").join(&name);
+        if name.ends_with(".trees.parquet") {
+            std::fs::copy(&path, &target).with_context(|| format!("copying {}", path.display()))?;
+        } else if name.ends_with(".rays.parquet") {
+            let file = std::fs::File::open(&path).with_context(|| format!("opening {}", path.display()))?;
+            let builder = ParquetRecordBatchReaderBuilder::try_new(file)
+                .with_context(|| format!("reading {}", path.display()))?;
+            let group_rows = builder.metadata().row_groups().first().map_or(1 << 20, |g| g.num_rows().max(1) as usize);
+            let reader = builder.with_batch_size(64 * 1024).build()?;
+            let props = WriterProperties::builder()
+                .set_statistics_enabled(EnabledStatistics::None)
+                .set_compression(Compression::ZSTD(ZstdLevel::try_new(1)?))
+                .set_max_row_group_row_count(Some(group_rows))
+                .build();
+            let sink = std::fs::File::create(&target).with_context(|| format!("creating {}", target.display()))?;
+            let mut writer = ArrowWriter::try_new(sink, reader.schema(), Some(props))?;
+            for batch in reader {
+                writer.write(&batch.with_context(|| format!("reading {}", path.display()))?)?;
+            }
+            writer.close().with_context(|| format!("writing {}", target.display()))?;
+        }
+    }
+    Ok(())
+}
+
 fn duckdb(plain: &Path, query: &str, runs: usize) -> Result<Measured> {
     let script = r#"
 import sys, time
@@ -262,6 +310,14 @@ pub fn run(
             (p, Some(tmp))
         }
     };
+    let no_stats = if with_duckdb {
+        let dir = tempfile::tempdir_in(plain.parent().unwrap_or(Path::new("."))).context("temporary directory")?;
+        eprintln!("writing a copy without Parquet statistics for DuckDB to {} ...", dir.path().display());
+        copy_without_statistics(&plain, dir.path())?;
+        Some(dir)
+    } else {
+        None
+    };
     // The bounds `morton3` uses, so DuckDB's arithmetic quantizes the same way.
     let (lo, hi) = query::SceneContext::of(&ds)?.bounds.unwrap_or(([0.0; 3], [1.0; 3]));
     let tree = ds.tree_entry_at(ds.tree_count() as usize / 2)?.map_or(0, |e| e.info.id.0);
@@ -283,7 +339,11 @@ pub fn run(
     for case in suite(tree, lo, hi) {
         let a = ours(&plain, &case.ours, case.counts_only, runs, memory_limit)?;
         let enc = if encoded { Some(ours(dataset, &case.ours, case.counts_only, runs, memory_limit)?) } else { None };
-        let d = if with_duckdb { Some(duckdb(&plain, &case.duckdb, runs)?) } else { None };
+        let duck_dir = match &no_stats {
+            Some(dir) if case.duckdb_without_statistics => dir.path(),
+            _ => plain.as_path(),
+        };
+        let d = if with_duckdb { Some(duckdb(duck_dir, &case.duckdb, runs)?) } else { None };
         let mb = |b: u64| b as f64 / (1 << 20) as f64;
         let enc_cols = enc.as_ref().map(|e| format!(" {:.3} | {:.0} |", e.secs, mb(e.rss))).unwrap_or_default();
         let (ds_, dm, tr, mr) = match &d {

@@ -8,6 +8,7 @@ mod commands;
 #[cfg(feature = "embree")]
 mod embree;
 mod record;
+mod serve;
 mod sql;
 
 use std::path::PathBuf;
@@ -97,6 +98,9 @@ enum Command {
     Sql(sql::SqlArgs),
     /// Canned analyses (coherence, bvh, bugs, diff) as a markdown report with PNG heatmaps.
     Analyze(analyze::AnalyzeArgs),
+    /// The read-only query service: Arrow Flight SQL over datasets (any Flight SQL client: ADBC,
+    /// JDBC, arrow-flight), with the same tables and functions as `rtvtk sql`.
+    Serve(serve::ServeArgs),
     /// Benchmarks, each against a baseline in the same run.
     Bench {
         #[command(subcommand)]
@@ -127,6 +131,7 @@ fn main() {
         Command::Export { dataset, out } => commands::export(&dataset, &out).map(|_| 0),
         Command::Sql(args) => sql::run(&args).map(|_| 0),
         Command::Analyze(args) => analyze::run(&args).map(|_| 0),
+        Command::Serve(args) => serve::run(&args).map(|_| 0),
         Command::Bench { what } => bench::run(what).map(|_| 0),
     };
     match result {

@@ -63,14 +63,6 @@ fn is_dataset(item: &str) -> bool {
     path.join(store::MANIFEST_FILE).is_file()
 }
 
-/// Read-only: no DDL, DML or SET from the command line.
-fn read_only() -> datafusion::execution::context::SQLOptions {
-    datafusion::execution::context::SQLOptions::new()
-        .with_allow_ddl(false)
-        .with_allow_dml(false)
-        .with_allow_statements(false)
-}
-
 pub fn run(a: &SqlArgs) -> Result<()> {
     let (last, rest) = a.items.split_last().context("expected datasets and a query")?;
     let interactive = is_dataset(last);
@@ -161,7 +153,10 @@ async fn prompt(ctx: &datafusion::prelude::SessionContext, a: &SqlArgs) -> Resul
 /// Runs a read-only query (its plan with `--explain`) to completion.
 async fn execute(ctx: &datafusion::prelude::SessionContext, query: &str, a: &SqlArgs) -> Result<Vec<RecordBatch>> {
     let text = if a.explain { format!("EXPLAIN {query}") } else { query.to_string() };
-    let df = ctx.sql_with_options(&text, read_only()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let df = ctx
+        .sql_with_options(&text, query::service::read_only_sql_options())
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
     df.collect().await.map_err(|e| anyhow::anyhow!("{e}"))
 }
 

@@ -304,5 +304,5 @@ fn bench_query_answers_agree_with_duckdb() {
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(text.contains("gave the same answers to every query"), "{text}");
-    assert_eq!(text.lines().filter(|l| l.contains("x |")).count(), 7, "{text}");
+    assert_eq!(text.lines().filter(|l| l.contains("x |")).count(), 8, "{text}");
 }

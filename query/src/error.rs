@@ -15,6 +15,9 @@ pub enum Error {
     #[error("{0}")]
     BadArgument(String),
 
+    #[error("query service: {0}")]
+    Service(String),
+
     #[error("dataset name {name:?} is given twice")]
     DuplicateName { name: String },
 }

@@ -4,6 +4,7 @@ pub mod analyze;
 mod error;
 mod functions;
 mod scan;
+pub mod service;
 mod tables;
 
 pub use error::{Error, Result};

@@ -1,0 +1,612 @@
+//! The read-only query service: Arrow Flight SQL over a session of trace datasets.
+//!
+//! Any Flight SQL client (the ADBC Flight SQL driver from Python/R/Go/Java, the JDBC driver,
+//! `arrow_flight::sql::client::FlightSqlServiceClient`) can list catalogs, schemas, tables (with
+//! their Arrow schemas) and table types, ask `GetSqlInfo`, run statements and prepared statements
+//! (with `$1`-style parameters bound by the client) using every table and ray function of the
+//! session, and stream the results as Arrow record batches.
+//!
+//! The service is stateless: a statement's ticket and a prepared statement's handle carry the SQL
+//! (and the bound parameters), so any number of clients can use it concurrently and a restart
+//! loses nothing. Every statement is planned with [`read_only_sql_options`]: DDL (`CREATE`,
+//! `DROP`), DML (`INSERT`, `COPY ... TO`) and `SET` are refused with `InvalidArgument`, as are
+//! updates, ingestion, Substrait plans and transactions.
+
+use std::net::{SocketAddr, TcpListener};
+use std::sync::Arc;
+
+use arrow::array::{ArrayRef, RecordBatch, StringArray};
+use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
+use arrow::ipc::reader::StreamReader;
+use arrow::ipc::writer::{IpcWriteOptions, StreamWriter};
+use arrow_flight::decode::FlightRecordBatchStream;
+use arrow_flight::encode::{DictionaryHandling, FlightDataEncoderBuilder};
+use arrow_flight::error::FlightError;
+use arrow_flight::flight_service_server::{FlightService, FlightServiceServer};
+use arrow_flight::sql::metadata::{SqlInfoData, SqlInfoDataBuilder};
+use arrow_flight::sql::server::{FlightSqlService, PeekableFlightDataStream};
+use arrow_flight::sql::{
+    ActionBeginSavepointRequest, ActionBeginSavepointResult, ActionBeginTransactionRequest,
+    ActionBeginTransactionResult, ActionClosePreparedStatementRequest, ActionCreatePreparedStatementRequest,
+    ActionCreatePreparedStatementResult, ActionCreatePreparedSubstraitPlanRequest, CommandGetCatalogs,
+    CommandGetDbSchemas, CommandGetSqlInfo, CommandGetTableTypes, CommandGetTables, CommandPreparedStatementQuery,
+    CommandPreparedStatementUpdate, CommandStatementIngest, CommandStatementQuery, CommandStatementSubstraitPlan,
+    CommandStatementUpdate, DoPutPreparedStatementResult, ProstMessageExt, SqlInfo, TicketStatementQuery,
+};
+use arrow_flight::{FlightDescriptor, FlightEndpoint, FlightInfo, IpcMessage, SchemaAsIpc, Ticket};
+use bytes::Bytes;
+use datafusion::common::ParamValues;
+use datafusion::error::DataFusionError;
+use datafusion::execution::context::SQLOptions;
+use datafusion::logical_expr::LogicalPlan;
+use datafusion::prelude::SessionContext;
+use datafusion::scalar::ScalarValue;
+use futures::TryStreamExt;
+use prost::Message;
+use tonic::{Request, Response, Status};
+
+use crate::{Error, Result};
+
+/// What a read-only session accepts: queries, `EXPLAIN` and `SHOW`-style reads; no DDL
+/// (`CREATE`, `DROP`), no DML (`INSERT`, `COPY ... TO`) and no `SET`.
+pub fn read_only_sql_options() -> SQLOptions {
+    SQLOptions::new().with_allow_ddl(false).with_allow_dml(false).with_allow_statements(false)
+}
+
+/// Binds `addr` (for example `127.0.0.1:50051`; port 0 picks a free one) for [`serve`].
+pub fn bind(addr: &str) -> Result<TcpListener> {
+    let listener = TcpListener::bind(addr)
+        .map_err(|e| Error::Service(format!("cannot listen on {addr:?}: {e} (expected a free HOST:PORT)")))?;
+    listener
+        .set_nonblocking(true)
+        .map_err(|e| Error::Service(format!("cannot set up the listener on {addr:?}: {e}")))?;
+    Ok(listener)
+}
+
+/// The address a listener from [`bind`] accepts on.
+pub fn local_addr(listener: &TcpListener) -> Result<SocketAddr> {
+    listener.local_addr().map_err(|e| Error::Service(format!("listener address: {e}")))
+}
+
+/// Serves `ctx` read-only over Flight SQL on `listener` until `shutdown` completes (pass
+/// `std::future::pending()` to serve until the process ends). Must run inside a Tokio runtime
+/// with I/O enabled.
+pub async fn serve(
+    ctx: &SessionContext,
+    listener: TcpListener,
+    shutdown: impl std::future::Future<Output = ()> + Send,
+) -> Result<()> {
+    let listener = tokio::net::TcpListener::from_std(listener)
+        .map_err(|e| Error::Service(format!("cannot use the listener: {e}")))?;
+    let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
+    tonic::transport::Server::builder()
+        .add_service(FlightServiceServer::new(TraceService::new(ctx.clone())?))
+        .serve_with_incoming_shutdown(incoming, shutdown)
+        .await
+        .map_err(|e| Error::Service(format!("Flight SQL server stopped: {e}")))
+}
+
+/// The Flight SQL service over a session (see the module documentation).
+pub struct TraceService {
+    ctx: SessionContext,
+    sql_info: SqlInfoData,
+}
+
+type DoGetStream = <TraceService as FlightService>::DoGetStream;
+
+impl TraceService {
+    pub fn new(ctx: SessionContext) -> Result<Self> {
+        let mut b = SqlInfoDataBuilder::new();
+        b.append(SqlInfo::FlightSqlServerName, "rtvtk");
+        b.append(SqlInfo::FlightSqlServerVersion, env!("CARGO_PKG_VERSION"));
+        b.append(SqlInfo::FlightSqlServerArrowVersion, "1.3");
+        b.append(SqlInfo::FlightSqlServerReadOnly, true);
+        b.append(SqlInfo::FlightSqlServerSql, true);
+        b.append(SqlInfo::FlightSqlServerSubstrait, false);
+        b.append(SqlInfo::FlightSqlServerTransaction, 0i32); // SQL_SUPPORTED_TRANSACTION_NONE
+        b.append(SqlInfo::FlightSqlServerCancel, false);
+        b.append(SqlInfo::SqlIdentifierQuoteChar, "\"");
+        let sql_info = b.build().map_err(|e| Error::Service(format!("server information: {e}")))?;
+        Ok(Self { ctx, sql_info })
+    }
+
+    /// Plans `sql` read-only, with `params` bound when given.
+    async fn plan(&self, sql: &str, params: Option<ParamValues>) -> Result<LogicalPlan, Status> {
+        let sql = number_placeholders(sql);
+        let plan = self.ctx.state().create_logical_plan(&sql).await.map_err(plan_status)?;
+        read_only_sql_options().verify_plan(&plan).map_err(plan_status)?;
+        match params {
+            Some(p) => plan.with_param_values(p).map_err(plan_status),
+            None => Ok(plan),
+        }
+    }
+
+    /// Runs a planned statement and streams its batches, announced with the plan's schema (the
+    /// one `FlightInfo` advertised; strict clients compare them).
+    async fn execute(&self, plan: LogicalPlan) -> Result<Response<DoGetStream>, Status> {
+        let schema: SchemaRef = Arc::new(plan.schema().as_arrow().clone());
+        let df = self.ctx.execute_logical_plan(plan).await.map_err(plan_status)?;
+        let stream = df.execute_stream().await.map_err(exec_status)?;
+        let batches = stream.map_err(|e| FlightError::ExternalError(Box::new(e)));
+        // Dictionary columns (`kind`) stay dictionaries, as the announced schema says.
+        let data = FlightDataEncoderBuilder::new()
+            .with_schema(schema)
+            .with_dictionary_handling(DictionaryHandling::Resend)
+            .build(batches)
+            .map_err(flight_status);
+        Ok(Response::new(Box::pin(data)))
+    }
+
+    /// A `FlightInfo` announcing `schema`, fetched with `ticket`.
+    fn info(schema: &Schema, ticket: Bytes, descriptor: FlightDescriptor) -> Result<Response<FlightInfo>, Status> {
+        let info = FlightInfo::new()
+            .try_with_schema(schema)
+            .map_err(|e| Status::internal(format!("encoding the result schema: {e}")))?
+            .with_endpoint(FlightEndpoint::new().with_ticket(Ticket { ticket }))
+            .with_descriptor(descriptor);
+        Ok(Response::new(info))
+    }
+
+    /// A one-batch stream (catalog answers).
+    fn one_batch<E: std::fmt::Display>(batch: Result<RecordBatch, E>) -> Result<Response<DoGetStream>, Status> {
+        let batch = batch.map_err(|e| Status::internal(format!("building the answer: {e}")))?;
+        let schema = batch.schema();
+        let data = FlightDataEncoderBuilder::new()
+            .with_schema(schema)
+            .build(futures::stream::once(async { Ok(batch) }))
+            .map_err(flight_status);
+        Ok(Response::new(Box::pin(data)))
+    }
+}
+
+/// JDBC/ODBC-style `?` parameters become `$1`, `$2`, ... (DataFusion's positional form), outside
+/// string literals and identifiers; statements without them are returned unchanged.
+fn number_placeholders(sql: &str) -> std::borrow::Cow<'_, str> {
+    use datafusion::sql::sqlparser::dialect::GenericDialect;
+    use datafusion::sql::sqlparser::tokenizer::{Token, Tokenizer};
+    if !sql.contains('?') {
+        return sql.into();
+    }
+    let Ok(tokens) = Tokenizer::new(&GenericDialect {}, sql).tokenize_with_location() else {
+        return sql.into(); // the planner reports the error
+    };
+    // Byte offset of each `?` token, from its line and (character) column.
+    let line_starts: Vec<usize> = std::iter::once(0).chain(sql.match_indices('\n').map(|(i, _)| i + 1)).collect();
+    let offsets: Vec<usize> = tokens
+        .iter()
+        .filter(|t| matches!(&t.token, Token::Placeholder(p) if p == "?"))
+        .filter_map(|t| {
+            let start = *line_starts.get(usize::try_from(t.span.start.line).ok()?.checked_sub(1)?)?;
+            let column = usize::try_from(t.span.start.column).ok()?.checked_sub(1)?;
+            let (offset, c) = sql[start..].char_indices().nth(column)?;
+            (c == '?').then_some(start + offset)
+        })
+        .collect();
+    if offsets.is_empty() {
+        return sql.into();
+    }
+    let mut out = String::with_capacity(sql.len() + 2 * offsets.len());
+    let mut last = 0;
+    for (i, at) in offsets.iter().enumerate() {
+        out.push_str(&sql[last..*at]);
+        out.push_str(&format!("${}", i + 1));
+        last = at + 1;
+    }
+    out.push_str(&sql[last..]);
+    out.into()
+}
+
+/// Errors found while planning: the client's statement is at fault.
+fn plan_status(e: DataFusionError) -> Status {
+    match e {
+        DataFusionError::ResourcesExhausted(m) => Status::resource_exhausted(m),
+        e => Status::invalid_argument(e.to_string()),
+    }
+}
+
+/// Errors found while running.
+fn exec_status(e: DataFusionError) -> Status {
+    match e {
+        DataFusionError::ResourcesExhausted(m) => Status::resource_exhausted(m),
+        e => Status::internal(e.to_string()),
+    }
+}
+
+fn flight_status(e: FlightError) -> Status {
+    match e {
+        FlightError::Tonic(s) => *s,
+        FlightError::ExternalError(e) => match e.downcast::<DataFusionError>() {
+            Ok(df) => exec_status(*df),
+            Err(e) => Status::internal(e.to_string()),
+        },
+        e => Status::internal(e.to_string()),
+    }
+}
+
+fn read_only(what: &str) -> Status {
+    Status::invalid_argument(format!("rtvtk serve is read-only: {what} is not allowed (send a query)"))
+}
+
+/// A prepared statement's handle: the SQL and, once bound, its parameters as an Arrow IPC stream
+/// of one row. Layout: `u32` little-endian SQL length, the SQL (UTF-8), the IPC bytes.
+struct Handle {
+    sql: String,
+    params: Option<RecordBatch>,
+}
+
+impl Handle {
+    fn encode(&self) -> Result<Bytes, Status> {
+        let len = u32::try_from(self.sql.len()).map_err(|_| Status::invalid_argument("statement too long"))?;
+        let mut out = len.to_le_bytes().to_vec();
+        out.extend_from_slice(self.sql.as_bytes());
+        if let Some(batch) = &self.params {
+            let mut w = StreamWriter::try_new(&mut out, &batch.schema())
+                .map_err(|e| Status::internal(format!("encoding parameters: {e}")))?;
+            w.write(batch).map_err(|e| Status::internal(format!("encoding parameters: {e}")))?;
+            w.finish().map_err(|e| Status::internal(format!("encoding parameters: {e}")))?;
+        }
+        Ok(out.into())
+    }
+
+    fn decode(bytes: &[u8]) -> Result<Self, Status> {
+        let bad = || Status::invalid_argument("not a prepared statement handle of this server");
+        let len = bytes.get(..4).ok_or_else(bad)?;
+        let len = u32::from_le_bytes([len[0], len[1], len[2], len[3]]) as usize;
+        let sql = bytes.get(4..4 + len).ok_or_else(bad)?;
+        let sql = std::str::from_utf8(sql).map_err(|_| bad())?.to_string();
+        let rest = &bytes[4 + len..];
+        let params = if rest.is_empty() {
+            None
+        } else {
+            let mut r = StreamReader::try_new(rest, None).map_err(|_| bad())?;
+            r.next().transpose().map_err(|_| bad())?
+        };
+        Ok(Self { sql, params })
+    }
+
+    /// The bound parameters as positional values (`$1`, `$2`, ... in column order).
+    fn param_values(&self) -> Result<Option<ParamValues>, Status> {
+        let Some(batch) = &self.params else { return Ok(None) };
+        if batch.num_rows() != 1 {
+            return Err(Status::invalid_argument(format!(
+                "parameters: expected one row of values, got {} (execute once per row)",
+                batch.num_rows()
+            )));
+        }
+        let values = batch
+            .columns()
+            .iter()
+            .map(|c| ScalarValue::try_from_array(c, 0))
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| Status::invalid_argument(format!("parameters: {e}")))?;
+        Ok(Some(ParamValues::from(values)))
+    }
+}
+
+fn schema_bytes(schema: &Schema) -> Result<Bytes, Status> {
+    let IpcMessage(bytes) = SchemaAsIpc::new(schema, &IpcWriteOptions::default())
+        .try_into()
+        .map_err(|e: arrow::error::ArrowError| Status::internal(format!("encoding a schema: {e}")))?;
+    Ok(bytes)
+}
+
+#[tonic::async_trait]
+impl FlightSqlService for TraceService {
+    type FlightService = TraceService;
+
+    async fn get_flight_info_statement(
+        &self,
+        query: CommandStatementQuery,
+        request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        let plan = self.plan(&query.query, None).await?;
+        let ticket = TicketStatementQuery { statement_handle: query.query.into_bytes().into() };
+        Self::info(plan.schema().as_arrow(), ticket.as_any().encode_to_vec().into(), request.into_inner())
+    }
+
+    async fn do_get_statement(
+        &self,
+        ticket: TicketStatementQuery,
+        _request: Request<Ticket>,
+    ) -> Result<Response<DoGetStream>, Status> {
+        let sql = std::str::from_utf8(&ticket.statement_handle)
+            .map_err(|_| Status::invalid_argument("not a statement ticket of this server"))?;
+        let plan = self.plan(sql, None).await?;
+        self.execute(plan).await
+    }
+
+    async fn do_action_create_prepared_statement(
+        &self,
+        query: ActionCreatePreparedStatementRequest,
+        _request: Request<arrow_flight::Action>,
+    ) -> Result<ActionCreatePreparedStatementResult, Status> {
+        let plan = self.plan(&query.query, None).await?;
+        let mut params: Vec<(String, DataType)> = plan
+            .get_parameter_types()
+            .map_err(plan_status)?
+            .into_iter()
+            .map(|(name, t)| (name, t.unwrap_or(DataType::Null)))
+            .collect();
+        // `$1`, `$2`, ... in number order.
+        params.sort_by_key(|(name, _)| name.trim_start_matches('$').parse::<u64>().unwrap_or(u64::MAX));
+        let param_schema = Schema::new(params.into_iter().map(|(n, t)| Field::new(n, t, true)).collect::<Vec<_>>());
+        Ok(ActionCreatePreparedStatementResult {
+            prepared_statement_handle: Handle { sql: query.query, params: None }.encode()?,
+            dataset_schema: schema_bytes(plan.schema().as_arrow())?,
+            parameter_schema: schema_bytes(&param_schema)?,
+        })
+    }
+
+    async fn do_put_prepared_statement_query(
+        &self,
+        query: CommandPreparedStatementQuery,
+        request: Request<PeekableFlightDataStream>,
+    ) -> Result<DoPutPreparedStatementResult, Status> {
+        let mut handle = Handle::decode(&query.prepared_statement_handle)?;
+        let stream = FlightRecordBatchStream::new_from_flight_data(request.into_inner().map_err(FlightError::from));
+        let batches: Vec<RecordBatch> =
+            stream.try_collect().await.map_err(|e| Status::invalid_argument(format!("reading parameters: {e}")))?;
+        let Some(first) = batches.first() else {
+            return Err(Status::invalid_argument("parameters: no values were sent"));
+        };
+        let batch = arrow::compute::concat_batches(&first.schema(), &batches)
+            .map_err(|e| Status::invalid_argument(format!("parameters: {e}")))?;
+        handle.params = Some(batch);
+        // Checked now, so a bad binding fails here rather than at execution.
+        self.plan(&handle.sql, handle.param_values()?).await?;
+        Ok(DoPutPreparedStatementResult { prepared_statement_handle: Some(handle.encode()?) })
+    }
+
+    async fn get_flight_info_prepared_statement(
+        &self,
+        cmd: CommandPreparedStatementQuery,
+        request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        let handle = Handle::decode(&cmd.prepared_statement_handle)?;
+        let plan = self.plan(&handle.sql, handle.param_values()?).await?;
+        Self::info(plan.schema().as_arrow(), cmd.as_any().encode_to_vec().into(), request.into_inner())
+    }
+
+    async fn do_get_prepared_statement(
+        &self,
+        cmd: CommandPreparedStatementQuery,
+        _request: Request<Ticket>,
+    ) -> Result<Response<DoGetStream>, Status> {
+        let handle = Handle::decode(&cmd.prepared_statement_handle)?;
+        let plan = self.plan(&handle.sql, handle.param_values()?).await?;
+        self.execute(plan).await
+    }
+
+    async fn do_action_close_prepared_statement(
+        &self,
+        _query: ActionClosePreparedStatementRequest,
+        _request: Request<arrow_flight::Action>,
+    ) -> Result<(), Status> {
+        Ok(()) // Stateless: the handle holds everything.
+    }
+
+    async fn get_flight_info_catalogs(
+        &self,
+        query: CommandGetCatalogs,
+        request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        let schema = query.into_builder().schema();
+        Self::info(&schema, query.as_any().encode_to_vec().into(), request.into_inner())
+    }
+
+    async fn do_get_catalogs(
+        &self,
+        query: CommandGetCatalogs,
+        _request: Request<Ticket>,
+    ) -> Result<Response<DoGetStream>, Status> {
+        let mut b = query.into_builder();
+        for name in self.ctx.catalog_names() {
+            b.append(name);
+        }
+        Self::one_batch(b.build())
+    }
+
+    async fn get_flight_info_schemas(
+        &self,
+        query: CommandGetDbSchemas,
+        request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        let schema = query.clone().into_builder().schema();
+        Self::info(&schema, query.as_any().encode_to_vec().into(), request.into_inner())
+    }
+
+    async fn do_get_schemas(
+        &self,
+        query: CommandGetDbSchemas,
+        _request: Request<Ticket>,
+    ) -> Result<Response<DoGetStream>, Status> {
+        let mut b = query.into_builder();
+        for catalog_name in self.ctx.catalog_names() {
+            if let Some(catalog) = self.ctx.catalog(&catalog_name) {
+                for schema_name in catalog.schema_names() {
+                    b.append(&catalog_name, schema_name); // the builder applies the filters
+                }
+            }
+        }
+        Self::one_batch(b.build())
+    }
+
+    async fn get_flight_info_tables(
+        &self,
+        query: CommandGetTables,
+        request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        let schema = query.clone().into_builder().schema();
+        Self::info(&schema, query.as_any().encode_to_vec().into(), request.into_inner())
+    }
+
+    async fn do_get_tables(
+        &self,
+        query: CommandGetTables,
+        _request: Request<Ticket>,
+    ) -> Result<Response<DoGetStream>, Status> {
+        let wanted_catalog = query.catalog.clone();
+        let mut b = query.into_builder();
+        for catalog_name in self.ctx.catalog_names() {
+            if wanted_catalog.as_ref().is_some_and(|c| c != &catalog_name) {
+                continue;
+            }
+            let Some(catalog) = self.ctx.catalog(&catalog_name) else { continue };
+            for schema_name in catalog.schema_names() {
+                let Some(schema) = catalog.schema(&schema_name) else { continue };
+                for table_name in schema.table_names() {
+                    let table = schema.table(&table_name).await.map_err(exec_status)?;
+                    if let Some(table) = table {
+                        b.append(
+                            &catalog_name,
+                            &schema_name,
+                            &table_name,
+                            table.table_type().to_string(),
+                            &table.schema(),
+                        )
+                        .map_err(|e| Status::internal(format!("listing tables: {e}")))?;
+                    }
+                }
+            }
+        }
+        Self::one_batch(b.build())
+    }
+
+    async fn get_flight_info_table_types(
+        &self,
+        query: CommandGetTableTypes,
+        request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        Self::info(&table_types_schema(), query.as_any().encode_to_vec().into(), request.into_inner())
+    }
+
+    async fn do_get_table_types(
+        &self,
+        _query: CommandGetTableTypes,
+        _request: Request<Ticket>,
+    ) -> Result<Response<DoGetStream>, Status> {
+        use datafusion::datasource::TableType;
+        let types: Vec<String> =
+            [TableType::Base, TableType::View, TableType::Temporary].iter().map(|t| t.to_string()).collect();
+        let column: ArrayRef = Arc::new(StringArray::from(types));
+        Self::one_batch(RecordBatch::try_new(Arc::new(table_types_schema()), vec![column]))
+    }
+
+    async fn get_flight_info_sql_info(
+        &self,
+        query: CommandGetSqlInfo,
+        request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        let schema = query.clone().into_builder(&self.sql_info).schema();
+        Self::info(&schema, query.as_any().encode_to_vec().into(), request.into_inner())
+    }
+
+    async fn do_get_sql_info(
+        &self,
+        query: CommandGetSqlInfo,
+        _request: Request<Ticket>,
+    ) -> Result<Response<DoGetStream>, Status> {
+        Self::one_batch(query.into_builder(&self.sql_info).build())
+    }
+
+    async fn do_put_statement_update(
+        &self,
+        _ticket: CommandStatementUpdate,
+        _request: Request<PeekableFlightDataStream>,
+    ) -> Result<i64, Status> {
+        Err(read_only("an update statement"))
+    }
+
+    async fn do_put_statement_ingest(
+        &self,
+        _ticket: CommandStatementIngest,
+        _request: Request<PeekableFlightDataStream>,
+    ) -> Result<i64, Status> {
+        Err(read_only("ingesting data"))
+    }
+
+    async fn do_put_prepared_statement_update(
+        &self,
+        _query: CommandPreparedStatementUpdate,
+        _request: Request<PeekableFlightDataStream>,
+    ) -> Result<i64, Status> {
+        Err(read_only("an update statement"))
+    }
+
+    async fn get_flight_info_substrait_plan(
+        &self,
+        _query: CommandStatementSubstraitPlan,
+        _request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        Err(Status::unimplemented("Substrait plans are not accepted: send SQL"))
+    }
+
+    async fn do_action_create_prepared_substrait_plan(
+        &self,
+        _query: ActionCreatePreparedSubstraitPlanRequest,
+        _request: Request<arrow_flight::Action>,
+    ) -> Result<ActionCreatePreparedStatementResult, Status> {
+        Err(Status::unimplemented("Substrait plans are not accepted: send SQL"))
+    }
+
+    async fn do_action_begin_transaction(
+        &self,
+        _query: ActionBeginTransactionRequest,
+        _request: Request<arrow_flight::Action>,
+    ) -> Result<ActionBeginTransactionResult, Status> {
+        Err(read_only("a transaction"))
+    }
+
+    async fn do_action_begin_savepoint(
+        &self,
+        _query: ActionBeginSavepointRequest,
+        _request: Request<arrow_flight::Action>,
+    ) -> Result<ActionBeginSavepointResult, Status> {
+        Err(read_only("a savepoint"))
+    }
+
+    async fn register_sql_info(&self, _id: i32, _result: &SqlInfo) {}
+}
+
+fn table_types_schema() -> Schema {
+    Schema::new(vec![Field::new("table_type", DataType::Utf8, false)])
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn question_marks_become_numbered_placeholders() {
+        assert_eq!(number_placeholders("SELECT 1"), "SELECT 1");
+        assert_eq!(
+            number_placeholders("SELECT * FROM rays WHERE depth >= ? AND kind = ?"),
+            "SELECT * FROM rays WHERE depth >= $1 AND kind = $2"
+        );
+        // Not inside literals or quoted identifiers.
+        assert_eq!(
+            number_placeholders("SELECT '?', \"a?\" FROM t WHERE x = ?"),
+            "SELECT '?', \"a?\" FROM t WHERE x = $1"
+        );
+        assert_eq!(number_placeholders("SELECT 'it''s ?' WHERE x = ?"), "SELECT 'it''s ?' WHERE x = $1");
+        assert_eq!(number_placeholders("SELECT 'é?'\n -- ?\n , ? FROM t"), "SELECT 'é?'\n -- ?\n , $1 FROM t");
+    }
+
+    #[test]
+    fn handles_round_trip_and_reject_garbage() {
+        let h = Handle { sql: "SELECT $1".into(), params: None }.encode().unwrap();
+        let d = Handle::decode(&h).unwrap();
+        assert_eq!(d.sql, "SELECT $1");
+        assert!(d.params.is_none());
+        let col: ArrayRef = Arc::new(arrow::array::Int64Array::from(vec![7]));
+        let batch = RecordBatch::try_from_iter([("$1", col)]).unwrap();
+        let h = Handle { sql: "SELECT $1".into(), params: Some(batch) }.encode().unwrap();
+        let d = Handle::decode(&h).unwrap();
+        let p = d.param_values().unwrap().unwrap();
+        assert!(matches!(p, ParamValues::List(v) if v.len() == 1));
+        for garbage in [&b""[..], b"\xff\xff\xff\xff", b"\x02\x00\x00\x00\xff\xfe", b"\x01\x00\x00\x00Xjunk"] {
+            assert!(Handle::decode(garbage).is_err(), "{garbage:?}");
+        }
+    }
+}
