@@ -3,8 +3,9 @@
 //!
 //! Each query runs in its own process (`rtvtk sql --timing` / `python3 -c` with duckdb), warm
 //! (once untimed, then `runs` times); the time is the median of the query alone, as each engine
-//! reports it, and the memory the process's peak resident set (`wait4`), so both include their
-//! runtime (DuckDB's includes the Python interpreter, ~30 MB). Both engines read the plain export
+//! reports it, and the memory the process's peak resident set (Linux `VmHWM`, reported by the
+//! child itself; `wait4` elsewhere), so both include their runtime (DuckDB's includes the
+//! Python interpreter, ~30 MB). Both engines read the plain export
 //! (same files, same columns); rtvtk also reads the encoded dataset when given one. The row
 //! counts of the two engines' answers are compared: a query whose answers differ is reported.
 
@@ -176,6 +177,13 @@ fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
     Ok((cmd.output()?, 0))
 }
 
+/// The peak resident set a child reported (`peak rss bytes: N` on stderr, from Linux `VmHWM`).
+/// Preferred to `wait4`'s `ru_maxrss`, which starts from this (parent) process's own peak:
+/// Linux carries the pre-`exec` image's high-water mark over into the child's.
+fn reported_peak(stderr: &str) -> Option<u64> {
+    stderr.lines().find_map(|l| l.strip_prefix("peak rss bytes: ")).and_then(|v| v.trim().parse().ok())
+}
+
 fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
@@ -205,7 +213,7 @@ fn ours(dataset: &Path, query: &str, json: bool, runs: usize, memory_limit: Opti
             .context("no timing from rtvtk sql")?;
         if i > 0 {
             times.push(secs);
-            rss = rss.max(peak);
+            rss = rss.max(reported_peak(&err).unwrap_or(peak));
         }
         rows = String::from_utf8_lossy(&out.stdout)
             .lines()
@@ -262,6 +270,7 @@ import sys, time
 import duckdb
 d, q, runs = sys.argv[1], sys.argv[2], int(sys.argv[3])
 con = duckdb.connect()
+con.execute("SET enable_progress_bar = false")
 con.execute(f"CREATE VIEW rays AS SELECT * FROM read_parquet('{d}/segments/*.rays.parquet')")
 con.execute(f"CREATE VIEW trees AS SELECT * FROM read_parquet('{d}/segments/*.trees.parquet')")
 rows = con.execute(q).fetchall()
@@ -270,12 +279,18 @@ for _ in range(runs):
     t = time.perf_counter(); rows = con.execute(q).fetchall(); times.append(time.perf_counter() - t)
 times.sort()
 print(times[len(times) // 2])
+try:
+    hwm = [l for l in open("/proc/self/status") if l.startswith("VmHWM:")][0].split()[1]
+    print(f"peak rss bytes: {int(hwm) * 1024}", file=sys.stderr)
+except (OSError, IndexError, ValueError):
+    pass
 for r in rows:
     print(",".join("" if v is None else str(v) for v in r))
 "#;
     let mut cmd = Command::new("python3");
     cmd.arg("-c").arg(script).arg(plain).arg(query).arg(runs.to_string());
     let (out, rss) = run_measured(&mut cmd)?;
+    let rss = reported_peak(&String::from_utf8_lossy(&out.stderr)).unwrap_or(rss);
     if !out.status.success() {
         let err = String::from_utf8_lossy(&out.stderr);
         bail!("python3/duckdb failed on {query:?}: {}", err.lines().last().unwrap_or(""));

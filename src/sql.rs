@@ -83,8 +83,23 @@ pub fn run(a: &SqlArgs) -> Result<()> {
         if a.timing {
             eprintln!("query seconds: {:.6}", start.elapsed().as_secs_f64());
         }
-        write(&batches, a.format, a.out.as_deref())
+        write(&batches, a.format, a.out.as_deref())?;
+        if a.timing
+            && let Some(peak) = peak_rss_bytes()
+        {
+            eprintln!("peak rss bytes: {peak}");
+        }
+        Ok(())
     })
+}
+
+/// This process's peak resident set (Linux `VmHWM`: of this program image only, unlike
+/// `ru_maxrss`, which keeps the spawning parent's peak across `exec`).
+pub fn peak_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find_map(|l| l.strip_prefix("VmHWM:"))?;
+    let kb: u64 = line.trim().trim_end_matches("kB").trim().parse().ok()?;
+    Some(kb * 1024)
 }
 
 /// The interactive prompt: statements end with `;`; `\d` lists the tables, `\d TABLE` shows

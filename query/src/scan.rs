@@ -337,6 +337,28 @@ impl Pushdown {
         deep || ["tree_id", "pixel_x", "pixel_y", "sample"].iter().any(|c| self.ranges.contains_key(c))
     }
 
+    /// Whether pruning by the tree table pays for reading it. A lower bound on depth alone keeps
+    /// every tree whose deepest ray reaches it: worth it only when few rays are that deep (the
+    /// segment's ray counts per depth say how many), otherwise the row selection would cut the
+    /// segment into millions of ranges to skip little. Any tree, pixel or sample bound is.
+    fn trees_worth_reading(&self, by_kind_depth: &std::collections::BTreeMap<String, Vec<u64>>) -> bool {
+        if ["tree_id", "pixel_x", "pixel_y", "sample"].iter().any(|c| self.ranges.contains_key(c)) {
+            return true;
+        }
+        let min_depth = self.ranges.get("depth").and_then(|r| r.first()).map_or(0, |r| r.0);
+        let (mut all, mut deep) = (0u64, 0u64);
+        for counts in by_kind_depth.values() {
+            for (d, &n) in counts.iter().enumerate() {
+                all += n;
+                if d as u64 >= min_depth {
+                    deep += n;
+                }
+            }
+        }
+        // No statistics (older datasets): prune, as before.
+        all == 0 || deep.saturating_mul(20) < all
+    }
+
     /// The segments (and rows within them) that can hold matching rays.
     fn plan(&self, ds: &Dataset) -> store::Result<Vec<SegmentPlan>> {
         let mut out = Vec::new();
@@ -355,7 +377,7 @@ impl Pushdown {
                     continue;
                 }
             }
-            if !self.needs_trees() {
+            if !self.needs_trees() || !self.trees_worth_reading(by_kind) {
                 out.push(SegmentPlan { segment: i, rows: None, trees: seg.trees.rows, rays: seg.rays.rows });
                 continue;
             }
