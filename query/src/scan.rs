@@ -303,7 +303,13 @@ struct SegmentPlan {
     rows: Option<Arc<Vec<Range<u64>>>>,
     trees: u64,
     rays: u64,
+    /// The kept trees' entries when only those were read (a few tree ids); the scan then adds
+    /// pixel columns from them instead of reading the whole tree table.
+    entries: Option<Arc<Vec<TreeEntry>>>,
 }
+
+/// Tree-id filters at most this wide read only the tree-table pages that hold those ids.
+const NARROW_TREE_IDS: u64 = 1 << 16;
 
 impl Pushdown {
     fn of(filters: &[Expr]) -> Self {
@@ -378,10 +384,23 @@ impl Pushdown {
                 }
             }
             if !self.needs_trees() || !self.trees_worth_reading(by_kind) {
-                out.push(SegmentPlan { segment: i, rows: None, trees: seg.trees.rows, rays: seg.rays.rows });
+                out.push(SegmentPlan {
+                    segment: i,
+                    rows: None,
+                    trees: seg.trees.rows,
+                    rays: seg.rays.rows,
+                    entries: None,
+                });
                 continue;
             }
-            let entries = ds.segment_tree_entries(i)?;
+            let narrow = self.ranges.get("tree_id").filter(|r| {
+                r.iter().map(|&(lo, hi)| hi.saturating_sub(lo).saturating_add(1)).fold(0u64, u64::saturating_add)
+                    <= NARROW_TREE_IDS
+            });
+            let (entries, subset) = match narrow {
+                Some(ids) => (Arc::new(ds.segment_tree_entries_in(i, ids)?), true),
+                None => (ds.segment_tree_entries(i)?, false),
+            };
             let min_depth = depths.and_then(|r| r.first()).map_or(0, |r| r.0);
             let keep = |e: &TreeEntry| {
                 contains(self.ranges.get("tree_id"), e.info.id.0)
@@ -401,7 +420,7 @@ impl Pushdown {
                 continue;
             }
             let trees = rows.len() as u64;
-            let rows = if trees == entries.len() as u64 {
+            let rows = if trees == seg.trees.rows {
                 None
             } else {
                 rows.sort_unstable_by_key(|r| r.start);
@@ -414,7 +433,8 @@ impl Pushdown {
                 }
                 Some(Arc::new(merged))
             };
-            out.push(SegmentPlan { segment: i, rows, trees, rays });
+            let entries = subset.then(|| Arc::new(entries.iter().filter(|e| keep(e)).copied().collect()));
+            out.push(SegmentPlan { segment: i, rows, trees, rays, entries });
         }
         Ok(out)
     }
@@ -463,7 +483,10 @@ impl RaysScanExec {
         if virtual_cols.is_empty() {
             return Ok(it);
         }
-        let entries = self.ds.segment_tree_entries(part.segment)?;
+        let entries = match &part.entries {
+            Some(e) => e.clone(),
+            None => self.ds.segment_tree_entries(part.segment)?,
+        };
         let schema = self.schema.clone();
         let path = self.ds.dir().join(&self.ds.manifest().segments[part.segment].rays.path);
         Ok(Box::new(it.map(move |b| {

@@ -228,31 +228,7 @@ impl Dataset {
         let reader = builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?;
         for batch in reader {
             let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
-            let c = |j: usize| b.column(j);
-            let (id, px, py, s) = (
-                c(0).as_primitive::<UInt64Type>(),
-                c(1).as_primitive::<UInt32Type>(),
-                c(2).as_primitive::<UInt32Type>(),
-                c(3).as_primitive::<UInt32Type>(),
-            );
-            let (n, d, first) = (
-                c(4).as_primitive::<UInt32Type>(),
-                c(5).as_primitive::<UInt16Type>(),
-                c(7).as_primitive::<UInt64Type>(),
-            );
-            for r in 0..b.num_rows() {
-                out.push(TreeEntry {
-                    info: TreeInfo {
-                        id: TreeId(id.value(r)),
-                        pixel: [px.value(r), py.value(r)],
-                        sample: s.value(r),
-                        ray_count: n.value(r),
-                        max_depth: d.value(r),
-                    },
-                    segment: i as u32,
-                    first_row: first.value(r),
-                });
-            }
+            push_tree_entries(&b, i, out);
         }
         let found = out.len() - start;
         if found as u64 != seg.trees.rows {
@@ -263,6 +239,49 @@ impl Dataset {
             });
         }
         Ok(())
+    }
+
+    /// The trees of segment `i` whose ids fall in `ranges` (inclusive bounds), sorted by id. Reads
+    /// only the tree-table pages whose id range (the file's page index) overlaps `ranges`, so a
+    /// lookup of a few trees does not decode the whole table; uses the table when already loaded.
+    pub fn segment_tree_entries_in(&self, i: usize, ranges: &[(u64, u64)]) -> Result<Vec<TreeEntry>> {
+        let wanted = |id: u64| ranges.iter().any(|&(lo, hi)| lo <= id && id <= hi);
+        if let Some(all) = self.segment_trees.get(i).and_then(|c| c.get()) {
+            return Ok(all.iter().filter(|e| wanted(e.info.id.0)).copied().collect());
+        }
+        let path = self.dir.join(&self.segment(i).trees.path);
+        let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
+        let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
+        let meta = ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path))?;
+        check_schema(meta.schema(), &tree_schema(), &path)?;
+        let Some(rows) = tree_id_pages(&meta, ranges) else {
+            // No page index (not written by this store): the whole table.
+            return Ok(self.segment_tree_entries(i)?.iter().filter(|e| wanted(e.info.id.0)).copied().collect());
+        };
+        let mut out = Vec::new();
+        if rows.is_empty() {
+            return Ok(out);
+        }
+        let mut starts = Vec::with_capacity(meta.metadata().num_row_groups());
+        let mut row = 0u64;
+        for rg in meta.metadata().row_groups() {
+            starts.push(row);
+            row += rg.num_rows() as u64;
+        }
+        let (groups, selection) = select_rows(&starts, &meta, &rows);
+        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta)
+            .with_row_groups(groups)
+            .with_row_selection(selection)
+            .with_batch_size(64 * 1024)
+            .build()
+            .map_err(pq_err(&path))?;
+        for batch in reader {
+            let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+            push_tree_entries(&b, i, &mut out);
+        }
+        out.retain(|e| wanted(e.info.id.0));
+        out.sort_unstable_by_key(|e| e.info.id);
+        Ok(out)
     }
 
     fn index(&self) -> Result<Arc<TreeIndex>> {
@@ -861,6 +880,66 @@ pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
 
 pub(crate) fn listed_files(m: &Manifest) -> HashSet<String> {
     m.segments.iter().flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()]).collect()
+}
+
+/// Appends the tree entries of one tree-table batch (columns in `tree_schema` order).
+fn push_tree_entries(b: &RecordBatch, segment: usize, out: &mut Vec<TreeEntry>) {
+    let c = |j: usize| b.column(j);
+    let (id, px, py, s) = (
+        c(0).as_primitive::<UInt64Type>(),
+        c(1).as_primitive::<UInt32Type>(),
+        c(2).as_primitive::<UInt32Type>(),
+        c(3).as_primitive::<UInt32Type>(),
+    );
+    let (n, d, first) =
+        (c(4).as_primitive::<UInt32Type>(), c(5).as_primitive::<UInt16Type>(), c(7).as_primitive::<UInt64Type>());
+    for r in 0..b.num_rows() {
+        out.push(TreeEntry {
+            info: TreeInfo {
+                id: TreeId(id.value(r)),
+                pixel: [px.value(r), py.value(r)],
+                sample: s.value(r),
+                ray_count: n.value(r),
+                max_depth: d.value(r),
+            },
+            segment: segment as u32,
+            first_row: first.value(r),
+        });
+    }
+}
+
+/// The rows (file-wide, sorted, merged) of the tree-table pages whose `tree_id` min/max overlaps
+/// `ranges`; None when the file has no page index for the column.
+fn tree_id_pages(meta: &ArrowReaderMetadata, ranges: &[(u64, u64)]) -> Option<Vec<std::ops::Range<u64>>> {
+    use parquet::file::page_index::column_index::ColumnIndexMetaData;
+    let md = meta.metadata();
+    let (columns, offsets) = (md.column_index()?, md.offset_index()?);
+    let mut rows: Vec<std::ops::Range<u64>> = Vec::new();
+    let mut group_start = 0u64;
+    for (g, rg) in md.row_groups().iter().enumerate() {
+        let group_rows = rg.num_rows() as u64;
+        let ColumnIndexMetaData::INT64(index) = columns.get(g)?.first()? else { return None };
+        let pages = offsets.get(g)?.first()?.page_locations();
+        for (p, loc) in pages.iter().enumerate() {
+            let first = loc.first_row_index as u64;
+            let end = pages.get(p + 1).map_or(group_rows, |n| n.first_row_index as u64);
+            // Ids are stored as INT64 bit patterns of u64; below 2^63 the orders agree, above it
+            // the page is kept (no pruning rather than a wrong one).
+            let (lo, hi) = match (index.min_value(p), index.max_value(p)) {
+                (Some(&lo), Some(&hi)) if lo >= 0 && hi >= lo => (lo as u64, hi as u64),
+                _ => (0, u64::MAX),
+            };
+            if ranges.iter().any(|&(a, b)| a <= hi && lo <= b) {
+                let r = group_start + first..group_start + end;
+                match rows.last_mut() {
+                    Some(last) if last.end == r.start => last.end = r.end,
+                    _ => rows.push(r),
+                }
+            }
+        }
+        group_start += group_rows;
+    }
+    Some(rows)
 }
 
 /// The row groups that `rows` (sorted, disjoint ranges) touch and the selection of those rows
