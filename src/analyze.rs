@@ -52,7 +52,7 @@ enum Analysis {
 }
 
 pub fn run(a: &AnalyzeArgs) -> Result<()> {
-    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")?;
+    let rt = crate::runtime()?;
     let report = rt.block_on(async {
         let report: query::Result<Report> = match &a.what {
             Analysis::Coherence { dataset, width, orders, kind } => {

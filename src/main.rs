@@ -108,6 +108,12 @@ enum Command {
     },
 }
 
+/// The Tokio runtime the query commands run on.
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    use anyhow::Context as _;
+    tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")
+}
+
 fn main() {
     // Rust ignores SIGPIPE, so printing into a closed pipe (`rtvtk tree ... | head`) would panic;
     // restore the default: the process ends quietly, like any Unix tool.

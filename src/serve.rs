@@ -19,13 +19,11 @@ pub struct ServeArgs {
 }
 
 pub fn run(a: &ServeArgs) -> Result<()> {
-    let sources: Vec<query::TraceSource> = a.datasets.iter().map(|d| query::TraceSource::parse(d)).collect();
-    for s in &sources {
-        if !s.path.join(store::MANIFEST_FILE).is_file() {
-            bail!("{}: not a dataset directory (expected {})", s.path.display(), store::MANIFEST_FILE);
-        }
+    if let Some(d) = a.datasets.iter().find(|d| !crate::sql::is_dataset(d)) {
+        bail!("{d}: not a dataset directory (expected {})", store::MANIFEST_FILE);
     }
-    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")?;
+    let sources: Vec<query::TraceSource> = a.datasets.iter().map(|d| query::TraceSource::parse(d)).collect();
+    let rt = crate::runtime()?;
     rt.block_on(async {
         let options = query::SessionOptions { memory_limit: a.memory_limit };
         let ctx = query::session_with(&sources, &options).await?;

@@ -58,7 +58,7 @@ pub fn parse_bytes(s: &str) -> std::result::Result<usize, String> {
 }
 
 /// Whether a command-line item names a dataset (rather than being the query).
-fn is_dataset(item: &str) -> bool {
+pub fn is_dataset(item: &str) -> bool {
     let path = query::TraceSource::parse(item).path;
     path.join(store::MANIFEST_FILE).is_file()
 }
@@ -71,7 +71,7 @@ pub fn run(a: &SqlArgs) -> Result<()> {
         bail!("no dataset given: expected `rtvtk sql DATASET... \"QUERY\"` ({last:?} is not a dataset directory)");
     }
     let sources: Vec<query::TraceSource> = datasets.iter().map(|d| query::TraceSource::parse(d)).collect();
-    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")?;
+    let rt = crate::runtime()?;
     rt.block_on(async {
         let options = query::SessionOptions { memory_limit: a.memory_limit };
         let ctx = query::session_with(&sources, &options).await?;

@@ -2,21 +2,13 @@
 //! `rtvtk analyze`: the canned reports on small traces, their plots, and bad input.
 
 use std::path::Path;
-use std::process::{Command, Output};
 
-fn rtvtk(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap()
-}
-
-fn ok(args: &[&str]) -> String {
-    let out = rtvtk(args);
-    assert!(out.status.success(), "rtvtk {args:?}: {}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stdout).to_string()
-}
+mod common;
+use common::{ok, rtvtk};
 
 fn record(dir: &Path, extra: &[&str]) {
-    let base = ["record", "--scene", "cornell", "--size", "32x24", "--spp", "2", "--threads", "2", "--record-visits"];
-    ok(&[&base[..], &["--out", dir.to_str().unwrap()], extra].concat());
+    let base = ["--scene", "cornell", "--size", "32x24", "--spp", "2", "--threads", "2", "--record-visits"];
+    common::record(dir, &[&base[..], extra].concat());
 }
 
 /// The number after `**` in the bug report's summary line.

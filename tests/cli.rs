@@ -2,13 +2,12 @@
 //! The `rtvtk` command line end to end, and plain-Parquet readers (DuckDB from PyPI) on its output.
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Command;
 
 use serde_json::Value;
 
-fn rtvtk(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap()
-}
+mod common;
+use common::rtvtk;
 
 fn demo(dir: &Path) {
     let out = rtvtk(&["demo", "--out", dir.to_str().unwrap(), "--size", "32x24", "--spp", "2"]);

@@ -16,21 +16,12 @@ use arrow_flight::{FlightInfo, Ticket};
 use futures::TryStreamExt;
 use tonic::transport::Channel;
 
-fn rtvtk(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap()
-}
+mod common;
+use common::{rtvtk, scalar as sql_scalar};
 
 fn record(dir: &Path, extra: &[&str]) {
-    let base = ["record", "--scene", "cornell", "--size", "32x24", "--spp", "4", "--threads", "2", "--out"];
-    let out = rtvtk(&[&base[..], &[dir.to_str().unwrap()], extra].concat());
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-}
-
-/// The single value `rtvtk sql` prints for a query (CSV, header skipped).
-fn sql_scalar(datasets: &[&str], query: &str) -> String {
-    let out = rtvtk(&[&["sql"], datasets, &[query, "--format", "csv"]].concat());
-    assert!(out.status.success(), "{query}: {}", String::from_utf8_lossy(&out.stderr));
-    String::from_utf8_lossy(&out.stdout).lines().nth(1).unwrap_or_default().trim().to_string()
+    let base = ["--scene", "cornell", "--size", "32x24", "--spp", "4", "--threads", "2"];
+    common::record(dir, &[&base[..], extra].concat());
 }
 
 /// The server process, killed when the test ends (also when it fails).

@@ -10,7 +10,6 @@
 //! and paste its output.
 
 use std::path::Path;
-use std::process::Command;
 
 use arrow::array::{Array, RecordBatch};
 use arrow::datatypes::DataType;
@@ -88,14 +87,12 @@ impl sqllogictest::AsyncDB for Trace {
     }
 }
 
-fn rtvtk(args: &[&str]) {
-    let out = Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap();
-    assert!(out.status.success(), "rtvtk {args:?}: {}", String::from_utf8_lossy(&out.stderr));
-}
+mod common;
 
 fn record(dir: &Path, extra: &[&str]) {
-    let base = ["record", "--scene", "cornell", "--size", "16x12", "--spp", "2", "--threads", "1", "--seed", "0"];
-    rtvtk(&[&base[..], &["--record-visits", "--out", dir.to_str().unwrap()], extra].concat());
+    let base =
+        ["--scene", "cornell", "--size", "16x12", "--spp", "2", "--threads", "1", "--seed", "0", "--record-visits"];
+    common::record(dir, &[&base[..], extra].concat());
 }
 
 #[test]
@@ -104,7 +101,7 @@ fn sql_logic_tests() {
     let (good, bad, plain) = (tmp.path().join("good"), tmp.path().join("bad"), tmp.path().join("plain"));
     record(&good, &[]);
     record(&bad, &["--inject-bug", "shadow-dir"]);
-    rtvtk(&["export", good.to_str().unwrap(), plain.to_str().unwrap()]);
+    common::ok(&["export", good.to_str().unwrap(), plain.to_str().unwrap()]);
     let sources: Vec<query::TraceSource> = [("good", &good), ("bad", &bad), ("plain", &plain)]
         .iter()
         .map(|(n, p)| query::TraceSource { name: n.to_string(), path: p.to_path_buf() })

@@ -3,18 +3,16 @@
 //! paper's shadow-ray bug as a query, several datasets side by side, and bad input.
 
 use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Command;
 
 use serde_json::Value;
 
-fn rtvtk(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap()
-}
+mod common;
+use common::{rtvtk, scalar};
 
 fn record(dir: &Path, extra: &[&str]) {
-    let base = ["record", "--scene", "cornell", "--size", "40x30", "--spp", "4", "--threads", "2", "--out"];
-    let out = rtvtk(&[&base[..], &[dir.to_str().unwrap()], extra].concat());
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let base = ["--scene", "cornell", "--size", "40x30", "--spp", "4", "--threads", "2"];
+    common::record(dir, &[&base[..], extra].concat());
 }
 
 /// A lossless recording under `dir` and its plain export: (encoded, plain).
@@ -23,14 +21,6 @@ fn record_and_export(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
     record(&enc, &[]);
     assert!(rtvtk(&["export", enc.to_str().unwrap(), plain.to_str().unwrap()]).status.success());
     (enc, plain)
-}
-
-/// The single value a query returns (CSV output, header skipped).
-fn scalar(datasets: &[&str], query: &str) -> String {
-    let out = rtvtk(&[&["sql"], datasets, &[query, "--format", "csv"]].concat());
-    assert!(out.status.success(), "{query}: {}", String::from_utf8_lossy(&out.stderr));
-    let text = String::from_utf8_lossy(&out.stdout).to_string();
-    text.lines().nth(1).unwrap_or_default().trim().to_string()
 }
 
 const WRONG_SHADOWS: &str = "SELECT count(*) FROM rays WHERE kind = 'shadow' \

@@ -22,7 +22,7 @@ use arrow::datatypes::{DataType, Float64Type, UInt32Type, UInt64Type};
 use arrow::util::display::{ArrayFormatter, FormatOptions};
 use datafusion::prelude::SessionContext;
 
-use crate::functions::{Coherence, Spread};
+use crate::functions::{Coherence, Spread, XyzStat};
 use crate::{Error, Result};
 
 /// A grid of values to draw (NaN where there is no data), row-major from the top-left pixel.

@@ -293,6 +293,65 @@ fn point_fields() -> arrow::datatypes::Fields {
     .into()
 }
 
+/// A statistic of 3-vectors that DataFusion aggregates in parts and merges: the aggregate
+/// `NAME(x, y, z)` gives [`XyzStat::value`] as a Float64.
+pub(crate) trait XyzStat: std::fmt::Debug + Default + Send + Sync + 'static {
+    const NAME: &'static str;
+    /// Adds one vector (the statistic decides which ones count).
+    fn add(&mut self, v: [f64; 3]);
+    /// The statistic, None without vectors.
+    fn value(&self) -> Option<f64>;
+    /// Types of the partial state, as [`XyzStat::state`] lists it.
+    fn state_types() -> Vec<DataType>;
+    fn state(&self) -> Vec<ScalarValue>;
+    /// Merges partial states (columns as [`XyzStat::state_types`]).
+    fn merge_states(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()>;
+}
+
+/// The DataFusion accumulator of any [`XyzStat`].
+#[derive(Debug, Default)]
+struct XyzAccumulator<S>(S);
+
+impl<S: XyzStat> Accumulator for XyzAccumulator<S> {
+    fn update_batch(&mut self, values: &[ArrayRef]) -> datafusion::error::Result<()> {
+        let c = float_cols::<3>(values)?;
+        for r in 0..c[0].len() {
+            if let Some(v) = row(&c, r) {
+                self.0.add(v);
+            }
+        }
+        Ok(())
+    }
+
+    fn evaluate(&mut self) -> datafusion::error::Result<ScalarValue> {
+        Ok(ScalarValue::Float64(self.0.value()))
+    }
+
+    fn size(&self) -> usize {
+        std::mem::size_of_val(self)
+    }
+
+    fn state(&mut self) -> datafusion::error::Result<Vec<ScalarValue>> {
+        Ok(self.0.state())
+    }
+
+    fn merge_batch(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
+        self.0.merge_states(states)
+    }
+}
+
+/// The aggregate UDF of an [`XyzStat`]: three Float64 arguments, a Float64 result.
+fn xyz_aggregate<S: XyzStat>() -> datafusion::logical_expr::AggregateUDF {
+    create_udaf(
+        S::NAME,
+        vec![DataType::Float64; 3],
+        Arc::new(DataType::Float64),
+        Volatility::Immutable,
+        Arc::new(|_| Ok(Box::new(XyzAccumulator::<S>::default()))),
+        Arc::new(S::state_types()),
+    )
+}
+
 /// Mean resultant length of directions: sums of the normalized vectors and their count.
 #[derive(Debug, Default)]
 pub(crate) struct Coherence {
@@ -300,9 +359,11 @@ pub(crate) struct Coherence {
     n: u64,
 }
 
-impl Coherence {
+impl XyzStat for Coherence {
+    const NAME: &'static str = "dir_coherence";
+
     /// Adds a direction (zero, NaN or infinite ones are left out).
-    pub(crate) fn add(&mut self, d: [f64; 3]) {
+    fn add(&mut self, d: [f64; 3]) {
         let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         if len > 0.0 && len.is_finite() {
             for (s, x) in self.sum.iter_mut().zip(d) {
@@ -312,39 +373,23 @@ impl Coherence {
         }
     }
 
-    /// The mean resultant length, None without directions.
-    pub(crate) fn value(&self) -> Option<f64> {
+    /// The mean resultant length.
+    fn value(&self) -> Option<f64> {
         let s = self.sum;
         (self.n > 0).then(|| (s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sqrt() / self.n as f64)
     }
-}
 
-impl Accumulator for Coherence {
-    fn update_batch(&mut self, values: &[ArrayRef]) -> datafusion::error::Result<()> {
-        let c = float_cols::<3>(values)?;
-        for r in 0..c[0].len() {
-            if let Some(d) = row(&c, r) {
-                self.add(d);
-            }
-        }
-        Ok(())
+    fn state_types() -> Vec<DataType> {
+        vec![DataType::Float64, DataType::Float64, DataType::Float64, DataType::UInt64]
     }
 
-    fn evaluate(&mut self) -> datafusion::error::Result<ScalarValue> {
-        Ok(ScalarValue::Float64(self.value()))
-    }
-
-    fn size(&self) -> usize {
-        std::mem::size_of_val(self)
-    }
-
-    fn state(&mut self) -> datafusion::error::Result<Vec<ScalarValue>> {
+    fn state(&self) -> Vec<ScalarValue> {
         let mut v: Vec<ScalarValue> = self.sum.iter().map(|x| ScalarValue::Float64(Some(*x))).collect();
         v.push(ScalarValue::UInt64(Some(self.n)));
-        Ok(v)
+        v
     }
 
-    fn merge_batch(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
+    fn merge_states(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
         let c = float_cols::<3>(states)?;
         let n = states
             .get(3)
@@ -385,47 +430,35 @@ impl Spread {
         self.m2 += m2 + d2 * (self.n as f64) * (n as f64) / total as f64;
         self.n = total;
     }
+}
+
+impl XyzStat for Spread {
+    const NAME: &'static str = "origin_spread";
 
     /// Adds a point (ones with a NaN or infinite coordinate are left out).
-    pub(crate) fn add(&mut self, p: [f64; 3]) {
+    fn add(&mut self, p: [f64; 3]) {
         if p.iter().all(|c| c.is_finite()) {
             self.merge(1, p, 0.0);
         }
     }
 
-    /// The RMS distance from the centroid, None without points.
-    pub(crate) fn value(&self) -> Option<f64> {
+    /// The RMS distance from the centroid.
+    fn value(&self) -> Option<f64> {
         (self.n > 0).then(|| (self.m2 / self.n as f64).max(0.0).sqrt())
     }
-}
 
-impl Accumulator for Spread {
-    fn update_batch(&mut self, values: &[ArrayRef]) -> datafusion::error::Result<()> {
-        let c = float_cols::<3>(values)?;
-        for r in 0..c[0].len() {
-            if let Some(p) = row(&c, r) {
-                self.add(p);
-            }
-        }
-        Ok(())
+    fn state_types() -> Vec<DataType> {
+        vec![DataType::UInt64, DataType::Float64, DataType::Float64, DataType::Float64, DataType::Float64]
     }
 
-    fn evaluate(&mut self) -> datafusion::error::Result<ScalarValue> {
-        Ok(ScalarValue::Float64(self.value()))
-    }
-
-    fn size(&self) -> usize {
-        std::mem::size_of_val(self)
-    }
-
-    fn state(&mut self) -> datafusion::error::Result<Vec<ScalarValue>> {
+    fn state(&self) -> Vec<ScalarValue> {
         let mut v = vec![ScalarValue::UInt64(Some(self.n))];
         v.extend(self.mean.iter().map(|x| ScalarValue::Float64(Some(*x))));
         v.push(ScalarValue::Float64(Some(self.m2)));
-        Ok(v)
+        v
     }
 
-    fn merge_batch(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
+    fn merge_states(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
         let bad = || DataFusionError::Internal("origin_spread: bad state".into());
         let n = states.first().and_then(|a| a.as_primitive_opt::<UInt64Type>()).ok_or_else(bad)?;
         let c = float_cols::<4>(states.get(1..).ok_or_else(bad)?)?;
@@ -439,26 +472,8 @@ impl Accumulator for Spread {
 /// Registers every ray function in `ctx`, scene-dependent ones over `scene`.
 pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
     ctx.register_udf(ray_point_udf());
-    // Aggregates of three Float64 arguments giving a Float64, with their accumulator's state types.
-    let xyz_aggregate = |name: &str, state: Vec<DataType>, new: fn() -> Box<dyn Accumulator>| {
-        create_udaf(
-            name,
-            vec![DataType::Float64; 3],
-            Arc::new(DataType::Float64),
-            Volatility::Immutable,
-            Arc::new(move |_| Ok(new())),
-            Arc::new(state),
-        )
-    };
-    let f = DataType::Float64;
-    ctx.register_udaf(xyz_aggregate("dir_coherence", vec![f.clone(), f.clone(), f.clone(), DataType::UInt64], || {
-        Box::new(Coherence::default())
-    }));
-    ctx.register_udaf(xyz_aggregate(
-        "origin_spread",
-        vec![DataType::UInt64, f.clone(), f.clone(), f.clone(), f],
-        || Box::new(Spread::default()),
-    ));
+    ctx.register_udaf(xyz_aggregate::<Coherence>());
+    ctx.register_udaf(xyz_aggregate::<Spread>());
     ctx.register_udf(rowwise::<3, _, UInt8Array>("octant", false, DataType::UInt8, |d, _| {
         Some(u8::from(d[0] < 0.0) | (u8::from(d[1] < 0.0) << 1) | (u8::from(d[2] < 0.0) << 2))
     }));

@@ -39,6 +39,8 @@ const TREE_COLUMNS: [&str; 3] = ["pixel_x", "pixel_y", "sample"];
 
 /// Integer columns whose filters prune trees or segments.
 const RANGE_COLUMNS: [&str; 5] = ["tree_id", "pixel_x", "pixel_y", "sample", "depth"];
+/// Range columns answered by the tree table alone.
+const TREE_FILTER_COLUMNS: [&str; 4] = ["tree_id", "pixel_x", "pixel_y", "sample"];
 
 /// The `rays` table of a dataset (any encoding).
 pub(crate) struct RaysTable {
@@ -340,7 +342,12 @@ impl Pushdown {
     /// Whether a filter needs the tree table (anything but kind and an upper bound on depth).
     fn needs_trees(&self) -> bool {
         let deep = self.ranges.get("depth").is_some_and(|r| r.first().is_none_or(|f| f.0 > 0));
-        deep || ["tree_id", "pixel_x", "pixel_y", "sample"].iter().any(|c| self.ranges.contains_key(c))
+        deep || TREE_FILTER_COLUMNS.iter().any(|c| self.ranges.contains_key(c))
+    }
+
+    /// The lowest depth a kept ray may have (0 without a depth filter).
+    fn min_depth(&self) -> u64 {
+        self.ranges.get("depth").and_then(|r| r.first()).map_or(0, |r| r.0)
     }
 
     /// Whether pruning by the tree table pays for reading it. A lower bound on depth alone keeps
@@ -348,10 +355,10 @@ impl Pushdown {
     /// segment's ray counts per depth say how many), otherwise the row selection would cut the
     /// segment into millions of ranges to skip little. Any tree, pixel or sample bound is.
     fn trees_worth_reading(&self, by_kind_depth: &std::collections::BTreeMap<String, Vec<u64>>) -> bool {
-        if ["tree_id", "pixel_x", "pixel_y", "sample"].iter().any(|c| self.ranges.contains_key(c)) {
+        if TREE_FILTER_COLUMNS.iter().any(|c| self.ranges.contains_key(c)) {
             return true;
         }
-        let min_depth = self.ranges.get("depth").and_then(|r| r.first()).map_or(0, |r| r.0);
+        let min_depth = self.min_depth();
         let (mut all, mut deep) = (0u64, 0u64);
         for counts in by_kind_depth.values() {
             for (d, &n) in counts.iter().enumerate() {
@@ -393,21 +400,26 @@ impl Pushdown {
                 });
                 continue;
             }
-            let narrow = self.ranges.get("tree_id").filter(|r| {
-                r.iter().map(|&(lo, hi)| hi.saturating_sub(lo).saturating_add(1)).fold(0u64, u64::saturating_add)
-                    <= NARROW_TREE_IDS
-            });
-            let (entries, subset) = match narrow {
-                Some(ids) => (Arc::new(ds.segment_tree_entries_in(i, ids)?), true),
-                None => (ds.segment_tree_entries(i)?, false),
-            };
-            let min_depth = depths.and_then(|r| r.first()).map_or(0, |r| r.0);
+            let min_depth = self.min_depth();
             let keep = |e: &TreeEntry| {
                 contains(self.ranges.get("tree_id"), e.info.id.0)
                     && contains(self.ranges.get("pixel_x"), u64::from(e.info.pixel[0]))
                     && contains(self.ranges.get("pixel_y"), u64::from(e.info.pixel[1]))
                     && contains(self.ranges.get("sample"), u64::from(e.info.sample))
                     && u64::from(e.info.max_depth) >= min_depth
+            };
+            // A narrow tree-id filter reads only its trees (and keeps the kept ones for the scan).
+            let narrow = self.ranges.get("tree_id").filter(|r| {
+                r.iter().map(|&(lo, hi)| hi.saturating_sub(lo).saturating_add(1)).fold(0u64, u64::saturating_add)
+                    <= NARROW_TREE_IDS
+            });
+            let entries = match narrow {
+                Some(ids) => {
+                    let mut kept = ds.segment_tree_entries_in(i, ids)?;
+                    kept.retain(|e| keep(e));
+                    Arc::new(kept)
+                }
+                None => ds.segment_tree_entries(i)?,
             };
             let mut rows: Vec<Range<u64>> = Vec::new();
             let mut rays = 0u64;
@@ -433,8 +445,7 @@ impl Pushdown {
                 }
                 Some(Arc::new(merged))
             };
-            let entries = subset.then(|| Arc::new(entries.iter().filter(|e| keep(e)).copied().collect()));
-            out.push(SegmentPlan { segment: i, rows, trees, rays, entries });
+            out.push(SegmentPlan { segment: i, rows, trees, rays, entries: narrow.is_some().then_some(entries) });
         }
         Ok(out)
     }

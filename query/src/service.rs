@@ -127,36 +127,43 @@ impl TraceService {
         let schema: SchemaRef = Arc::new(plan.schema().as_arrow().clone());
         let df = self.ctx.execute_logical_plan(plan).await.map_err(plan_status)?;
         let stream = df.execute_stream().await.map_err(exec_status)?;
-        let batches = stream.map_err(|e| FlightError::ExternalError(Box::new(e)));
-        // Dictionary columns (`kind`) stay dictionaries, as the announced schema says.
-        let data = FlightDataEncoderBuilder::new()
-            .with_schema(schema)
-            .with_dictionary_handling(DictionaryHandling::Resend)
-            .build(batches)
-            .map_err(flight_status);
-        Ok(Response::new(Box::pin(data)))
+        Ok(encoded(schema, stream.map_err(|e| FlightError::ExternalError(Box::new(e)))))
     }
 
-    /// A `FlightInfo` announcing `schema`, fetched with `ticket`.
-    fn info(schema: &Schema, ticket: Bytes, descriptor: FlightDescriptor) -> Result<Response<FlightInfo>, Status> {
+    /// The answer to `request`: a `FlightInfo` announcing `schema`, fetched with `ticket`.
+    fn info(
+        schema: &Schema,
+        ticket: &impl ProstMessageExt,
+        request: Request<FlightDescriptor>,
+    ) -> Result<Response<FlightInfo>, Status> {
+        let ticket = Ticket { ticket: ticket.as_any().encode_to_vec().into() };
         let info = FlightInfo::new()
             .try_with_schema(schema)
             .map_err(|e| Status::internal(format!("encoding the result schema: {e}")))?
-            .with_endpoint(FlightEndpoint::new().with_ticket(Ticket { ticket }))
-            .with_descriptor(descriptor);
+            .with_endpoint(FlightEndpoint::new().with_ticket(ticket))
+            .with_descriptor(request.into_inner());
         Ok(Response::new(info))
     }
 
     /// A one-batch stream (catalog answers).
     fn one_batch<E: std::fmt::Display>(batch: Result<RecordBatch, E>) -> Result<Response<DoGetStream>, Status> {
         let batch = batch.map_err(|e| Status::internal(format!("building the answer: {e}")))?;
-        let schema = batch.schema();
-        let data = FlightDataEncoderBuilder::new()
-            .with_schema(schema)
-            .build(futures::stream::once(async { Ok(batch) }))
-            .map_err(flight_status);
-        Ok(Response::new(Box::pin(data)))
+        Ok(encoded(batch.schema(), futures::stream::once(async { Ok(batch) })))
     }
+}
+
+/// `batches` as Flight data announced with `schema`; dictionary columns (`kind`) stay
+/// dictionaries, as the schema says.
+fn encoded(
+    schema: SchemaRef,
+    batches: impl futures::Stream<Item = Result<RecordBatch, FlightError>> + Send + 'static,
+) -> Response<DoGetStream> {
+    let data = FlightDataEncoderBuilder::new()
+        .with_schema(schema)
+        .with_dictionary_handling(DictionaryHandling::Resend)
+        .build(batches)
+        .map_err(flight_status);
+    Response::new(Box::pin(data))
 }
 
 /// JDBC/ODBC-style `?` parameters become `$1`, `$2`, ... (DataFusion's positional form), outside
@@ -301,7 +308,7 @@ impl FlightSqlService for TraceService {
     ) -> Result<Response<FlightInfo>, Status> {
         let plan = self.plan(&query.query, None).await?;
         let ticket = TicketStatementQuery { statement_handle: query.query.into_bytes().into() };
-        Self::info(plan.schema().as_arrow(), ticket.as_any().encode_to_vec().into(), request.into_inner())
+        Self::info(plan.schema().as_arrow(), &ticket, request)
     }
 
     async fn do_get_statement(
@@ -364,7 +371,7 @@ impl FlightSqlService for TraceService {
     ) -> Result<Response<FlightInfo>, Status> {
         let handle = Handle::decode(&cmd.prepared_statement_handle)?;
         let plan = self.plan(&handle.sql, handle.param_values()?).await?;
-        Self::info(plan.schema().as_arrow(), cmd.as_any().encode_to_vec().into(), request.into_inner())
+        Self::info(plan.schema().as_arrow(), &cmd, request)
     }
 
     async fn do_get_prepared_statement(
@@ -391,7 +398,7 @@ impl FlightSqlService for TraceService {
         request: Request<FlightDescriptor>,
     ) -> Result<Response<FlightInfo>, Status> {
         let schema = query.into_builder().schema();
-        Self::info(&schema, query.as_any().encode_to_vec().into(), request.into_inner())
+        Self::info(&schema, &query, request)
     }
 
     async fn do_get_catalogs(
@@ -412,7 +419,7 @@ impl FlightSqlService for TraceService {
         request: Request<FlightDescriptor>,
     ) -> Result<Response<FlightInfo>, Status> {
         let schema = query.clone().into_builder().schema();
-        Self::info(&schema, query.as_any().encode_to_vec().into(), request.into_inner())
+        Self::info(&schema, &query, request)
     }
 
     async fn do_get_schemas(
@@ -437,7 +444,7 @@ impl FlightSqlService for TraceService {
         request: Request<FlightDescriptor>,
     ) -> Result<Response<FlightInfo>, Status> {
         let schema = query.clone().into_builder().schema();
-        Self::info(&schema, query.as_any().encode_to_vec().into(), request.into_inner())
+        Self::info(&schema, &query, request)
     }
 
     async fn do_get_tables(
@@ -477,7 +484,7 @@ impl FlightSqlService for TraceService {
         query: CommandGetTableTypes,
         request: Request<FlightDescriptor>,
     ) -> Result<Response<FlightInfo>, Status> {
-        Self::info(&table_types_schema(), query.as_any().encode_to_vec().into(), request.into_inner())
+        Self::info(&table_types_schema(), &query, request)
     }
 
     async fn do_get_table_types(
@@ -498,7 +505,7 @@ impl FlightSqlService for TraceService {
         request: Request<FlightDescriptor>,
     ) -> Result<Response<FlightInfo>, Status> {
         let schema = query.clone().into_builder(&self.sql_info).schema();
-        Self::info(&schema, query.as_any().encode_to_vec().into(), request.into_inner())
+        Self::info(&schema, &query, request)
     }
 
     async fn do_get_sql_info(

@@ -189,12 +189,8 @@ impl Dataset {
         )
         .map_err(pq_err(&path))?;
         check_schema(meta.schema(), &self.file_schema, &path)?;
-        let mut starts = Vec::with_capacity(meta.metadata().num_row_groups());
-        let mut row = 0u64;
-        for rg in meta.metadata().row_groups() {
-            starts.push(row);
-            row += rg.num_rows() as u64;
-        }
+        let starts = row_group_starts(&meta);
+        let row: u64 = meta.metadata().row_groups().iter().map(|g| g.num_rows() as u64).sum();
         if row != self.segment(i).rays.rows {
             return Err(Error::Corrupt {
                 path,
@@ -262,13 +258,7 @@ impl Dataset {
         if rows.is_empty() {
             return Ok(out);
         }
-        let mut starts = Vec::with_capacity(meta.metadata().num_row_groups());
-        let mut row = 0u64;
-        for rg in meta.metadata().row_groups() {
-            starts.push(row);
-            row += rg.num_rows() as u64;
-        }
-        let (groups, selection) = select_rows(&starts, &meta, &rows);
+        let (groups, selection) = select_rows(&row_group_starts(&meta), &meta, &rows);
         let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta)
             .with_row_groups(groups)
             .with_row_selection(selection)
@@ -880,6 +870,19 @@ pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
 
 pub(crate) fn listed_files(m: &Manifest) -> HashSet<String> {
     m.segments.iter().flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()]).collect()
+}
+
+/// The first row of each row group of a file.
+fn row_group_starts(meta: &ArrowReaderMetadata) -> Vec<u64> {
+    meta.metadata()
+        .row_groups()
+        .iter()
+        .scan(0u64, |row, g| {
+            let start = *row;
+            *row += g.num_rows() as u64;
+            Some(start)
+        })
+        .collect()
 }
 
 /// Appends the tree entries of one tree-table batch (columns in `tree_schema` order).
