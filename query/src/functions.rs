@@ -22,11 +22,22 @@
 
 use std::sync::Arc;
 
-use arrow::array::{Array, ArrayRef, AsArray, BooleanArray, Float64Array, UInt8Array, UInt32Array, UInt64Array};
-use arrow::datatypes::{DataType, Float32Type, Float64Type, Int64Type, UInt64Type};
+use std::marker::PhantomData;
+
+use arrow::array::{
+    Array, ArrayRef, AsArray, BooleanArray, Float64Array, Int64Array, PrimitiveArray, UInt8Array, UInt32Array,
+    UInt64Array,
+};
+use arrow::datatypes::{
+    ArrowPrimitiveType, DataType, Field, FieldRef, Float32Type, Float64Type, Int64Type, UInt64Type,
+};
 use datafusion::common::ScalarValue;
 use datafusion::error::DataFusionError;
-use datafusion::logical_expr::{Accumulator, ColumnarValue, ScalarUDF, Volatility, create_udaf, create_udf};
+use datafusion::logical_expr::function::{AccumulatorArgs, StateFieldsArgs};
+use datafusion::logical_expr::{
+    Accumulator, AggregateUDF, AggregateUDFImpl, ColumnarValue, EmitTo, GroupsAccumulator, ScalarUDF, Signature,
+    SimpleScalarUDF, TypeSignature, Volatility,
+};
 use datafusion::prelude::SessionContext;
 use store::Dataset;
 
@@ -83,21 +94,80 @@ fn arrays(args: &[ColumnarValue]) -> datafusion::error::Result<Vec<ArrayRef>> {
     ColumnarValue::values_to_arrays(args)
 }
 
-fn f64s(a: &ArrayRef) -> datafusion::error::Result<&Float64Array> {
-    a.as_primitive_opt::<Float64Type>()
-        .ok_or_else(|| DataFusionError::Execution(format!("expected a Float64 argument, found {}", a.data_type())))
+/// `N` float columns of one type: Float32 columns are read as they are (no cast to Float64).
+enum Floats<'a, const N: usize> {
+    F32([&'a PrimitiveArray<Float32Type>; N]),
+    F64([&'a PrimitiveArray<Float64Type>; N]),
 }
 
-/// Row `r` of `N` float columns, or None when any is null or not finite.
-fn row<const N: usize>(cols: &[&Float64Array; N], r: usize) -> Option<[f64; N]> {
-    let mut out = [0.0; N];
-    for (o, c) in out.iter_mut().zip(cols) {
-        if c.is_null(r) || !c.value(r).is_finite() {
-            return None;
+impl<'a, const N: usize> Floats<'a, N> {
+    /// The first `N` arguments, all Float32 or all Float64 (as the signatures ask).
+    fn of(a: &'a [ArrayRef]) -> datafusion::error::Result<Self> {
+        let args = a.get(..N).ok_or_else(|| DataFusionError::Execution(format!("expected {N} float arguments")))?;
+        let as_f32: Option<Vec<_>> = args.iter().map(|c| c.as_primitive_opt::<Float32Type>()).collect();
+        if let Some(Ok(c)) = as_f32.map(<[_; N]>::try_from) {
+            return Ok(Self::F32(c));
         }
-        *o = c.value(r);
+        let as_f64: Option<Vec<_>> = args.iter().map(|c| c.as_primitive_opt::<Float64Type>()).collect();
+        match as_f64.map(<[_; N]>::try_from) {
+            Some(Ok(c)) => Ok(Self::F64(c)),
+            _ => Err(DataFusionError::Execution(format!(
+                "expected {N} Float32 or {N} Float64 arguments, found {}",
+                args.iter().map(|c| c.data_type().to_string()).collect::<Vec<_>>().join(", ")
+            ))),
+        }
     }
-    Some(out)
+
+    fn len(&self) -> usize {
+        match self {
+            Self::F32(c) => c.first().map_or(0, |c| c.len()),
+            Self::F64(c) => c.first().map_or(0, |c| c.len()),
+        }
+    }
+
+    /// Calls `f(row, values)` for every row whose values are all non-null and finite, in order.
+    fn each_valid(&self, f: impl FnMut(usize, [f64; N])) {
+        match self {
+            Self::F32(c) => each_valid(c, f),
+            Self::F64(c) => each_valid(c, f),
+        }
+    }
+}
+
+fn each_valid<T: ArrowPrimitiveType, const N: usize>(cols: &[&PrimitiveArray<T>; N], mut f: impl FnMut(usize, [f64; N]))
+where
+    T::Native: Into<f64>,
+{
+    let len = cols.first().map_or(0, |c| c.len());
+    let values: [&[T::Native]; N] = cols.map(|c| c.values().as_ref());
+    let nulls = cols.iter().any(|c| c.null_count() > 0);
+    for r in 0..len {
+        if nulls && cols.iter().any(|c| c.is_null(r)) {
+            continue;
+        }
+        let mut v = [0.0; N];
+        let mut finite = true;
+        for (o, col) in v.iter_mut().zip(&values) {
+            *o = col[r].into();
+            finite &= o.is_finite();
+        }
+        if finite {
+            f(r, v);
+        }
+    }
+}
+
+/// A signature of `n` floats (all Float32, read as they are, or all Float64: mixed arguments and
+/// integer literals coerce to one of them) and, with `int_param`, an integer last.
+fn float_signature(n: usize, int_param: bool) -> Signature {
+    let variant = |t: DataType| {
+        let mut v = vec![t; n];
+        if int_param {
+            v.push(DataType::Int64);
+        }
+        TypeSignature::Exact(v)
+    };
+    Signature::one_of(vec![variant(DataType::Float32), variant(DataType::Float64)], Volatility::Immutable)
 }
 
 /// The angle between two directions (atan2 of the cross and dot products: accurate for tiny
@@ -107,14 +177,6 @@ fn angle(a: [f64; 3], b: [f64; 3]) -> Option<f64> {
     let cross = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
     let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     (cross != 0.0 || dot != 0.0).then(|| cross.atan2(dot))
-}
-
-fn float_cols<const N: usize>(a: &[ArrayRef]) -> datafusion::error::Result<[&Float64Array; N]> {
-    let mut v = Vec::with_capacity(N);
-    for x in a.iter().take(N) {
-        v.push(f64s(x)?);
-    }
-    v.try_into().map_err(|_| DataFusionError::Execution(format!("expected {N} arguments")))
 }
 
 /// Möller–Trumbore, two-sided, with a small barycentric tolerance: true when the line of the ray
@@ -202,85 +264,62 @@ fn rowwise<const N: usize, T, A>(
     f: impl Fn([f64; N], Option<i64>) -> Option<T> + Send + Sync + 'static,
 ) -> ScalarUDF
 where
+    T: Clone,
     A: Array + FromIterator<Option<T>> + 'static,
 {
-    let mut params = vec![DataType::Float64; N];
-    if int_param {
-        params.push(DataType::Int64);
-    }
     let fname = name.to_string();
-    // Float64 parameters: Float32 columns and float literals both coerce to them.
-    create_udf(
-        name,
-        params,
-        ret,
-        Volatility::Immutable,
-        Arc::new(move |args: &[ColumnarValue]| {
-            let a = arrays(args)?;
-            let c = float_cols::<N>(&a)?;
-            let ints = match a.get(N).filter(|_| int_param) {
+    let fun = Arc::new(move |args: &[ColumnarValue]| {
+        let a = arrays(args)?;
+        let c = Floats::<N>::of(&a)?;
+        let ints: Option<&Int64Array> =
+            match a.get(N).filter(|_| int_param) {
                 Some(i) => Some(i.as_primitive_opt::<Int64Type>().ok_or_else(|| {
                     DataFusionError::Execution(format!("{fname}: the last argument must be an integer"))
                 })?),
                 None => None,
             };
-            let out: A = (0..c[0].len())
-                .map(|r| {
-                    let v = row(&c, r)?;
-                    let k = match ints {
-                        Some(i) => Some(i.is_valid(r).then(|| i.value(r))?),
-                        None => None,
-                    };
-                    f(v, k)
-                })
-                .collect();
-            Ok(ColumnarValue::Array(Arc::new(out)))
-        }),
-    )
+        let mut out: Vec<Option<T>> = vec![None; c.len()];
+        c.each_valid(|r, v| {
+            let k = match ints {
+                Some(i) if i.is_null(r) => return,
+                Some(i) => Some(i.value(r)),
+                None => None,
+            };
+            out[r] = f(v, k);
+        });
+        Ok(ColumnarValue::Array(Arc::new(out.into_iter().collect::<A>()) as ArrayRef))
+    });
+    ScalarUDF::from(SimpleScalarUDF::new_with_signature(name, float_signature(N, int_param), ret, fun))
 }
 
 /// `ray_point(ox, oy, oz, dx, dy, dz, t)`: the point at `t` along the ray, as a struct.
 fn ray_point_udf() -> ScalarUDF {
     let fields = point_fields();
-    create_udf(
-        "ray_point",
-        vec![DataType::Float64; 7],
-        DataType::Struct(fields.clone()),
-        Volatility::Immutable,
-        Arc::new(move |args: &[ColumnarValue]| {
-            let a = arrays(args)?;
-            let c = float_cols::<7>(&a)?;
-            let n = c[0].len();
-            let (mut xs, mut ys, mut zs) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
-            let mut valid = Vec::with_capacity(n);
-            for r in 0..n {
-                match row(&c, r) {
-                    Some(v) => {
-                        xs.push(v[0] + v[6] * v[3]);
-                        ys.push(v[1] + v[6] * v[4]);
-                        zs.push(v[2] + v[6] * v[5]);
-                        valid.push(true);
-                    }
-                    None => {
-                        xs.push(0.0);
-                        ys.push(0.0);
-                        zs.push(0.0);
-                        valid.push(false);
-                    }
-                }
-            }
-            let out = arrow::array::StructArray::try_new(
-                fields.clone(),
-                vec![
-                    Arc::new(Float64Array::from(xs)) as ArrayRef,
-                    Arc::new(Float64Array::from(ys)),
-                    Arc::new(Float64Array::from(zs)),
-                ],
-                Some(arrow::buffer::NullBuffer::from(valid)),
-            )?;
-            Ok(ColumnarValue::Array(Arc::new(out)))
-        }),
-    )
+    let ret = DataType::Struct(fields.clone());
+    let fun = Arc::new(move |args: &[ColumnarValue]| {
+        let a = arrays(args)?;
+        let c = Floats::<7>::of(&a)?;
+        let n = c.len();
+        let (mut xs, mut ys, mut zs) = (vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        let mut valid = vec![false; n];
+        c.each_valid(|r, v| {
+            xs[r] = v[0] + v[6] * v[3];
+            ys[r] = v[1] + v[6] * v[4];
+            zs[r] = v[2] + v[6] * v[5];
+            valid[r] = true;
+        });
+        let out = arrow::array::StructArray::try_new(
+            fields.clone(),
+            vec![
+                Arc::new(Float64Array::from(xs)) as ArrayRef,
+                Arc::new(Float64Array::from(ys)),
+                Arc::new(Float64Array::from(zs)),
+            ],
+            Some(arrow::buffer::NullBuffer::from(valid)),
+        )?;
+        Ok(ColumnarValue::Array(Arc::new(out)))
+    });
+    ScalarUDF::from(SimpleScalarUDF::new_with_signature("ray_point", float_signature(7, false), ret, fun))
 }
 
 fn point_fields() -> arrow::datatypes::Fields {
@@ -294,32 +333,31 @@ fn point_fields() -> arrow::datatypes::Fields {
 }
 
 /// A statistic of 3-vectors that DataFusion aggregates in parts and merges: the aggregate
-/// `NAME(x, y, z)` gives [`XyzStat::value`] as a Float64.
-pub(crate) trait XyzStat: std::fmt::Debug + Default + Send + Sync + 'static {
+/// `NAME(x, y, z)` gives [`XyzStat::value`] as a Float64. Rows with a NULL, NaN or infinite
+/// coordinate are left out.
+pub(crate) trait XyzStat: std::fmt::Debug + Default + Clone + Send + Sync + 'static {
     const NAME: &'static str;
     /// Adds one vector (the statistic decides which ones count).
     fn add(&mut self, v: [f64; 3]);
+    /// Adds another partial statistic.
+    fn merge(&mut self, other: &Self);
     /// The statistic, None without vectors.
     fn value(&self) -> Option<f64>;
-    /// Types of the partial state, as [`XyzStat::state`] lists it.
+    /// Types of the partial state's columns.
     fn state_types() -> Vec<DataType>;
-    fn state(&self) -> Vec<ScalarValue>;
-    /// Merges partial states (columns as [`XyzStat::state_types`]).
-    fn merge_states(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()>;
+    /// Partial states as columns (one row each).
+    fn to_state(stats: &[Self]) -> Vec<ArrayRef>;
+    /// Partial states from columns as [`XyzStat::to_state`] writes them.
+    fn from_state(states: &[ArrayRef]) -> datafusion::error::Result<Vec<Self>>;
 }
 
-/// The DataFusion accumulator of any [`XyzStat`].
+/// The DataFusion accumulator of any [`XyzStat`] without groups.
 #[derive(Debug, Default)]
 struct XyzAccumulator<S>(S);
 
 impl<S: XyzStat> Accumulator for XyzAccumulator<S> {
     fn update_batch(&mut self, values: &[ArrayRef]) -> datafusion::error::Result<()> {
-        let c = float_cols::<3>(values)?;
-        for r in 0..c[0].len() {
-            if let Some(v) = row(&c, r) {
-                self.0.add(v);
-            }
-        }
+        Floats::<3>::of(values)?.each_valid(|_, v| self.0.add(v));
         Ok(())
     }
 
@@ -332,28 +370,172 @@ impl<S: XyzStat> Accumulator for XyzAccumulator<S> {
     }
 
     fn state(&mut self) -> datafusion::error::Result<Vec<ScalarValue>> {
-        Ok(self.0.state())
+        S::to_state(std::slice::from_ref(&self.0)).iter().map(|a| ScalarValue::try_from_array(a, 0)).collect()
     }
 
     fn merge_batch(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
-        self.0.merge_states(states)
+        for s in S::from_state(states)? {
+            self.0.merge(&s);
+        }
+        Ok(())
     }
 }
 
-/// The aggregate UDF of an [`XyzStat`]: three Float64 arguments, a Float64 result.
-fn xyz_aggregate<S: XyzStat>() -> datafusion::logical_expr::AggregateUDF {
-    create_udaf(
-        S::NAME,
-        vec![DataType::Float64; 3],
-        Arc::new(DataType::Float64),
-        Volatility::Immutable,
-        Arc::new(|_| Ok(Box::new(XyzAccumulator::<S>::default()))),
-        Arc::new(S::state_types()),
-    )
+/// The grouped accumulator of any [`XyzStat`]: one statistic per group, updated in one pass
+/// over a batch (DataFusion's per-group adapter would split every batch by group first).
+#[derive(Debug, Default)]
+struct XyzGroups<S>(Vec<S>);
+
+impl<S: XyzStat> GroupsAccumulator for XyzGroups<S> {
+    fn update_batch(
+        &mut self,
+        values: &[ArrayRef],
+        group_indices: &[usize],
+        opt_filter: Option<&BooleanArray>,
+        total_num_groups: usize,
+    ) -> datafusion::error::Result<()> {
+        self.0.resize_with(total_num_groups, S::default);
+        let stats = &mut self.0;
+        Floats::<3>::of(values)?.each_valid(|r, v| {
+            if opt_filter.is_none_or(|f| f.is_valid(r) && f.value(r))
+                && let Some(s) = group_indices.get(r).and_then(|&g| stats.get_mut(g))
+            {
+                s.add(v);
+            }
+        });
+        Ok(())
+    }
+
+    fn evaluate(&mut self, emit_to: EmitTo) -> datafusion::error::Result<ArrayRef> {
+        let done = emit_to.take_needed(&mut self.0);
+        Ok(Arc::new(done.iter().map(S::value).collect::<Float64Array>()))
+    }
+
+    fn state(&mut self, emit_to: EmitTo) -> datafusion::error::Result<Vec<ArrayRef>> {
+        Ok(S::to_state(&emit_to.take_needed(&mut self.0)))
+    }
+
+    fn merge_batch(
+        &mut self,
+        values: &[ArrayRef],
+        group_indices: &[usize],
+        total_num_groups: usize,
+    ) -> datafusion::error::Result<()> {
+        self.0.resize_with(total_num_groups, S::default);
+        for (s, &g) in S::from_state(values)?.iter().zip(group_indices) {
+            if let Some(mine) = self.0.get_mut(g) {
+                mine.merge(s);
+            }
+        }
+        Ok(())
+    }
+
+    /// Each row as its own partial state (what DataFusion uses when it skips partial
+    /// aggregation for groups nearly as many as rows).
+    fn convert_to_state(
+        &self,
+        values: &[ArrayRef],
+        opt_filter: Option<&BooleanArray>,
+    ) -> datafusion::error::Result<Vec<ArrayRef>> {
+        let c = Floats::<3>::of(values)?;
+        let mut stats = vec![S::default(); c.len()];
+        c.each_valid(|r, v| {
+            if opt_filter.is_none_or(|f| f.is_valid(r) && f.value(r)) {
+                stats[r].add(v);
+            }
+        });
+        Ok(S::to_state(&stats))
+    }
+
+    fn size(&self) -> usize {
+        self.0.capacity() * std::mem::size_of::<S>()
+    }
+}
+
+/// The aggregate UDF of an [`XyzStat`]: three Float32 or Float64 arguments, a Float64 result.
+#[derive(Debug)]
+struct XyzUdaf<S> {
+    signature: Signature,
+    stat: PhantomData<fn() -> S>,
+}
+
+impl<S> PartialEq for XyzUdaf<S> {
+    fn eq(&self, other: &Self) -> bool {
+        self.signature == other.signature
+    }
+}
+
+impl<S> Eq for XyzUdaf<S> {}
+
+impl<S> std::hash::Hash for XyzUdaf<S> {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        self.signature.hash(state);
+    }
+}
+
+impl<S: XyzStat> AggregateUDFImpl for XyzUdaf<S> {
+    fn name(&self) -> &str {
+        S::NAME
+    }
+
+    fn signature(&self) -> &Signature {
+        &self.signature
+    }
+
+    fn return_type(&self, _arg_types: &[DataType]) -> datafusion::error::Result<DataType> {
+        Ok(DataType::Float64)
+    }
+
+    fn accumulator(&self, _args: AccumulatorArgs) -> datafusion::error::Result<Box<dyn Accumulator>> {
+        Ok(Box::new(XyzAccumulator::<S>::default()))
+    }
+
+    fn state_fields(&self, args: StateFieldsArgs) -> datafusion::error::Result<Vec<FieldRef>> {
+        Ok(S::state_types()
+            .into_iter()
+            .enumerate()
+            .map(|(i, t)| Arc::new(Field::new(format!("{}[{i}]", args.name), t, true)))
+            .collect())
+    }
+
+    fn groups_accumulator_supported(&self, _args: AccumulatorArgs) -> bool {
+        true
+    }
+
+    fn create_groups_accumulator(
+        &self,
+        _args: AccumulatorArgs,
+    ) -> datafusion::error::Result<Box<dyn GroupsAccumulator>> {
+        Ok(Box::new(XyzGroups::<S>::default()))
+    }
+}
+
+fn xyz_aggregate<S: XyzStat>() -> AggregateUDF {
+    AggregateUDF::from(XyzUdaf::<S> { signature: float_signature(3, false), stat: PhantomData })
+}
+
+/// Float64 state columns (`N` of them, from `first`).
+fn state_floats<const N: usize>(states: &[ArrayRef], first: usize) -> datafusion::error::Result<[&Float64Array; N]> {
+    let mut v = Vec::with_capacity(N);
+    for k in first..first + N {
+        let c = states
+            .get(k)
+            .and_then(|a| a.as_primitive_opt::<Float64Type>())
+            .ok_or_else(|| DataFusionError::Internal(format!("bad aggregate state: column {k} is not Float64")))?;
+        v.push(c);
+    }
+    v.try_into().map_err(|_| DataFusionError::Internal("bad aggregate state".into()))
+}
+
+fn state_counts(states: &[ArrayRef], k: usize) -> datafusion::error::Result<&UInt64Array> {
+    states
+        .get(k)
+        .and_then(|a| a.as_primitive_opt::<UInt64Type>())
+        .ok_or_else(|| DataFusionError::Internal(format!("bad aggregate state: column {k} is not UInt64")))
 }
 
 /// Mean resultant length of directions: sums of the normalized vectors and their count.
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub(crate) struct Coherence {
     sum: [f64; 3],
     n: u64,
@@ -362,7 +544,7 @@ pub(crate) struct Coherence {
 impl XyzStat for Coherence {
     const NAME: &'static str = "dir_coherence";
 
-    /// Adds a direction (zero, NaN or infinite ones are left out).
+    /// Adds a direction (zero ones are left out).
     fn add(&mut self, d: [f64; 3]) {
         let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
         if len > 0.0 && len.is_finite() {
@@ -371,6 +553,13 @@ impl XyzStat for Coherence {
             }
             self.n += 1;
         }
+    }
+
+    fn merge(&mut self, other: &Self) {
+        for (s, o) in self.sum.iter_mut().zip(other.sum) {
+            *s += o;
+        }
+        self.n += other.n;
     }
 
     /// The mean resultant length.
@@ -383,31 +572,23 @@ impl XyzStat for Coherence {
         vec![DataType::Float64, DataType::Float64, DataType::Float64, DataType::UInt64]
     }
 
-    fn state(&self) -> Vec<ScalarValue> {
-        let mut v: Vec<ScalarValue> = self.sum.iter().map(|x| ScalarValue::Float64(Some(*x))).collect();
-        v.push(ScalarValue::UInt64(Some(self.n)));
-        v
+    fn to_state(stats: &[Self]) -> Vec<ArrayRef> {
+        let mut cols: Vec<ArrayRef> =
+            (0..3).map(|k| Arc::new(stats.iter().map(|s| s.sum[k]).collect::<Float64Array>()) as ArrayRef).collect();
+        cols.push(Arc::new(stats.iter().map(|s| s.n).collect::<UInt64Array>()));
+        cols
     }
 
-    fn merge_states(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
-        let c = float_cols::<3>(states)?;
-        let n = states
-            .get(3)
-            .and_then(|a| a.as_primitive_opt::<UInt64Type>())
-            .ok_or_else(|| DataFusionError::Internal("dir_coherence: bad state".into()))?;
-        for r in 0..n.len() {
-            for (s, col) in self.sum.iter_mut().zip(c) {
-                *s += col.value(r);
-            }
-            self.n += n.value(r);
-        }
-        Ok(())
+    fn from_state(states: &[ArrayRef]) -> datafusion::error::Result<Vec<Self>> {
+        let c = state_floats::<3>(states, 0)?;
+        let n = state_counts(states, 3)?;
+        Ok((0..n.len()).map(|r| Self { sum: [c[0].value(r), c[1].value(r), c[2].value(r)], n: n.value(r) }).collect())
     }
 }
 
 /// Spread of points about their centroid: count, mean and sum of squared distances (merged with
 /// Chan et al.'s formula, so points far from the origin lose no precision).
-#[derive(Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub(crate) struct Spread {
     n: u64,
     mean: [f64; 3],
@@ -415,7 +596,7 @@ pub(crate) struct Spread {
 }
 
 impl Spread {
-    fn merge(&mut self, n: u64, mean: [f64; 3], m2: f64) {
+    fn merge_parts(&mut self, n: u64, mean: [f64; 3], m2: f64) {
         if n == 0 {
             return;
         }
@@ -435,11 +616,12 @@ impl Spread {
 impl XyzStat for Spread {
     const NAME: &'static str = "origin_spread";
 
-    /// Adds a point (ones with a NaN or infinite coordinate are left out).
     fn add(&mut self, p: [f64; 3]) {
-        if p.iter().all(|c| c.is_finite()) {
-            self.merge(1, p, 0.0);
-        }
+        self.merge_parts(1, p, 0.0);
+    }
+
+    fn merge(&mut self, other: &Self) {
+        self.merge_parts(other.n, other.mean, other.m2);
     }
 
     /// The RMS distance from the centroid.
@@ -451,21 +633,21 @@ impl XyzStat for Spread {
         vec![DataType::UInt64, DataType::Float64, DataType::Float64, DataType::Float64, DataType::Float64]
     }
 
-    fn state(&self) -> Vec<ScalarValue> {
-        let mut v = vec![ScalarValue::UInt64(Some(self.n))];
-        v.extend(self.mean.iter().map(|x| ScalarValue::Float64(Some(*x))));
-        v.push(ScalarValue::Float64(Some(self.m2)));
-        v
+    fn to_state(stats: &[Self]) -> Vec<ArrayRef> {
+        let mut cols: Vec<ArrayRef> = vec![Arc::new(stats.iter().map(|s| s.n).collect::<UInt64Array>())];
+        for k in 0..3 {
+            cols.push(Arc::new(stats.iter().map(|s| s.mean[k]).collect::<Float64Array>()));
+        }
+        cols.push(Arc::new(stats.iter().map(|s| s.m2).collect::<Float64Array>()));
+        cols
     }
 
-    fn merge_states(&mut self, states: &[ArrayRef]) -> datafusion::error::Result<()> {
-        let bad = || DataFusionError::Internal("origin_spread: bad state".into());
-        let n = states.first().and_then(|a| a.as_primitive_opt::<UInt64Type>()).ok_or_else(bad)?;
-        let c = float_cols::<4>(states.get(1..).ok_or_else(bad)?)?;
-        for r in 0..n.len() {
-            self.merge(n.value(r), [c[0].value(r), c[1].value(r), c[2].value(r)], c[3].value(r));
-        }
-        Ok(())
+    fn from_state(states: &[ArrayRef]) -> datafusion::error::Result<Vec<Self>> {
+        let n = state_counts(states, 0)?;
+        let c = state_floats::<4>(states, 1)?;
+        Ok((0..n.len())
+            .map(|r| Self { n: n.value(r), mean: [c[0].value(r), c[1].value(r), c[2].value(r)], m2: c[3].value(r) })
+            .collect())
     }
 }
 
@@ -514,15 +696,15 @@ mod tests {
         let pts: Vec<[f64; 3]> = (0..1000).map(|i| [1e7 + f64::from(i % 2), 1e7, -1e7]).collect();
         let mut whole = Spread::default();
         for p in &pts {
-            whole.merge(1, *p, 0.0);
+            whole.add(*p);
         }
         let rms = (whole.m2 / whole.n as f64).sqrt();
         assert!((rms - 0.5).abs() < 1e-9, "{rms}");
         let (mut a, mut b) = (Spread::default(), Spread::default());
         for (i, p) in pts.iter().enumerate() {
-            if i < 300 { a.merge(1, *p, 0.0) } else { b.merge(1, *p, 0.0) }
+            if i < 300 { a.add(*p) } else { b.add(*p) }
         }
-        a.merge(b.n, b.mean, b.m2);
+        a.merge(&b);
         assert!((a.m2 - whole.m2).abs() < 1e-6 && a.n == whole.n);
     }
 

@@ -341,17 +341,21 @@ fn encode_dir(d: [f32; 3], encoding: Encoding) -> (u8, [u32; 3], [f32; 3]) {
     (axis as u8 + 3 * u8::from(negative), [b.to_bits(), c.to_bits(), residual(d[axis], pred)], d)
 }
 
+#[inline]
 fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], String> {
+    if code < 6 {
+        // Table lookups instead of `% 3`: the axis changes from ray to ray, so branches on it
+        // would mispredict.
+        const AXIS: [usize; 6] = [0, 1, 2, 0, 1, 2];
+        let axis = AXIS[code as usize];
+        let (b, c) = (f32::from_bits(w[0]), f32::from_bits(w[1]));
+        let mut d = [0.0f32; 3];
+        d[AXIS[axis + 1]] = b;
+        d[AXIS[axis + 2]] = c;
+        d[axis] = apply(w[2], unit_component(b, c, code >= 3));
+        return Ok(d);
+    }
     match code {
-        0..=5 => {
-            let axis = (code % 3) as usize;
-            let (b, c) = (f32::from_bits(w[0]), f32::from_bits(w[1]));
-            let mut d = [0.0f32; 3];
-            d[(axis + 1) % 3] = b;
-            d[(axis + 2) % 3] = c;
-            d[axis] = apply(w[2], unit_component(b, c, code >= 3));
-            Ok(d)
-        }
         DIR_RAW => Ok([f32::from_bits(w[0]), f32::from_bits(w[1]), f32::from_bits(w[2])]),
         DIR_OCT if bits > 0 => Ok(oct_decode(w[0], bits)),
         _ => Err(format!("direction code {code} is not valid for this encoding")),
@@ -434,27 +438,34 @@ impl Decoder {
             return Ok(batch);
         }
         let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
-        let col = |name: &str| {
-            batch.column_by_name(name).ok_or_else(|| Error::Schema {
-                path: path.to_path_buf(),
-                field: name.into(),
-                expected: "an encoded column".into(),
-                found: "no such column".into(),
-            })
-        };
+        let g = self.decode_geometry(&batch, path, true)?;
+        let mut floats: Vec<(&str, ArrayRef)> = g.columns();
+        let kind = kinds_of_codes(file_column(&batch, KIND_CODE, path)?, &self.kinds, path)?;
+        let mut columns = Vec::with_capacity(self.plain.fields().len());
+        for f in self.plain.fields() {
+            if let Some(pos) = floats.iter().position(|(name, _)| name == f.name()) {
+                columns.push(floats.swap_remove(pos).1);
+            } else if f.name() == "kind" {
+                columns.push(kind.clone());
+            } else {
+                columns.push(file_column(&batch, f.name(), path)?.clone());
+            }
+        }
+        RecordBatch::try_new(self.plain.clone(), columns).map_err(|e| corrupt(format!("decoded batch: {e}")))
+    }
+
+    /// Decodes the directions of a batch of a ray file, and its origins when `origins` is set.
+    /// Directions need only `enc_dir_*`; origins also need `tree_id`, `ray`, `parent`, `t` and
+    /// `enc_origin_*` (the tree structure they are predicted from), and batches that start at a
+    /// tree, in file order.
+    pub(crate) fn decode_geometry(&mut self, batch: &RecordBatch, path: &Path, origins: bool) -> Result<Geometry> {
+        let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
         let typed_u32 = |name: &str| -> Result<&UInt32Array> {
-            col(name)?.as_primitive_opt::<UInt32Type>().ok_or_else(|| corrupt(format!("column {name} is not UInt32")))
+            file_column(batch, name, path)?
+                .as_primitive_opt::<UInt32Type>()
+                .ok_or_else(|| corrupt(format!("column {name} is not UInt32")))
         };
-        let tree = col("tree_id")?
-            .as_primitive_opt::<UInt64Type>()
-            .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
-        let ray = typed_u32("ray")?;
-        let parent = typed_u32("parent")?;
-        let t = col("t")?
-            .as_primitive_opt::<arrow::datatypes::Float32Type>()
-            .ok_or_else(|| corrupt("column t is not Float32".into()))?;
-        let eo = [typed_u32(ENCODED_COLUMNS[0])?, typed_u32(ENCODED_COLUMNS[1])?, typed_u32(ENCODED_COLUMNS[2])?];
-        let code = col("enc_dir_code")?
+        let code = file_column(batch, "enc_dir_code", path)?
             .as_primitive_opt::<UInt8Type>()
             .ok_or_else(|| corrupt("column enc_dir_code is not UInt8".into()))?;
         let ed = [typed_u32(ENCODED_COLUMNS[4])?, typed_u32(ENCODED_COLUMNS[5])?, typed_u32(ENCODED_COLUMNS[6])?];
@@ -463,14 +474,51 @@ impl Decoder {
             _ => 0,
         };
         let n = batch.num_rows();
+        let mut dir = [vec![0.0f32; n], vec![0.0f32; n], vec![0.0f32; n]];
+        let (codes, e0, e1, e2) = (code.values(), ed[0].values(), ed[1].values(), ed[2].values());
+        if !origins {
+            let [dx, dy, dz] = &mut dir;
+            let (dx, dy, dz, e0, e1, e2) = (&mut dx[..n], &mut dy[..n], &mut dz[..n], &e0[..n], &e1[..n], &e2[..n]);
+            // The predicted components first, in a loop of their own that the compiler vectorizes
+            // (one square root per ray bounds the scalar loop); then each ray from its code.
+            let pred: Vec<f32> =
+                e0.iter().zip(e1).map(|(&b, &c)| unit_component(f32::from_bits(b), f32::from_bits(c), false)).collect();
+            for (i, &c) in codes[..n].iter().enumerate() {
+                if c >> 6 != 0 {
+                    return Err(corrupt(format!("row {i} of the batch: enc_dir_code {c} has unknown bits")));
+                }
+                let code = c & 7;
+                let d = if code < 6 {
+                    const AXIS: [usize; 6] = [0, 1, 2, 0, 1, 2];
+                    let axis = AXIS[code as usize];
+                    let mut d = [0.0f32; 3];
+                    d[AXIS[axis + 1]] = f32::from_bits(e0[i]);
+                    d[AXIS[axis + 2]] = f32::from_bits(e1[i]);
+                    d[axis] = apply(e2[i], if code >= 3 { -pred[i] } else { pred[i] });
+                    d
+                } else {
+                    decode_dir(code, [e0[i], e1[i], e2[i]], bits).map_err(|m| corrupt(format!("row {i}: {m}")))?
+                };
+                (dx[i], dy[i], dz[i]) = (d[0], d[1], d[2]);
+            }
+            return Ok(Geometry { origin: None, dir: dir.map(Float32Array::from) });
+        }
+        let tree = file_column(batch, "tree_id", path)?
+            .as_primitive_opt::<UInt64Type>()
+            .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
+        let ray = typed_u32("ray")?;
+        let parent = typed_u32("parent")?;
+        let t = file_column(batch, "t", path)?
+            .as_primitive_opt::<arrow::datatypes::Float32Type>()
+            .ok_or_else(|| corrupt("column t is not Float32".into()))?;
+        let eo = [typed_u32(ENCODED_COLUMNS[0])?, typed_u32(ENCODED_COLUMNS[1])?, typed_u32(ENCODED_COLUMNS[2])?];
         let mut origin = [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
-        let mut dir = [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
         let st = &mut self.state;
         for i in 0..n {
             let p = if parent.is_null(i) { NONE_U32 } else { parent.value(i) };
             st.advance(tree.value(i), ray.value(i), p).map_err(corrupt)?;
             let pred = st.predict_origin(p);
-            let c = code.value(i);
+            let c = codes[i];
             if c >> 6 != 0 {
                 return Err(corrupt(format!(
                     "tree {} ray {}: enc_dir_code {c} has unknown bits",
@@ -479,37 +527,45 @@ impl Decoder {
                 )));
             }
             let o = [0, 1, 2].map(|k| apply(eo[k].value(i), if c & (8 << k) != 0 { 0.0 } else { pred[k] }));
-            let d = decode_dir(c & 7, [ed[0].value(i), ed[1].value(i), ed[2].value(i)], bits)
+            let d = decode_dir(c & 7, [e0[i], e1[i], e2[i]], bits)
                 .map_err(|m| corrupt(format!("tree {} ray {}: {m}", tree.value(i), ray.value(i))))?;
             for k in 0..3 {
                 origin[k].push(o[k]);
-                dir[k].push(d[k]);
+                dir[k][i] = d[k];
             }
             st.push(p, o, d, if t.is_null(i) { None } else { Some(t.value(i)) });
         }
-        let [ox, oy, oz] = origin;
-        let [dx, dy, dz] = dir;
-        let mut floats: Vec<(&str, ArrayRef)> = vec![
-            ("origin_x", Arc::new(Float32Array::from(ox))),
-            ("origin_y", Arc::new(Float32Array::from(oy))),
-            ("origin_z", Arc::new(Float32Array::from(oz))),
-            ("dir_x", Arc::new(Float32Array::from(dx))),
-            ("dir_y", Arc::new(Float32Array::from(dy))),
-            ("dir_z", Arc::new(Float32Array::from(dz))),
-        ];
-        let kind = kinds_of_codes(col(KIND_CODE)?, &self.kinds, path)?;
-        let mut columns = Vec::with_capacity(self.plain.fields().len());
-        for f in self.plain.fields() {
-            if let Some(pos) = floats.iter().position(|(name, _)| name == f.name()) {
-                columns.push(floats.swap_remove(pos).1);
-            } else if f.name() == "kind" {
-                columns.push(kind.clone());
-            } else {
-                columns.push(col(f.name())?.clone());
-            }
-        }
-        RecordBatch::try_new(self.plain.clone(), columns).map_err(|e| corrupt(format!("decoded batch: {e}")))
+        Ok(Geometry { origin: Some(origin.map(Float32Array::from)), dir: dir.map(Float32Array::from) })
     }
+}
+
+/// Decoded origins (when asked for) and directions of a batch.
+pub(crate) struct Geometry {
+    pub origin: Option<[Float32Array; 3]>,
+    pub dir: [Float32Array; 3],
+}
+
+impl Geometry {
+    /// The decoded columns under their ray-table names.
+    pub(crate) fn columns(self) -> Vec<(&'static str, ArrayRef)> {
+        let mut out: Vec<(&'static str, ArrayRef)> = Vec::with_capacity(6);
+        if let Some([x, y, z]) = self.origin {
+            out.extend([("origin_x", Arc::new(x) as ArrayRef), ("origin_y", Arc::new(y)), ("origin_z", Arc::new(z))]);
+        }
+        let [x, y, z] = self.dir;
+        out.extend([("dir_x", Arc::new(x) as ArrayRef), ("dir_y", Arc::new(y)), ("dir_z", Arc::new(z))]);
+        out
+    }
+}
+
+/// The column `name` of a ray-file batch, or an error naming the file.
+pub(crate) fn file_column<'a>(batch: &'a RecordBatch, name: &str, path: &Path) -> Result<&'a ArrayRef> {
+    batch.column_by_name(name).ok_or_else(|| Error::Schema {
+        path: path.to_path_buf(),
+        field: name.into(),
+        expected: "an encoded column".into(),
+        found: "no such column".into(),
+    })
 }
 
 #[cfg(test)]

@@ -1,7 +1,7 @@
 //! Reading a dataset: the manifest, the tree index, one tree by id or pixel, every tree in order,
 //! and `check`.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap, HashSet};
 use std::fs::{self, File};
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -566,31 +566,52 @@ impl Dataset {
             }
         };
         let encoded = self.encoding() != Encoding::Plain;
-        let geometric = ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z"];
-        if encoded && names.iter().any(|n| geometric.contains(&n.as_str())) {
-            // Decoding needs the tree structure columns: read everything, then project.
-            let it = self.segment_batches_in(i, rows)?;
-            return Ok(Box::new(it.map(move |b| b.and_then(&project))));
-        }
-        // Only columns stored as they are (kind from its codes in encoded files): read them alone.
-        let roots: Vec<usize> = names
+        let is_origin = |n: &str| n.starts_with("origin_");
+        let is_dir = |n: &str| n.starts_with("dir_");
+        let want_origin = encoded && names.iter().any(|n| is_origin(n));
+        let want_geometry = want_origin || (encoded && names.iter().any(|n| is_dir(n)));
+        // The file columns: what is asked for as stored (kind from its codes in encoded files),
+        // plus what decoding needs: the direction columns, and for origins the tree structure.
+        let mut file_names: Vec<&str> = names
             .iter()
-            .map(|n| if encoded && n == "kind" { crate::codec::KIND_CODE } else { n.as_str() })
-            .filter_map(|n| self.file_schema.index_of(n).ok())
+            .map(|n| n.as_str())
+            .filter(|n| !encoded || !(is_origin(n) || is_dir(n)))
+            .map(|n| if encoded && n == "kind" { crate::codec::KIND_CODE } else { n })
             .collect();
-        let (path, reader) = self.ray_reader(i, Some(roots), rows, 64 * 1024)?;
+        if want_geometry {
+            file_names.extend(&crate::codec::ENCODED_COLUMNS[3..]);
+        }
+        if want_origin {
+            file_names.extend(&crate::codec::ENCODED_COLUMNS[..3]);
+            file_names.extend(["tree_id", "ray", "parent", "t"]);
+        }
+        let roots: BTreeSet<usize> = file_names.iter().filter_map(|n| self.file_schema.index_of(n).ok()).collect();
+        let (path, reader) = self.ray_reader(i, Some(roots.into_iter().collect()), rows, 64 * 1024)?;
         let kinds = self.kinds.clone();
+        let mut decoder = self.decoder();
         Ok(Box::new(reader.map(move |b| {
             let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
-            let Ok(k) = b.schema().index_of(crate::codec::KIND_CODE) else { return project(b) };
-            // The kind codes as the kind column, under its name.
             let mut fields: Vec<arrow::datatypes::FieldRef> = b.schema().fields().iter().cloned().collect();
             let mut cols = b.columns().to_vec();
-            cols[k] = crate::codec::kinds_of_codes(&cols[k], &kinds, &path)?;
-            fields[k] = Arc::new(arrow::datatypes::Field::new("kind", crate::schema::kind_data_type(), false));
+            if want_geometry {
+                let g = decoder.decode_geometry(&b, &path, want_origin)?;
+                for (name, col) in g.columns() {
+                    fields.push(Arc::new(arrow::datatypes::Field::new(
+                        name,
+                        arrow::datatypes::DataType::Float32,
+                        true,
+                    )));
+                    cols.push(col);
+                }
+            }
+            if let Ok(k) = b.schema().index_of(crate::codec::KIND_CODE) {
+                // The kind codes as the kind column, under its name.
+                cols[k] = crate::codec::kinds_of_codes(&cols[k], &kinds, &path)?;
+                fields[k] = Arc::new(arrow::datatypes::Field::new("kind", crate::schema::kind_data_type(), false));
+            }
             let options = arrow::array::RecordBatchOptions::new().with_row_count(Some(b.num_rows()));
             let b = RecordBatch::try_new_with_options(Arc::new(arrow::datatypes::Schema::new(fields)), cols, &options)
-                .map_err(arrow_err("kind column"))?;
+                .map_err(arrow_err("decoded columns"))?;
             project(b)
         })))
     }
