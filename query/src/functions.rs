@@ -292,6 +292,44 @@ where
     ScalarUDF::from(SimpleScalarUDF::new_with_signature(name, float_signature(N, int_param), ret, fun))
 }
 
+/// `octant(dx, dy, dz)`: bit 0 for dx < 0, bit 1 for dy < 0, bit 2 for dz < 0; NULL when a
+/// component is NULL, NaN or infinite. A kernel of its own (no per-row closure, no option per
+/// row): it is the grouping key of direction-coherence queries over every ray.
+fn octant_udf() -> ScalarUDF {
+    fn kernel<T: ArrowPrimitiveType>(c: &[&PrimitiveArray<T>; 3]) -> datafusion::error::Result<UInt8Array>
+    where
+        T::Native: Into<f64>,
+    {
+        let [x, y, z] = c.map(|a| a.values().as_ref());
+        let n = x.len().min(y.len()).min(z.len());
+        let comp = |v: &[T::Native], i: usize| -> f64 { v[i].into() };
+        let values: Vec<u8> = (0..n)
+            .map(|i| {
+                u8::from(comp(x, i) < 0.0) | (u8::from(comp(y, i) < 0.0) << 1) | (u8::from(comp(z, i) < 0.0) << 2)
+            })
+            .collect();
+        let all_finite = (0..n).all(|i| comp(x, i).is_finite() & comp(y, i).is_finite() & comp(z, i).is_finite());
+        let mut nulls = arrow::buffer::NullBuffer::union(c[0].nulls(), c[1].nulls());
+        nulls = arrow::buffer::NullBuffer::union(nulls.as_ref(), c[2].nulls());
+        if !all_finite {
+            let finite = arrow::buffer::BooleanBuffer::collect_bool(n, |i| {
+                comp(x, i).is_finite() & comp(y, i).is_finite() & comp(z, i).is_finite()
+            });
+            nulls = arrow::buffer::NullBuffer::union(nulls.as_ref(), Some(&arrow::buffer::NullBuffer::new(finite)));
+        }
+        Ok(UInt8Array::try_new(values.into(), nulls)?)
+    }
+    let fun = Arc::new(|args: &[ColumnarValue]| {
+        let a = arrays(args)?;
+        let out = match Floats::<3>::of(&a)? {
+            Floats::F32(c) => kernel(&c)?,
+            Floats::F64(c) => kernel(&c)?,
+        };
+        Ok(ColumnarValue::Array(Arc::new(out) as ArrayRef))
+    });
+    ScalarUDF::from(SimpleScalarUDF::new_with_signature("octant", float_signature(3, false), DataType::UInt8, fun))
+}
+
 /// `ray_point(ox, oy, oz, dx, dy, dz, t)`: the point at `t` along the ray, as a struct.
 fn ray_point_udf() -> ScalarUDF {
     let fields = point_fields();
@@ -656,9 +694,7 @@ pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
     ctx.register_udf(ray_point_udf());
     ctx.register_udaf(xyz_aggregate::<Coherence>());
     ctx.register_udaf(xyz_aggregate::<Spread>());
-    ctx.register_udf(rowwise::<3, _, UInt8Array>("octant", false, DataType::UInt8, |d, _| {
-        Some(u8::from(d[0] < 0.0) | (u8::from(d[1] < 0.0) << 1) | (u8::from(d[2] < 0.0) << 2))
-    }));
+    ctx.register_udf(octant_udf());
     ctx.register_udf(rowwise::<6, _, Float64Array>("angle_between", false, DataType::Float64, |v, _| {
         angle([v[0], v[1], v[2]], [v[3], v[4], v[5]])
     }));
