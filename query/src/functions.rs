@@ -17,7 +17,9 @@
 //! | `dir_coherence(dx, dy, dz)` | Float64 | mean resultant length of the normalized directions: 1 when all are parallel, near 0 for directions spread over the sphere |
 //! | `origin_spread(x, y, z)` | Float64 | root-mean-square distance of the points from their centroid (numerically stable far from the origin) |
 //!
-//! NaN or infinite inputs give NULL, never an error. Scene-dependent functions use the scene of
+//! Float arguments are three (or seven, twelve) Float32 columns read as they are, or Float64
+//! (mixed arguments and integer literals coerce to Float64). NaN or infinite inputs give NULL,
+//! never an error. Scene-dependent functions use the scene of
 //! the session's first dataset: its bounds (origins and hit points) and its `lights` table.
 
 use std::sync::Arc;
@@ -304,9 +306,7 @@ fn octant_udf() -> ScalarUDF {
         let n = x.len().min(y.len()).min(z.len());
         let comp = |v: &[T::Native], i: usize| -> f64 { v[i].into() };
         let values: Vec<u8> = (0..n)
-            .map(|i| {
-                u8::from(comp(x, i) < 0.0) | (u8::from(comp(y, i) < 0.0) << 1) | (u8::from(comp(z, i) < 0.0) << 2)
-            })
+            .map(|i| u8::from(comp(x, i) < 0.0) | (u8::from(comp(y, i) < 0.0) << 1) | (u8::from(comp(z, i) < 0.0) << 2))
             .collect();
         let all_finite = (0..n).all(|i| comp(x, i).is_finite() & comp(y, i).is_finite() & comp(z, i).is_finite());
         let mut nulls = arrow::buffer::NullBuffer::union(c[0].nulls(), c[1].nulls());
