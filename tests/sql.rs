@@ -252,6 +252,14 @@ fn pushed_filters_prune_and_keep_answers() {
     assert_eq!(explain("depth > 100").0, format!("0/{total}"));
     // A filter the scan cannot use reads everything and still answers right.
     assert_eq!(explain("t > 1.0").1, format!("{0}/{0}", ds.tree_count()));
+    // Kind and depth alone come from the segments' counts (the answers are compared with the
+    // files' in tests/slt/tables.slt); any other column reads the files.
+    let plan = |q: &str| String::from_utf8_lossy(&rtvtk(&["sql", d, q, "--explain"]).stdout).to_string();
+    let counted = format!("segments={total}/{total} ({total} from their kind/depth counts)");
+    assert!(plan("SELECT kind, depth, count(*) FROM rays WHERE depth >= 1 GROUP BY kind, depth").contains(&counted));
+    assert!(plan("SELECT count(*) FROM rays WHERE kind = 'shadow'").contains("from their kind/depth counts"));
+    assert!(!plan("SELECT count(*) FROM rays WHERE kind = 'shadow' AND t > 1").contains("kind/depth counts"));
+    assert!(!plan("SELECT count(*) FROM rays WHERE tree_id = 77").contains("kind/depth counts"));
 }
 
 /// Without a query, `rtvtk sql DATASET` reads statements ending in `;` (here from a pipe); an

@@ -477,11 +477,76 @@ impl RaysScanExec {
         Self { ds, schema, pushdown, parts, properties }
     }
 
+    /// Whether a partition is answered from its segment's per-kind, per-depth ray counts: when the
+    /// query uses no column but `kind` and `depth` (counts, group-bys and filters on them), those
+    /// counts are the two columns run-length encoded, up to row order (which SQL leaves open), so
+    /// the ray file is not read. Datasets without the counts (or with counts that do not add up to
+    /// the segment's rays) are read.
+    fn answered_by_counts(&self, part: &SegmentPlan) -> bool {
+        let seg = &self.ds.manifest().segments[part.segment];
+        let total: u64 = seg.stats.rays_by_kind_depth.values().flatten().sum();
+        part.rows.is_none()
+            && self.schema.fields().iter().all(|f| f.name() == "kind" || f.name() == "depth")
+            && total == seg.rays.rows
+    }
+
+    /// A partition's `kind` and `depth` columns from its segment's counts: only the (kind, depth)
+    /// pairs the pushed filters can keep (DataFusion still applies the filters).
+    fn count_batches(&self, part: &SegmentPlan) -> Box<dyn Iterator<Item = store::Result<RecordBatch>> + Send> {
+        const BATCH: u64 = 64 * 1024;
+        let seg = &self.ds.manifest().segments[part.segment];
+        let depths = self.pushdown.ranges.get("depth");
+        let mut runs: Vec<(String, u16, u64)> = Vec::new();
+        for (kind, counts) in &seg.stats.rays_by_kind_depth {
+            if self.pushdown.kinds.as_ref().is_some_and(|k| !k.contains(kind)) {
+                continue;
+            }
+            for (d, &n) in counts.iter().enumerate() {
+                if let Ok(d16) = u16::try_from(d)
+                    && n > 0
+                    && contains(depths, d as u64)
+                {
+                    let mut left = n;
+                    while left > 0 {
+                        let take = left.min(BATCH);
+                        runs.push((kind.clone(), d16, take));
+                        left -= take;
+                    }
+                }
+            }
+        }
+        let schema = self.schema.clone();
+        Box::new(runs.into_iter().map(move |(kind, depth, n)| {
+            let n = n as usize;
+            let cols = schema
+                .fields()
+                .iter()
+                .map(|f| -> Arc<dyn Array> {
+                    if f.name() == "depth" {
+                        Arc::new(arrow::array::UInt16Array::from(vec![depth; n]))
+                    } else {
+                        let keys = arrow::array::UInt8Array::from(vec![0u8; n]);
+                        let values = Arc::new(arrow::array::StringArray::from(vec![kind.as_str()]));
+                        Arc::new(arrow::array::DictionaryArray::new(keys, values))
+                    }
+                })
+                .collect();
+            let options = RecordBatchOptions::new().with_row_count(Some(n));
+            RecordBatch::try_new_with_options(schema.clone(), cols, &options).map_err(|e| store::Error::Arrow {
+                context: "kind and depth from the segment's counts".into(),
+                source: e,
+            })
+        }))
+    }
+
     /// The batches of one partition, with the tree columns added.
     fn batches(&self, partition: usize) -> store::Result<Box<dyn Iterator<Item = store::Result<RecordBatch>> + Send>> {
         let Some(part) = self.parts.get(partition) else {
             return Ok(Box::new(std::iter::empty()));
         };
+        if self.answered_by_counts(part) {
+            return Ok(self.count_batches(part));
+        }
         let names: Vec<String> = self.schema.fields().iter().map(|f| f.name().clone()).collect();
         let base = self.ds.ray_schema();
         let virtual_cols: Vec<&str> =
@@ -555,15 +620,17 @@ impl DisplayAs for RaysScanExec {
         let names: Vec<&str> = self.schema.fields().iter().map(|f| f.name().as_str()).collect();
         let trees: u64 = self.parts.iter().map(|p| p.trees).sum();
         let rays: u64 = self.parts.iter().map(|p| p.rays).sum();
+        let counted = self.parts.iter().filter(|p| self.answered_by_counts(p)).count();
         write!(
             f,
-            "RaysScanExec: dataset={}, encoding={}, projection=[{}], pushed=[{}], segments={}/{}, trees={}/{}, rows={}/{}",
+            "RaysScanExec: dataset={}, encoding={}, projection=[{}], pushed=[{}], segments={}/{}{}, trees={}/{}, rows={}/{}",
             self.ds.dir().display(),
             self.ds.encoding().name(),
             names.join(", "),
             self.pushdown.shown.join(", "),
             self.parts.len(),
             m.segments.len(),
+            if counted > 0 { format!(" ({counted} from their kind/depth counts)") } else { String::new() },
             trees,
             self.ds.tree_count(),
             rays,
