@@ -1,15 +1,11 @@
 #![allow(clippy::unwrap_used)]
 //! `rtvtk analyze`: the canned reports on small traces, their plots, and bad input.
 
-use std::path::Path;
-
 mod common;
 use common::{ok, rtvtk};
 
-fn record(dir: &Path, extra: &[&str]) {
-    let base = ["--scene", "cornell", "--size", "32x24", "--spp", "2", "--threads", "2", "--record-visits"];
-    common::record(dir, &[&base[..], extra].concat());
-}
+const SETTINGS: [&str; 9] =
+    ["--scene", "cornell", "--size", "32x24", "--spp", "2", "--threads", "2", "--record-visits"];
 
 /// The number after `**` in the bug report's summary line.
 fn wrong_count(report: &str) -> u64 {
@@ -20,9 +16,7 @@ fn wrong_count(report: &str) -> u64 {
 #[test]
 fn reports_find_the_bug_and_draw_it() {
     let tmp = tempfile::tempdir().unwrap();
-    let (good, bad) = (tmp.path().join("good"), tmp.path().join("bad"));
-    record(&good, &[]);
-    record(&bad, &["--inject-bug", "shadow-dir"]);
+    let (good, bad) = common::record_good_and_bad(tmp.path(), &SETTINGS);
     let (g, b) = (good.to_str().unwrap(), bad.to_str().unwrap());
 
     assert_eq!(wrong_count(&ok(&["analyze", "bugs", g])), 0);

@@ -17,11 +17,12 @@ use futures::TryStreamExt;
 use tonic::transport::Channel;
 
 mod common;
-use common::{rtvtk, scalar as sql_scalar};
+use common::{WRONG_SHADOWS, rtvtk, scalar as sql_scalar};
+
+const SETTINGS: [&str; 8] = ["--scene", "cornell", "--size", "32x24", "--spp", "4", "--threads", "2"];
 
 fn record(dir: &Path, extra: &[&str]) {
-    let base = ["--scene", "cornell", "--size", "32x24", "--spp", "4", "--threads", "2"];
-    common::record(dir, &[&base[..], extra].concat());
+    common::record(dir, &[&SETTINGS[..], extra].concat());
 }
 
 /// The server process, killed when the test ends (also when it fails).
@@ -73,15 +74,10 @@ fn u64_at(batch: &RecordBatch, col: usize, row: usize) -> u64 {
     })
 }
 
-const WRONG_SHADOWS: &str = "SELECT count(*) FROM rays WHERE kind = 'shadow' \
-     AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
-
 #[test]
 fn flight_sql_clients_query_traces_read_only() {
     let tmp = tempfile::tempdir().unwrap();
-    let (good, bad) = (tmp.path().join("good"), tmp.path().join("bad"));
-    record(&good, &[]);
-    record(&bad, &["--inject-bug", "shadow-dir"]);
+    let (good, bad) = common::record_good_and_bad(tmp.path(), &SETTINGS);
     let (g, b) = (format!("good={}", good.display()), format!("bad={}", bad.display()));
     // The answers `rtvtk sql` gives, to compare with.
     let rays: u64 = sql_scalar(&[&g], "SELECT count(*) FROM rays").parse().unwrap();

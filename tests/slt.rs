@@ -89,18 +89,14 @@ impl sqllogictest::AsyncDB for Trace {
 
 mod common;
 
-fn record(dir: &Path, extra: &[&str]) {
-    let base =
-        ["--scene", "cornell", "--size", "16x12", "--spp", "2", "--threads", "1", "--seed", "0", "--record-visits"];
-    common::record(dir, &[&base[..], extra].concat());
-}
+const SETTINGS: [&str; 11] =
+    ["--scene", "cornell", "--size", "16x12", "--spp", "2", "--threads", "1", "--seed", "0", "--record-visits"];
 
 #[test]
 fn sql_logic_tests() {
     let tmp = tempfile::tempdir().unwrap();
-    let (good, bad, plain) = (tmp.path().join("good"), tmp.path().join("bad"), tmp.path().join("plain"));
-    record(&good, &[]);
-    record(&bad, &["--inject-bug", "shadow-dir"]);
+    let (good, bad) = common::record_good_and_bad(tmp.path(), &SETTINGS);
+    let plain = tmp.path().join("plain");
     common::ok(&["export", good.to_str().unwrap(), plain.to_str().unwrap()]);
     let sources: Vec<query::TraceSource> = [("good", &good), ("bad", &bad), ("plain", &plain)]
         .iter()

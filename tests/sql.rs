@@ -8,11 +8,12 @@ use std::process::Command;
 use serde_json::Value;
 
 mod common;
-use common::{rtvtk, scalar};
+use common::{WRONG_SHADOWS, rtvtk, scalar};
+
+const SETTINGS: [&str; 8] = ["--scene", "cornell", "--size", "40x30", "--spp", "4", "--threads", "2"];
 
 fn record(dir: &Path, extra: &[&str]) {
-    let base = ["--scene", "cornell", "--size", "40x30", "--spp", "4", "--threads", "2"];
-    common::record(dir, &[&base[..], extra].concat());
+    common::record(dir, &[&SETTINGS[..], extra].concat());
 }
 
 /// A lossless recording under `dir` and its plain export: (encoded, plain).
@@ -23,15 +24,10 @@ fn record_and_export(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
     (enc, plain)
 }
 
-const WRONG_SHADOWS: &str = "SELECT count(*) FROM rays WHERE kind = 'shadow' \
-     AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
-
 #[test]
 fn the_shadow_ray_bug_is_a_query() {
     let tmp = tempfile::tempdir().unwrap();
-    let (good, bad) = (tmp.path().join("good"), tmp.path().join("bad"));
-    record(&good, &[]);
-    record(&bad, &["--inject-bug", "shadow-dir"]);
+    let (good, bad) = common::record_good_and_bad(tmp.path(), &SETTINGS);
     let wrong_good: u64 = scalar(&[good.to_str().unwrap()], WRONG_SHADOWS).parse().unwrap();
     let wrong_bad: u64 = scalar(&[bad.to_str().unwrap()], WRONG_SHADOWS).parse().unwrap();
     assert_eq!(wrong_good, 0, "a correct trace has no shadow ray aiming at no light");

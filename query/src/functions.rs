@@ -22,9 +22,8 @@
 //! never an error. Scene-dependent functions use the scene of
 //! the session's first dataset: its bounds (origins and hit points) and its `lights` table.
 
-use std::sync::Arc;
-
 use std::marker::PhantomData;
+use std::sync::Arc;
 
 use arrow::array::{
     Array, ArrayRef, AsArray, BooleanArray, Float64Array, Int64Array, PrimitiveArray, UInt8Array, UInt32Array,
@@ -296,7 +295,7 @@ where
 
 /// `octant(dx, dy, dz)`: bit 0 for dx < 0, bit 1 for dy < 0, bit 2 for dz < 0; NULL when a
 /// component is NULL, NaN or infinite. A kernel of its own (no per-row closure, no option per
-/// row): it is the grouping key of direction-coherence queries over every ray.
+/// row; finiteness packed into a validity bitmap in one pass): it is the grouping key of direction-coherence queries over every ray.
 fn octant_udf() -> ScalarUDF {
     fn kernel<T: ArrowPrimitiveType>(c: &[&PrimitiveArray<T>; 3]) -> datafusion::error::Result<UInt8Array>
     where
@@ -308,13 +307,12 @@ fn octant_udf() -> ScalarUDF {
         let values: Vec<u8> = (0..n)
             .map(|i| u8::from(comp(x, i) < 0.0) | (u8::from(comp(y, i) < 0.0) << 1) | (u8::from(comp(z, i) < 0.0) << 2))
             .collect();
-        let all_finite = (0..n).all(|i| comp(x, i).is_finite() & comp(y, i).is_finite() & comp(z, i).is_finite());
+        let finite = arrow::buffer::BooleanBuffer::collect_bool(n, |i| {
+            comp(x, i).is_finite() & comp(y, i).is_finite() & comp(z, i).is_finite()
+        });
         let mut nulls = arrow::buffer::NullBuffer::union(c[0].nulls(), c[1].nulls());
         nulls = arrow::buffer::NullBuffer::union(nulls.as_ref(), c[2].nulls());
-        if !all_finite {
-            let finite = arrow::buffer::BooleanBuffer::collect_bool(n, |i| {
-                comp(x, i).is_finite() & comp(y, i).is_finite() & comp(z, i).is_finite()
-            });
+        if finite.count_set_bits() < n {
             nulls = arrow::buffer::NullBuffer::union(nulls.as_ref(), Some(&arrow::buffer::NullBuffer::new(finite)));
         }
         Ok(UInt8Array::try_new(values.into(), nulls)?)

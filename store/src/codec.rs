@@ -341,19 +341,25 @@ fn encode_dir(d: [f32; 3], encoding: Encoding) -> (u8, [u32; 3], [f32; 3]) {
     (axis as u8 + 3 * u8::from(negative), [b.to_bits(), c.to_bits(), residual(d[axis], pred)], d)
 }
 
+/// A direction stored with a predicted axis (codes 0..=5): the two stored components and the
+/// residual of the third against `p`, the magnitude [`unit_component`] predicts for it.
+#[inline]
+fn predicted_dir(code: u8, w: [u32; 3], p: f32) -> [f32; 3] {
+    // Table lookups instead of `% 3`: the axis changes from ray to ray, so branches on it would
+    // mispredict.
+    const AXIS: [usize; 6] = [0, 1, 2, 0, 1, 2];
+    let axis = AXIS[code as usize % 6]; // callers pass code < 6; `% 6` keeps any other in bounds
+    let mut d = [0.0f32; 3];
+    d[AXIS[axis + 1]] = f32::from_bits(w[0]);
+    d[AXIS[axis + 2]] = f32::from_bits(w[1]);
+    d[axis] = apply(w[2], if code >= 3 { -p } else { p });
+    d
+}
+
 #[inline]
 fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], String> {
     if code < 6 {
-        // Table lookups instead of `% 3`: the axis changes from ray to ray, so branches on it
-        // would mispredict.
-        const AXIS: [usize; 6] = [0, 1, 2, 0, 1, 2];
-        let axis = AXIS[code as usize];
-        let (b, c) = (f32::from_bits(w[0]), f32::from_bits(w[1]));
-        let mut d = [0.0f32; 3];
-        d[AXIS[axis + 1]] = b;
-        d[AXIS[axis + 2]] = c;
-        d[axis] = apply(w[2], unit_component(b, c, code >= 3));
-        return Ok(d);
+        return Ok(predicted_dir(code, w, unit_component(f32::from_bits(w[0]), f32::from_bits(w[1]), false)));
     }
     match code {
         DIR_RAW => Ok([f32::from_bits(w[0]), f32::from_bits(w[1]), f32::from_bits(w[2])]),
@@ -474,66 +480,61 @@ impl Decoder {
             _ => 0,
         };
         let n = batch.num_rows();
+        // The tree structure, when origins are asked for (also names rows in errors).
+        let structure = if origins {
+            let tree = file_column(batch, "tree_id", path)?
+                .as_primitive_opt::<UInt64Type>()
+                .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
+            let t = file_column(batch, "t", path)?
+                .as_primitive_opt::<arrow::datatypes::Float32Type>()
+                .ok_or_else(|| corrupt("column t is not Float32".into()))?;
+            let eo = [typed_u32(ENCODED_COLUMNS[0])?, typed_u32(ENCODED_COLUMNS[1])?, typed_u32(ENCODED_COLUMNS[2])?];
+            Some((tree, typed_u32("ray")?, typed_u32("parent")?, t, eo))
+        } else {
+            None
+        };
+        let row_name = |i: usize| match &structure {
+            Some((tree, ray, ..)) => format!("tree {} ray {}", tree.value(i), ray.value(i)),
+            None => format!("row {i} of the batch"),
+        };
+        // Directions: the predicted components first, in a loop of their own that the compiler
+        // vectorizes (one square root per ray bounds the scalar loop); then each ray from its code.
+        let (codes, e0, e1, e2) =
+            (&code.values()[..n], &ed[0].values()[..n], &ed[1].values()[..n], &ed[2].values()[..n]);
+        let pred: Vec<f32> =
+            e0.iter().zip(e1).map(|(&b, &c)| unit_component(f32::from_bits(b), f32::from_bits(c), false)).collect();
         let mut dir = [vec![0.0f32; n], vec![0.0f32; n], vec![0.0f32; n]];
-        let (codes, e0, e1, e2) = (code.values(), ed[0].values(), ed[1].values(), ed[2].values());
-        if !origins {
+        {
             let [dx, dy, dz] = &mut dir;
-            let (dx, dy, dz, e0, e1, e2) = (&mut dx[..n], &mut dy[..n], &mut dz[..n], &e0[..n], &e1[..n], &e2[..n]);
-            // The predicted components first, in a loop of their own that the compiler vectorizes
-            // (one square root per ray bounds the scalar loop); then each ray from its code.
-            let pred: Vec<f32> =
-                e0.iter().zip(e1).map(|(&b, &c)| unit_component(f32::from_bits(b), f32::from_bits(c), false)).collect();
-            for (i, &c) in codes[..n].iter().enumerate() {
+            let (dx, dy, dz) = (&mut dx[..n], &mut dy[..n], &mut dz[..n]);
+            for (i, &c) in codes.iter().enumerate() {
                 if c >> 6 != 0 {
-                    return Err(corrupt(format!("row {i} of the batch: enc_dir_code {c} has unknown bits")));
+                    return Err(corrupt(format!("{}: enc_dir_code {c} has unknown bits", row_name(i))));
                 }
-                let code = c & 7;
+                let (code, w) = (c & 7, [e0[i], e1[i], e2[i]]);
                 let d = if code < 6 {
-                    const AXIS: [usize; 6] = [0, 1, 2, 0, 1, 2];
-                    let axis = AXIS[code as usize];
-                    let mut d = [0.0f32; 3];
-                    d[AXIS[axis + 1]] = f32::from_bits(e0[i]);
-                    d[AXIS[axis + 2]] = f32::from_bits(e1[i]);
-                    d[axis] = apply(e2[i], if code >= 3 { -pred[i] } else { pred[i] });
-                    d
+                    predicted_dir(code, w, pred[i])
                 } else {
-                    decode_dir(code, [e0[i], e1[i], e2[i]], bits).map_err(|m| corrupt(format!("row {i}: {m}")))?
+                    decode_dir(code, w, bits).map_err(|m| corrupt(format!("{}: {m}", row_name(i))))?
                 };
                 (dx[i], dy[i], dz[i]) = (d[0], d[1], d[2]);
             }
-            return Ok(Geometry { origin: None, dir: dir.map(Float32Array::from) });
         }
-        let tree = file_column(batch, "tree_id", path)?
-            .as_primitive_opt::<UInt64Type>()
-            .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
-        let ray = typed_u32("ray")?;
-        let parent = typed_u32("parent")?;
-        let t = file_column(batch, "t", path)?
-            .as_primitive_opt::<arrow::datatypes::Float32Type>()
-            .ok_or_else(|| corrupt("column t is not Float32".into()))?;
-        let eo = [typed_u32(ENCODED_COLUMNS[0])?, typed_u32(ENCODED_COLUMNS[1])?, typed_u32(ENCODED_COLUMNS[2])?];
+        let Some((tree, ray, parent, t, eo)) = structure else {
+            return Ok(Geometry { origin: None, dir: dir.map(Float32Array::from) });
+        };
+        // Origins, predicted from the tree (previous sibling, else the parent's hit point).
         let mut origin = [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
         let st = &mut self.state;
-        for i in 0..n {
+        for (i, &c) in codes.iter().enumerate() {
             let p = if parent.is_null(i) { NONE_U32 } else { parent.value(i) };
             st.advance(tree.value(i), ray.value(i), p).map_err(corrupt)?;
             let pred = st.predict_origin(p);
-            let c = codes[i];
-            if c >> 6 != 0 {
-                return Err(corrupt(format!(
-                    "tree {} ray {}: enc_dir_code {c} has unknown bits",
-                    tree.value(i),
-                    ray.value(i)
-                )));
-            }
             let o = [0, 1, 2].map(|k| apply(eo[k].value(i), if c & (8 << k) != 0 { 0.0 } else { pred[k] }));
-            let d = decode_dir(c & 7, [e0[i], e1[i], e2[i]], bits)
-                .map_err(|m| corrupt(format!("tree {} ray {}: {m}", tree.value(i), ray.value(i))))?;
-            for k in 0..3 {
-                origin[k].push(o[k]);
-                dir[k][i] = d[k];
+            for (out, v) in origin.iter_mut().zip(o) {
+                out.push(v);
             }
-            st.push(p, o, d, if t.is_null(i) { None } else { Some(t.value(i)) });
+            st.push(p, o, [dir[0][i], dir[1][i], dir[2][i]], if t.is_null(i) { None } else { Some(t.value(i)) });
         }
         Ok(Geometry { origin: Some(origin.map(Float32Array::from)), dir: dir.map(Float32Array::from) })
     }

@@ -27,3 +27,16 @@ pub fn scalar(datasets: &[&str], query: &str) -> String {
     let out = ok(&[&["sql"], datasets, &[query, "--format", "csv"]].concat());
     out.lines().nth(1).unwrap_or_default().trim().to_string()
 }
+
+/// The paper's bug as a query: shadow rays that point at no emitter.
+pub const WRONG_SHADOWS: &str = "SELECT count(*) FROM rays WHERE kind = 'shadow' \
+     AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
+
+/// Records `DIR/good` (a correct trace) and `DIR/bad` (with `--inject-bug shadow-dir`), both with
+/// `settings`; their paths.
+pub fn record_good_and_bad(dir: &Path, settings: &[&str]) -> (std::path::PathBuf, std::path::PathBuf) {
+    let (good, bad) = (dir.join("good"), dir.join("bad"));
+    record(&good, settings);
+    record(&bad, &[settings, &["--inject-bug", "shadow-dir"]].concat());
+    (good, bad)
+}
