@@ -256,6 +256,20 @@ fn pushed_filters_prune_and_keep_answers() {
     assert!(plan("SELECT count(*) FROM rays WHERE kind = 'shadow'").contains("from their kind/depth counts"));
     assert!(!plan("SELECT count(*) FROM rays WHERE kind = 'shadow' AND t > 1").contains("kind/depth counts"));
     assert!(!plan("SELECT count(*) FROM rays WHERE tree_id = 77").contains("kind/depth counts"));
+    // Counting group-bys on one integer key run in CountByKeyExec (their answers are compared
+    // with DataFusion's own aggregation in tests/slt/counts.slt); other shapes do not.
+    let morton = "SELECT morton3(origin_x, origin_y, origin_z, 10) AS m, count(*) FROM rays GROUP BY m";
+    assert!(plan(morton).contains("CountByKeyExec"), "{}", plan(morton));
+    assert!(plan("SELECT prim, count(*), count(t) FROM rays GROUP BY prim").contains("CountByKeyExec"));
+    assert!(!plan("SELECT prim, sum(1) FROM rays GROUP BY prim").contains("CountByKeyExec"));
+    assert!(!plan("SELECT prim, count(*) FILTER (WHERE depth > 0) FROM rays GROUP BY prim").contains("CountByKeyExec"));
+    assert!(!plan("SELECT kind, count(*) FROM rays GROUP BY kind").contains("CountByKeyExec"));
+    assert!(!plan("SELECT prim, depth, count(*) FROM rays GROUP BY prim, depth").contains("CountByKeyExec"));
+    // Its tables are charged to the memory limit: over it, an error that says so, not a crash.
+    let every_ray = "SELECT CAST(tree_id AS BIGINT) * 4096 + ray AS id, count(*) FROM rays GROUP BY id";
+    let out = rtvtk(&["sql", d, every_ray, "--memory-limit", "64KiB"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("CountByKeyExec") && !stderr.contains("panicked"), "{stderr}");
 }
 
 /// Without a query, `rtvtk sql DATASET` reads statements ending in `;` (here from a pipe); an

@@ -1,12 +1,14 @@
 #![doc = include_str!("../README.md")]
 
 pub mod analyze;
+mod count_by_key;
 mod error;
 mod functions;
 mod scan;
 pub mod service;
 mod tables;
 
+pub use count_by_key::{CountByKey, CountByKeyExec};
 pub use error::{Error, Result};
 pub use functions::{SceneContext, register_functions};
-pub use tables::{SessionOptions, TraceSource, register_dataset, session, session_with};
+pub use tables::{SessionOptions, TraceSource, physical_optimizer_rules, register_dataset, session, session_with};

@@ -21,12 +21,16 @@ use datafusion::datasource::file_format::parquet::ParquetFormat;
 use datafusion::datasource::listing::{ListingOptions, ListingTable, ListingTableConfig, ListingTableUrl};
 use datafusion::error::DataFusionError;
 use datafusion::execution::TaskContext;
+use datafusion::execution::session_state::SessionStateBuilder;
+use datafusion::physical_optimizer::PhysicalOptimizerRule;
+use datafusion::physical_optimizer::optimizer::PhysicalOptimizer;
 use datafusion::physical_plan::SendableRecordBatchStream;
 use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
 use datafusion::physical_plan::streaming::PartitionStream;
 use datafusion::prelude::{SessionConfig, SessionContext};
 use store::Dataset;
 
+use crate::count_by_key::CountByKey;
 use crate::functions::{SceneContext, register_functions};
 use crate::scan::RaysTable;
 use crate::{Error, Result};
@@ -86,7 +90,13 @@ pub async fn session_with(sources: &[TraceSource], options: &SessionOptions) -> 
     if let Some(limit) = options.memory_limit {
         runtime = runtime.with_memory_limit(limit, 1.0);
     }
-    let ctx = SessionContext::new_with_config_rt(config, runtime.build_arc()?);
+    let state = SessionStateBuilder::new()
+        .with_config(config)
+        .with_runtime_env(runtime.build_arc()?)
+        .with_default_features()
+        .with_physical_optimizer_rules(physical_optimizer_rules())
+        .build();
+    let ctx = SessionContext::new_with_state(state);
     let mut names = std::collections::HashSet::new();
     let mut scene = None;
     for (i, src) in sources.iter().enumerate() {
@@ -100,6 +110,16 @@ pub async fn session_with(sources: &[TraceSource], options: &SessionOptions) -> 
     }
     register_functions(&ctx, Arc::new(scene.unwrap_or_default()));
     Ok(ctx)
+}
+
+/// DataFusion's physical optimizer rules with rtvtk's: [`CountByKey`] (counting group-bys on one
+/// integer key, such as Morton cells) just before distribution is enforced. Sessions built
+/// elsewhere (Ballista's, for example) run the same queries without it, only slower.
+pub fn physical_optimizer_rules() -> Vec<Arc<dyn PhysicalOptimizerRule + Send + Sync>> {
+    let mut rules = PhysicalOptimizer::new().rules;
+    let at = rules.iter().position(|r| r.name() == "EnsureRequirements" || r.name() == "EnforceDistribution");
+    rules.insert(at.unwrap_or(0), Arc::new(CountByKey));
+    rules
 }
 
 /// Registers one dataset's tables; with `unqualified`, also as `rays`, `trees`, ... Returns the
