@@ -158,6 +158,9 @@ impl CountByKeyExec {
             };
             outputs.push((counted, a.name().to_string()));
         }
+        if args.len() > 64 {
+            return Ok(None);
+        }
         let properties = Arc::new(PlanProperties::new(
             EquivalenceProperties::new(out.clone()),
             Partitioning::UnknownPartitioning(1),
@@ -248,13 +251,18 @@ impl ExecutionPlan for CountByKeyExec {
         if partition != 0 {
             return Err(DataFusionError::Internal(format!("CountByKeyExec has one partition, not {partition}")));
         }
+        // One counting worker per target partition, each reading its share of the input's
+        // partitions in turn (a dataset's segments can far outnumber the cores; a table per
+        // segment would multiply the memory and the merging).
         let parts = self.input.output_partitioning().partition_count();
-        let mut tasks = Vec::with_capacity(parts);
-        for p in 0..parts {
-            let stream = self.input.execute(p, context.clone())?;
-            let reservation = MemoryConsumer::new(format!("CountByKeyExec[{p}]")).register(context.memory_pool());
+        let workers = context.session_config().target_partitions().clamp(1, parts.max(1));
+        let mut tasks = Vec::with_capacity(workers);
+        for w in 0..workers {
+            let streams = (w..parts).step_by(workers).map(|p| self.input.execute(p, context.clone()));
+            let streams = streams.collect::<Result<Vec<_>>>()?;
+            let reservation = MemoryConsumer::new(format!("CountByKeyExec[{w}]")).register(context.memory_pool());
             let (key, args, stride) = (self.key.clone(), self.args.clone(), self.stride());
-            tasks.push(SpawnedTask::spawn(count_partition(stream, key, args, stride, reservation)));
+            tasks.push(SpawnedTask::spawn(count_partitions(streams, key, args, stride, reservation)));
         }
         let schema = self.schema.clone();
         let outputs = self.outputs.clone();
@@ -307,9 +315,20 @@ impl Table {
     /// The first word of `key`'s slot, claimed (with zero counts) when the key is new.
     #[inline]
     fn slot(&mut self, key: u64, hash: u64, stride: usize) -> usize {
-        if (self.len + 1) * 2 > self.capacity(stride) {
+        self.reserve(1, stride);
+        self.slot_reserved(key, hash, stride)
+    }
+
+    /// Grows the table (if needed) so that `additional` new keys keep it at most half full.
+    fn reserve(&mut self, additional: usize, stride: usize) {
+        while (self.len + additional) * 2 > self.capacity(stride) {
             self.grow(stride);
         }
+    }
+
+    /// [`Table::slot`] without the growth check: room must have been reserved.
+    #[inline(always)]
+    fn slot_reserved(&mut self, key: u64, hash: u64, stride: usize) -> usize {
         let mut i = hash as usize & self.mask;
         loop {
             let w = i * stride;
@@ -327,7 +346,15 @@ impl Table {
 
     fn grow(&mut self, stride: usize) {
         let capacity = (self.capacity(stride) * 2).max(64);
-        let old = std::mem::replace(&mut self.words, vec![0; capacity * stride]);
+        // Zeros written, not calloc's lazy zero pages: a probe reads a slot before it writes it,
+        // and a write to a read-mapped zero page costs a copy-on-write fault and a TLB shootdown.
+        #[expect(clippy::slow_vector_initialization, reason = "written zeros, not calloc's zero pages (see above)")]
+        let words = {
+            let mut words = Vec::with_capacity(capacity * stride);
+            words.resize(capacity * stride, 0);
+            words
+        };
+        let old = std::mem::replace(&mut self.words, words);
         self.mask = capacity - 1;
         self.len = 0;
         for s in old.chunks_exact(stride).filter(|s| s[1] != 0) {
@@ -341,10 +368,66 @@ impl Table {
     }
 }
 
-/// One input partition's counts: a table per radix bucket and the counts of the NULL key.
+/// Keys a worker buffers (per radix bucket) before it adds them to its tables, bucket by bucket:
+/// each bucket's table is then read into cache once per flush, not missed on every row.
+const PENDING_KEYS: usize = 4 << 20;
+
+/// One worker's counts: a table per radix bucket, the keys not yet counted (with, when `count`s of
+/// expressions are asked, a word of their validity bits after each key), and the counts of the
+/// NULL key.
 struct Counts {
+    stride: usize,
     tables: Vec<Table>,
+    pending: Vec<Vec<u64>>,
+    pending_rows: usize,
     null_key: Vec<u64>,
+}
+
+impl Counts {
+    fn new(stride: usize) -> Self {
+        Self {
+            stride,
+            tables: (0..BUCKETS).map(|_| Table::default()).collect(),
+            pending: vec![Vec::new(); BUCKETS],
+            pending_rows: 0,
+            null_key: vec![0; stride - 1],
+        }
+    }
+
+    /// Adds the pending keys to the tables, one bucket at a time.
+    fn flush(&mut self) {
+        let stride = self.stride;
+        for (t, pending) in self.tables.iter_mut().zip(&mut self.pending) {
+            // Read the table into cache in order (at the prefetcher's pace) before the random probes.
+            std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
+            // Room is reserved per chunk, not checked per key (at most a chunk's worth of slack).
+            let per = if stride > 2 { 2 } else { 1 };
+            for chunk in pending.chunks(1024 * per) {
+                t.reserve(chunk.len() / per, stride);
+                if per == 1 {
+                    for &key in chunk {
+                        let w = t.slot_reserved(key, mix(key), stride);
+                        t.words[w + 1] += 1;
+                    }
+                    continue;
+                }
+                for row in chunk.chunks_exact(per) {
+                    let w = t.slot_reserved(row[0], mix(row[0]), stride);
+                    t.words[w + 1] += 1;
+                    for j in 2..stride {
+                        t.words[w + j] += (row[1] >> (j - 2)) & 1;
+                    }
+                }
+            }
+            pending.clear();
+        }
+        self.pending_rows = 0;
+    }
+
+    fn bytes(&self) -> usize {
+        let pending: usize = self.pending.iter().map(|p| p.capacity() * std::mem::size_of::<u64>()).sum();
+        pending + self.tables.iter().map(Table::bytes).sum::<usize>()
+    }
 }
 
 /// A key column as 64-bit words (signed keys by their two's complement bits) and its validity.
@@ -365,44 +448,54 @@ fn key_words(a: &ArrayRef) -> Result<(Cow<'_, [u64]>, Option<NullBuffer>)> {
     Ok((words, nulls))
 }
 
-/// Counts one input partition.
-async fn count_partition(
-    mut stream: SendableRecordBatchStream,
+/// Counts input partitions, one after the other, into one set of tables.
+async fn count_partitions(
+    streams: Vec<SendableRecordBatchStream>,
     key: Arc<dyn PhysicalExpr>,
     args: Vec<Arc<dyn PhysicalExpr>>,
     stride: usize,
     reservation: MemoryReservation,
 ) -> Result<(Counts, MemoryReservation)> {
-    let mut c = Counts { tables: (0..BUCKETS).map(|_| Table::default()).collect(), null_key: vec![0; stride - 1] };
+    let mut c = Counts::new(stride);
     let mut bytes = 0usize;
-    while let Some(batch) = stream.next().await {
+    let mut batches = futures::stream::iter(streams).flatten();
+    let shift = 64 - BUCKET_BITS;
+    while let Some(batch) = batches.next().await {
         let batch = batch?;
         let rows = batch.num_rows();
         let k = key.evaluate(&batch)?.into_array(rows)?;
         let (keys, key_nulls) = key_words(&k)?;
         let valid: Vec<Option<NullBuffer>> =
             args.iter().map(|a| Ok(a.evaluate(&batch)?.into_array(rows)?.logical_nulls())).collect::<Result<_>>()?;
-        let shift = 64 - BUCKET_BITS;
+        let mask = |i: usize| -> u64 {
+            valid.iter().enumerate().map(|(j, v)| u64::from(v.as_ref().is_none_or(|n| n.is_valid(i))) << j).sum()
+        };
         for (i, &key) in keys.iter().enumerate() {
-            let counts = if key_nulls.as_ref().is_some_and(|n| n.is_null(i)) {
-                &mut c.null_key[..]
-            } else {
-                let h = mix(key);
-                let t = &mut c.tables[(h >> shift) as usize];
-                let w = t.slot(key, h, stride);
-                &mut t.words[w + 1..w + stride]
-            };
-            counts[0] += 1;
-            for (j, v) in valid.iter().enumerate() {
-                counts[1 + j] += v.as_ref().is_none_or(|n| n.is_valid(i)) as u64;
+            if key_nulls.as_ref().is_some_and(|n| n.is_null(i)) {
+                c.null_key[0] += 1;
+                let m = mask(i);
+                for j in 0..args.len() {
+                    c.null_key[1 + j] += (m >> j) & 1;
+                }
+                continue;
+            }
+            let pending = &mut c.pending[(mix(key) >> shift) as usize];
+            pending.push(key);
+            if !args.is_empty() {
+                pending.push(mask(i));
             }
         }
-        let now: usize = c.tables.iter().map(Table::bytes).sum();
+        c.pending_rows += rows;
+        if c.pending_rows >= PENDING_KEYS {
+            c.flush();
+        }
+        let now = c.bytes();
         if now != bytes {
             reservation.try_resize(now)?;
             bytes = now;
         }
     }
+    c.flush();
     Ok((c, reservation))
 }
 
@@ -503,8 +596,8 @@ fn merge_buckets(buckets: Vec<Vec<Table>>, stride: usize) -> (Vec<u64>, Vec<Vec<
         for t in it {
             for s in t.words.chunks_exact(stride).filter(|s| s[1] != 0) {
                 let w = base.slot(s[0], mix(s[0]), stride);
-                for j in 1..stride {
-                    base.words[w + j] += s[j];
+                for (b, v) in base.words[w + 1..w + stride].iter_mut().zip(&s[1..]) {
+                    *b += v;
                 }
             }
         }

@@ -243,17 +243,37 @@ fn slab_hit(o: [f64; 3], d: [f64; 3], lo: [f64; 3], hi: [f64; 3]) -> bool {
     t0 <= t1
 }
 
-/// Interleaves the low 21 bits of x, y, z (x in the lowest position).
-fn morton(x: u64, y: u64, z: u64) -> u64 {
-    fn spread(mut v: u64) -> u64 {
-        v &= 0x1f_ffff;
-        v = (v | (v << 32)) & 0x1f00000000ffff;
-        v = (v | (v << 16)) & 0x1f0000ff0000ff;
-        v = (v | (v << 8)) & 0x100f00f00f00f00f;
-        v = (v | (v << 4)) & 0x10c30c30c30c30c3;
-        (v | (v << 2)) & 0x1249249249249249
+/// The bits of an 11-bit value spread three apart (bit k to bit 3k).
+const fn spread11(v: u64) -> u64 {
+    let mut out = 0;
+    let mut k = 0;
+    while k < 11 {
+        out |= ((v >> k) & 1) << (3 * k);
+        k += 1;
     }
-    spread(x) | (spread(y) << 1) | (spread(z) << 2)
+    out
+}
+
+const SPREAD11: [u64; 2048] = {
+    let mut t = [0; 2048];
+    let mut i = 0;
+    while i < 2048 {
+        t[i] = spread11(i as u64);
+        i += 1;
+    }
+    t
+};
+
+/// The low 21 bits of a value spread three apart, by two table lookups.
+#[inline]
+fn spread21(v: u64) -> u64 {
+    SPREAD11[(v & 0x7ff) as usize] | (SPREAD11[((v >> 11) & 0x3ff) as usize] << 33)
+}
+
+/// Interleaves the low 21 bits of x, y, z (x in the lowest position).
+#[cfg(test)]
+fn morton(x: u64, y: u64, z: u64) -> u64 {
+    spread21(x) | (spread21(y) << 1) | (spread21(z) << 2)
 }
 
 /// A row-wise function of `N` float arguments (and, with `int_param`, one integer last): rows
@@ -326,6 +346,81 @@ fn octant_udf() -> ScalarUDF {
         Ok(ColumnarValue::Array(Arc::new(out) as ArrayRef))
     });
     ScalarUDF::from(SimpleScalarUDF::new_with_signature("octant", float_signature(3, false), DataType::UInt8, fun))
+}
+
+/// `morton3(x, y, z, bits)`: the Morton code of a point's cell, `bits` (1..=21) per axis, over the
+/// scene bounds (each axis quantized to `round(clamp((v - lo) / (hi - lo), 0, 1) * (2^bits - 1))`);
+/// NULL for a NULL, NaN or infinite coordinate, a NULL or out-of-range `bits`, or a dataset without
+/// bounds. A kernel of its own (one pass for values and validity, no per-row option, rounding
+/// without a libm call): it is the grouping key of cell histograms over every ray.
+fn morton_udf(bounds: Option<([f64; 3], [f64; 3])>) -> ScalarUDF {
+    fn kernel<T: ArrowPrimitiveType>(
+        c: &[&PrimitiveArray<T>; 3],
+        bits: &Int64Array,
+        bounds: Option<([f64; 3], [f64; 3])>,
+    ) -> datafusion::error::Result<UInt64Array>
+    where
+        T::Native: Into<f64>,
+    {
+        let n = c.iter().map(|a| a.len()).min().unwrap_or(0).min(bits.len());
+        let Some((lo, hi)) = bounds else { return Ok(UInt64Array::new_null(n)) };
+        let ext = [0, 1, 2].map(|k| (hi[k] - lo[k]).max(f64::MIN_POSITIVE));
+        let [x, y, z] = c.map(|a| a.values().as_ref());
+        let b = &bits.values()[..n];
+        let ok = |i: usize| -> bool {
+            (1..=21).contains(&b[i]) && x[i].into().is_finite() && y[i].into().is_finite() && z[i].into().is_finite()
+        };
+        // Without early exits, so that these passes run in SIMD lanes.
+        let finite = |c: &[T::Native]| c.iter().fold(true, |a, &v| a & v.into().is_finite());
+        let all_ok = b.iter().fold(true, |a, v| a & (1..=21).contains(v)) && finite(x) && finite(y) && finite(z);
+        // Column passes: the quantization of one axis (the divisions) runs in SIMD lanes, then the
+        // bits are spread by table lookups. Conversions through i32 have packed instructions on
+        // x86-64 (unsigned ones are branchy) and are exact here (values below 2^21); rounding is
+        // half away from zero without libm's round. Invalid rows compute garbage their NULL hides.
+        let same_bits = b.first().filter(|&&b0| b.iter().all(|&v| v == b0)).copied();
+        let max_of = |bits: i64| ((1i32 << bits.clamp(0, 21)) - 1) as f64;
+        let mut values = vec![0u64; n];
+        let mut q = vec![0i32; n];
+        for (k, col) in [x, y, z].into_iter().enumerate() {
+            let (lo, ext) = (lo[k], ext[k]);
+            let quant = |v: T::Native, max: f64| -> i32 {
+                let u = ((v.into() - lo) / ext).clamp(0.0, 1.0) * max;
+                let t = u as i32;
+                t + i32::from(u - f64::from(t) >= 0.5)
+            };
+            match same_bits {
+                Some(bits) => {
+                    let max = max_of(bits);
+                    q.iter_mut().zip(col).for_each(|(q, &v)| *q = quant(v, max));
+                }
+                None => q.iter_mut().zip(col).zip(b).for_each(|((q, &v), &bits)| *q = quant(v, max_of(bits))),
+            }
+            for (o, &q) in values.iter_mut().zip(&q) {
+                *o |= spread21(q as u64) << k;
+            }
+        }
+        let valid = if all_ok { None } else { Some(arrow::buffer::BooleanBuffer::collect_bool(n, ok)) };
+        let mut nulls = arrow::buffer::NullBuffer::union(c[0].nulls(), c[1].nulls());
+        nulls = arrow::buffer::NullBuffer::union(nulls.as_ref(), c[2].nulls());
+        nulls = arrow::buffer::NullBuffer::union(nulls.as_ref(), bits.nulls());
+        if let Some(valid) = valid {
+            nulls = arrow::buffer::NullBuffer::union(nulls.as_ref(), Some(&arrow::buffer::NullBuffer::new(valid)));
+        }
+        Ok(UInt64Array::try_new(values.into(), nulls)?)
+    }
+    let fun = Arc::new(move |args: &[ColumnarValue]| {
+        let a = arrays(args)?;
+        let bits = a
+            .get(3)
+            .and_then(|b| b.as_primitive_opt::<Int64Type>())
+            .ok_or_else(|| DataFusionError::Execution("morton3: the last argument must be an integer".into()))?;
+        let out = match Floats::<3>::of(&a)? {
+            Floats::F32(c) => kernel(&c, bits, bounds)?,
+            Floats::F64(c) => kernel(&c, bits, bounds)?,
+        };
+        Ok(ColumnarValue::Array(Arc::new(out) as ArrayRef))
+    });
+    ScalarUDF::from(SimpleScalarUDF::new_with_signature("morton3", float_signature(3, true), DataType::UInt64, fun))
 }
 
 /// `ray_point(ox, oy, oz, dx, dy, dz, t)`: the point at `t` along the ray, as a struct.
@@ -703,17 +798,7 @@ pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
     ctx.register_udf(rowwise::<12, _, BooleanArray>("ray_aabb_hit", false, DataType::Boolean, |v, _| {
         Some(slab_hit([v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]], [v[9], v[10], v[11]]))
     }));
-    let sc = scene.clone();
-    ctx.register_udf(rowwise::<3, _, UInt64Array>("morton3", true, DataType::UInt64, move |p, bits| {
-        let (lo, hi) = sc.bounds?;
-        let bits = bits.filter(|b| (1..=21).contains(b))?;
-        let max = ((1u64 << bits) - 1) as f64;
-        let q = |k: usize| {
-            let ext = (hi[k] - lo[k]).max(f64::MIN_POSITIVE);
-            (((p[k] - lo[k]) / ext).clamp(0.0, 1.0) * max).round() as u64
-        };
-        Some(morton(q(0), q(1), q(2)))
-    }));
+    ctx.register_udf(morton_udf(scene.bounds));
     ctx.register_udf(rowwise::<6, _, BooleanArray>("aims_at_light", false, DataType::Boolean, move |v, _| {
         let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
         Some(scene.lights.iter().any(|t| hits_triangle(o, d, t)))
