@@ -6,11 +6,12 @@
 //!
 //! Why: with millions of distinct keys the stock operator's hash tables outgrow the caches, and each
 //! row costs several cache misses (control bytes, group index, key, accumulator), twice (partial and
-//! final). Here each input partition counts into 256 radix buckets of open-addressing tables whose
-//! slots hold the key and its counts side by side (one cache line per row), and the buckets of
-//! different partitions are merged bucket by bucket (each bucket's table fits in cache), in
-//! parallel. Memory is charged to the session's memory pool, so a memory limit is an error, not an
-//! out-of-memory kill.
+//! final). Here one worker per target partition reads its share of the input partitions, buffers
+//! the keys in 256 radix buckets (by the top bits of a hash) and, every few million rows, adds
+//! them to the bucket's open-addressing table, one bucket at a time, so that each table (the key
+//! and its counts side by side in a slot) is read into cache once per flush rather than missed on
+//! every row; the workers' tables are then merged bucket by bucket, in parallel. Memory is charged
+//! to the session's memory pool, so a memory limit is an error, not an out-of-memory kill.
 
 use std::borrow::Cow;
 use std::fmt;
@@ -90,18 +91,10 @@ pub struct CountByKeyExec {
     metrics: ExecutionPlanMetricsSet,
 }
 
-fn is_integer(t: &DataType) -> bool {
-    matches!(
-        t,
-        DataType::Int8
-            | DataType::Int16
-            | DataType::Int32
-            | DataType::Int64
-            | DataType::UInt8
-            | DataType::UInt16
-            | DataType::UInt32
-            | DataType::UInt64
-    )
+/// Keys this operator takes: 32- and 64-bit integers. Narrower keys have at most 65,536 groups,
+/// which DataFusion's own aggregation already keeps in cache (and with less memory).
+fn is_wide_integer(t: &DataType) -> bool {
+    matches!(t, DataType::Int32 | DataType::Int64 | DataType::UInt32 | DataType::UInt64)
 }
 
 impl CountByKeyExec {
@@ -134,7 +127,7 @@ impl CountByKeyExec {
         let (key, key_name) = group.expr()[0].clone();
         let input = raw.input().clone();
         let key_type = key.data_type(&input.schema())?;
-        if !is_integer(&key_type) || out.field(0).data_type() != &key_type {
+        if !is_wide_integer(&key_type) || out.field(0).data_type() != &key_type {
             return Ok(None);
         }
         let mut args: Vec<Arc<dyn PhysicalExpr>> = Vec::new();
@@ -289,7 +282,13 @@ impl ExecutionPlan for CountByKeyExec {
     }
 }
 
-/// splitmix64's finalizer: every key bit reaches the bucket bits (top) and the slot bits (bottom).
+/// A key's radix bucket: the top bits of a multiplicative hash (every key bit reaches them).
+#[inline]
+fn bucket(key: u64) -> usize {
+    (key.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> (64 - BUCKET_BITS)) as usize
+}
+
+/// splitmix64's finalizer, for the slot within a bucket's table.
 #[inline]
 fn mix(k: u64) -> u64 {
     let z = (k ^ (k >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
@@ -459,7 +458,6 @@ async fn count_partitions(
     let mut c = Counts::new(stride);
     let mut bytes = 0usize;
     let mut batches = futures::stream::iter(streams).flatten();
-    let shift = 64 - BUCKET_BITS;
     while let Some(batch) = batches.next().await {
         let batch = batch?;
         let rows = batch.num_rows();
@@ -470,20 +468,12 @@ async fn count_partitions(
         let mask = |i: usize| -> u64 {
             valid.iter().enumerate().map(|(j, v)| u64::from(v.as_ref().is_none_or(|n| n.is_valid(i))) << j).sum()
         };
-        for (i, &key) in keys.iter().enumerate() {
-            if key_nulls.as_ref().is_some_and(|n| n.is_null(i)) {
-                c.null_key[0] += 1;
-                let m = mask(i);
-                for j in 0..args.len() {
-                    c.null_key[1 + j] += (m >> j) & 1;
-                }
-                continue;
+        if key_nulls.is_none() && args.is_empty() {
+            for &key in keys.iter() {
+                c.pending[bucket(key)].push(key);
             }
-            let pending = &mut c.pending[(mix(key) >> shift) as usize];
-            pending.push(key);
-            if !args.is_empty() {
-                pending.push(mask(i));
-            }
+        } else {
+            add_rows(&mut c, &keys, key_nulls.as_ref(), &mask, args.len());
         }
         c.pending_rows += rows;
         if c.pending_rows >= PENDING_KEYS {
@@ -497,6 +487,25 @@ async fn count_partitions(
     }
     c.flush();
     Ok((c, reservation))
+}
+
+/// Adds rows whose keys may be NULL, or with the validity bits of counted expressions.
+fn add_rows(c: &mut Counts, keys: &[u64], key_nulls: Option<&NullBuffer>, mask: &dyn Fn(usize) -> u64, args: usize) {
+    for (i, &key) in keys.iter().enumerate() {
+        if key_nulls.is_some_and(|n| n.is_null(i)) {
+            c.null_key[0] += 1;
+            let m = mask(i);
+            for j in 0..args {
+                c.null_key[1 + j] += (m >> j) & 1;
+            }
+            continue;
+        }
+        let pending = &mut c.pending[bucket(key)];
+        pending.push(key);
+        if args > 0 {
+            pending.push(mask(i));
+        }
+    }
 }
 
 /// Merges the partitions' counts bucket by bucket (ranges of buckets in parallel) into batches of
