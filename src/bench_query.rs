@@ -16,6 +16,7 @@ use anyhow::{Context, Result, bail};
 
 /// One query of the suite: rtvtk's form and DuckDB's (which lacks the ray functions: octants
 /// and Morton codes by SQL arithmetic).
+#[derive(Clone)]
 struct Case {
     name: &'static str,
     ours: String,
@@ -27,11 +28,20 @@ struct Case {
     /// "same file without statistics"); rtvtk finds a tree's rows through its tree table, which
     /// statistics do not change, so it reads the dataset as usual.
     duckdb_without_statistics: bool,
+    /// Extra arguments of `rtvtk sql` (a baseline inside rtvtk, such as `--stock-aggregation`).
+    ours_args: &'static [&'static str],
 }
 
 impl Case {
     fn new(name: &'static str, ours: impl Into<String>, duckdb: impl Into<String>) -> Self {
-        Self { name, ours: ours.into(), duckdb: duckdb.into(), counts_only: false, duckdb_without_statistics: false }
+        Self {
+            name,
+            ours: ours.into(),
+            duckdb: duckdb.into(),
+            counts_only: false,
+            duckdb_without_statistics: false,
+            ours_args: &[],
+        }
     }
 
     fn agree(&self, a: &Measured, b: &Measured) -> bool {
@@ -62,6 +72,15 @@ fn suite(tree: u64, lo: [f64; 3], hi: [f64; 3]) -> Vec<Case> {
     let coherence_duckdb = "SELECT kind, depth, sqrt(power(sum(dir_x / l), 2) + power(sum(dir_y / l), 2) + \
         power(sum(dir_z / l), 2)) / count(*) AS c FROM (SELECT kind, depth, dir_x, dir_y, dir_z, \
         sqrt(dir_x * dir_x + dir_y * dir_y + dir_z * dir_z) AS l FROM rays) WHERE l > 0 GROUP BY kind, depth";
+    let morton = Case::new(
+        "30-bit Morton cell of origin, top 20",
+        "SELECT morton3(origin_x, origin_y, origin_z, 10) AS m, count(*) AS n FROM rays \
+               GROUP BY m ORDER BY n DESC, m LIMIT 20",
+        format!(
+            "SELECT {} AS m, count(*) AS n FROM rays GROUP BY m ORDER BY n DESC, m LIMIT 20",
+            duckdb_morton(lo, hi)
+        ),
+    );
     vec![
         same("count shadow rays with depth >= 2", "SELECT count(*) FROM rays WHERE kind = 'shadow' AND depth >= 2"),
         Case::new(
@@ -70,15 +89,12 @@ fn suite(tree: u64, lo: [f64; 3], hi: [f64; 3]) -> Vec<Case> {
             "SELECT (CASE WHEN dir_x < 0 THEN 1 ELSE 0 END) + (CASE WHEN dir_y < 0 THEN 2 ELSE 0 END) + \
                      (CASE WHEN dir_z < 0 THEN 4 ELSE 0 END) AS o, count(*) FROM rays GROUP BY o",
         ),
-        Case::new(
-            "30-bit Morton cell of origin, top 20",
-            "SELECT morton3(origin_x, origin_y, origin_z, 10) AS m, count(*) AS n FROM rays \
-                   GROUP BY m ORDER BY n DESC, m LIMIT 20",
-            format!(
-                "SELECT {} AS m, count(*) AS n FROM rays GROUP BY m ORDER BY n DESC, m LIMIT 20",
-                duckdb_morton(lo, hi)
-            ),
-        ),
+        morton.clone(),
+        Case {
+            name: "the same, DataFusion's own aggregation (baseline)",
+            ours_args: &["--stock-aggregation"],
+            ..morton
+        },
         Case {
             counts_only: true,
             ..same("all rays of one tree", &format!("SELECT * FROM rays WHERE tree_id = {tree}"))
@@ -190,7 +206,8 @@ fn median(mut v: Vec<f64>) -> f64 {
 }
 
 /// rtvtk's answer as CSV rows, or with `json` as JSON lines (for nested payload columns).
-fn ours(dataset: &Path, query: &str, json: bool, runs: usize, memory_limit: Option<&str>) -> Result<Measured> {
+fn ours(dataset: &Path, case: &Case, runs: usize, memory_limit: Option<&str>) -> Result<Measured> {
+    let (query, json) = (case.ours.as_str(), case.counts_only);
     let exe = std::env::current_exe().context("finding the rtvtk executable")?;
     let mut times = Vec::new();
     let mut rss = 0;
@@ -198,6 +215,7 @@ fn ours(dataset: &Path, query: &str, json: bool, runs: usize, memory_limit: Opti
     for i in 0..=runs {
         let mut cmd = Command::new(&exe);
         cmd.args(["sql"]).arg(dataset).args([query, "--format", if json { "json" } else { "csv" }, "--timing"]);
+        cmd.args(case.ours_args);
         if let Some(m) = memory_limit {
             cmd.args(["--memory-limit", m]);
         }
@@ -352,8 +370,8 @@ pub fn run(
     println!("|---|---|---|{}---|---|---|---|", if encoded { "---|---|" } else { "" });
     let mut disagreements = Vec::new();
     for case in suite(tree, lo, hi) {
-        let a = ours(&plain, &case.ours, case.counts_only, runs, memory_limit)?;
-        let enc = if encoded { Some(ours(dataset, &case.ours, case.counts_only, runs, memory_limit)?) } else { None };
+        let a = ours(&plain, &case, runs, memory_limit)?;
+        let enc = if encoded { Some(ours(dataset, &case, runs, memory_limit)?) } else { None };
         let duck_dir = match &no_stats {
             Some(dir) if case.duckdb_without_statistics => dir.path(),
             _ => plain.as_path(),

@@ -25,7 +25,7 @@ pub fn run(a: &ServeArgs) -> Result<()> {
     let sources: Vec<query::TraceSource> = a.datasets.iter().map(|d| query::TraceSource::parse(d)).collect();
     let rt = crate::runtime()?;
     rt.block_on(async {
-        let options = query::SessionOptions { memory_limit: a.memory_limit };
+        let options = query::SessionOptions { memory_limit: a.memory_limit, ..Default::default() };
         let ctx = query::session_with(&sources, &options).await?;
         let listener = query::service::bind(&a.addr)?;
         let addr = query::service::local_addr(&listener)?;

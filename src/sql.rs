@@ -36,6 +36,10 @@ pub struct SqlArgs {
     /// Print the query's wall time (seconds, after the session is open) to stderr.
     #[arg(long)]
     timing: bool,
+    /// Run every group-by through DataFusion's own aggregation (rtvtk's counting operator off),
+    /// to compare the two.
+    #[arg(long)]
+    stock_aggregation: bool,
 }
 
 /// `123`, `512KiB`, `64MiB`, `2GiB` (also KB/MB/GB as powers of 1000).
@@ -73,7 +77,7 @@ pub fn run(a: &SqlArgs) -> Result<()> {
     let sources: Vec<query::TraceSource> = datasets.iter().map(|d| query::TraceSource::parse(d)).collect();
     let rt = crate::runtime()?;
     rt.block_on(async {
-        let options = query::SessionOptions { memory_limit: a.memory_limit };
+        let options = query::SessionOptions { memory_limit: a.memory_limit, stock_aggregation: a.stock_aggregation };
         let ctx = query::session_with(&sources, &options).await?;
         if interactive {
             return prompt(&ctx, a).await;

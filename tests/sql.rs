@@ -268,6 +268,19 @@ fn pushed_filters_prune_and_keep_answers() {
     assert!(!plan("SELECT octant(dir_x, dir_y, dir_z) AS o, count(*) FROM rays GROUP BY o").contains("CountByKeyExec"));
     assert!(!plan("SELECT depth, count(t) FROM rays GROUP BY depth").contains("CountByKeyExec"));
     assert!(!plan("SELECT prim, depth, count(*) FROM rays GROUP BY prim, depth").contains("CountByKeyExec"));
+    // --stock-aggregation leaves it out, with the same answer.
+    let stock =
+        String::from_utf8_lossy(&rtvtk(&["sql", d, morton, "--explain", "--stock-aggregation"]).stdout).to_string();
+    assert!(!stock.contains("CountByKeyExec") && stock.contains("AggregateExec"), "{stock}");
+    let sorted = format!("{morton} ORDER BY m");
+    let answer = |extra: &[&str]| {
+        let out = rtvtk(&[&["sql", d, &sorted, "--format", "csv"], extra].concat());
+        assert!(out.status.success());
+        String::from_utf8_lossy(&out.stdout).to_string()
+    };
+    let ours = answer(&[]);
+    assert!(ours.lines().count() > 10, "{ours}");
+    assert_eq!(ours, answer(&["--stock-aggregation"]));
     // Its tables are charged to the memory limit: over it, an error that says so, not a crash.
     let every_ray = "SELECT CAST(tree_id AS BIGINT) * 4096 + ray AS id, count(*) FROM rays GROUP BY id";
     let out = rtvtk(&["sql", d, every_ray, "--memory-limit", "64KiB"]);

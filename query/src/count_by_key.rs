@@ -371,11 +371,18 @@ impl Table {
 /// each bucket's table is then read into cache once per flush, not missed on every row.
 const PENDING_KEYS: usize = 4 << 20;
 
-/// One worker's counts: a table per radix bucket, the keys not yet counted (with, when `count`s of
-/// expressions are asked, a word of their validity bits after each key), and the counts of the
-/// NULL key.
+/// Bytes a worker's single direct table may reach before the worker switches to radix buckets:
+/// a table this size stays in a core's L2 cache (1 MiB of the 2 MiB here), where counting straight
+/// into it is faster than buffering (with 16K distinct keys the buffered path was 3x slower than
+/// DataFusion's own aggregation: `cargo bench -p rtvtk-query --bench count_by_key`).
+const DIRECT_BYTES: usize = 1 << 20;
+
+/// One worker's counts: while few keys have been seen, one table counted into directly; then a
+/// table per radix bucket, the keys not yet counted (with, when `count`s of expressions are asked,
+/// a word of their validity bits after each key); and the counts of the NULL key.
 struct Counts {
     stride: usize,
+    direct: Option<Table>,
     tables: Vec<Table>,
     pending: Vec<Vec<u64>>,
     pending_rows: usize,
@@ -386,6 +393,7 @@ impl Counts {
     fn new(stride: usize) -> Self {
         Self {
             stride,
+            direct: Some(Table::default()),
             tables: (0..BUCKETS).map(|_| Table::default()).collect(),
             pending: vec![Vec::new(); BUCKETS],
             pending_rows: 0,
@@ -423,9 +431,27 @@ impl Counts {
         self.pending_rows = 0;
     }
 
+    /// Moves the direct table's keys into the radix buckets' tables (for good: later rows are
+    /// buffered) once it has outgrown [`DIRECT_BYTES`], or always when `all`.
+    fn spill(&mut self, all: bool) {
+        let stride = self.stride;
+        if !all && self.direct.as_ref().is_none_or(|t| t.len * 2 * stride * 8 <= DIRECT_BYTES) {
+            return;
+        }
+        let Some(direct) = self.direct.take() else { return };
+        for s in direct.words.chunks_exact(stride).filter(|s| s[1] != 0) {
+            let t = &mut self.tables[bucket(s[0])];
+            let w = t.slot(s[0], mix(s[0]), stride);
+            for (b, v) in t.words[w + 1..w + stride].iter_mut().zip(&s[1..]) {
+                *b += v;
+            }
+        }
+    }
+
     fn bytes(&self) -> usize {
         let pending: usize = self.pending.iter().map(|p| p.capacity() * std::mem::size_of::<u64>()).sum();
-        pending + self.tables.iter().map(Table::bytes).sum::<usize>()
+        let direct = self.direct.as_ref().map_or(0, Table::bytes);
+        direct + pending + self.tables.iter().map(Table::bytes).sum::<usize>()
     }
 }
 
@@ -468,14 +494,29 @@ async fn count_partitions(
         let mask = |i: usize| -> u64 {
             valid.iter().enumerate().map(|(j, v)| u64::from(v.as_ref().is_none_or(|n| n.is_valid(i))) << j).sum()
         };
-        if key_nulls.is_none() && args.is_empty() {
+        if key_nulls.is_none()
+            && args.is_empty()
+            && let Some(t) = c.direct.as_mut()
+        {
+            for chunk in keys.chunks(1024) {
+                t.reserve(chunk.len(), stride);
+                for &key in chunk {
+                    let w = t.slot_reserved(key, mix(key), stride);
+                    t.words[w + 1] += 1;
+                }
+            }
+        } else if key_nulls.is_none() && args.is_empty() {
             for &key in keys.iter() {
                 c.pending[bucket(key)].push(key);
             }
         } else {
             add_rows(&mut c, &keys, key_nulls.as_ref(), &mask, args.len());
         }
-        c.pending_rows += rows;
+        if c.direct.is_some() {
+            c.spill(false);
+        } else {
+            c.pending_rows += rows;
+        }
         if c.pending_rows >= PENDING_KEYS {
             c.flush();
         }
@@ -485,6 +526,7 @@ async fn count_partitions(
             bytes = now;
         }
     }
+    c.spill(true);
     c.flush();
     Ok((c, reservation))
 }
@@ -497,6 +539,15 @@ fn add_rows(c: &mut Counts, keys: &[u64], key_nulls: Option<&NullBuffer>, mask: 
             let m = mask(i);
             for j in 0..args {
                 c.null_key[1 + j] += (m >> j) & 1;
+            }
+            continue;
+        }
+        if let Some(t) = c.direct.as_mut() {
+            let w = t.slot(key, mix(key), c.stride);
+            t.words[w + 1] += 1;
+            let m = mask(i);
+            for j in 0..args {
+                t.words[w + 2 + j] += (m >> j) & 1;
             }
             continue;
         }
@@ -645,6 +696,66 @@ mod tests {
             seen += 1;
         }
         assert_eq!(seen, 10_000);
+    }
+
+    /// Few keys (counted in the direct table throughout) and many (spilled into the radix
+    /// buckets part way), with a nullable counted column: every group's counts are the true ones.
+    #[test]
+    fn direct_and_bucketed_counts_are_exact() -> Result<()> {
+        use arrow::datatypes::{Field, Schema};
+        use datafusion::datasource::MemTable;
+        use datafusion::execution::session_state::SessionStateBuilder;
+        use datafusion::prelude::{SessionConfig, SessionContext};
+        let rt = tokio::runtime::Runtime::new()?;
+        for distinct in [37u64, 200_000] {
+            let schema = Arc::new(Schema::new(vec![
+                Field::new("k", DataType::UInt32, false),
+                Field::new("v", DataType::Int32, true),
+            ]));
+            let rows = 600_000u64;
+            let key = |i: u64| (i * 7919 + i / 3) % distinct;
+            let mut parts = vec![Vec::new(), Vec::new(), Vec::new()];
+            for start in (0..rows).step_by(8192) {
+                let end = (start + 8192).min(rows);
+                let k: arrow::array::UInt32Array = (start..end).map(|i| key(i) as u32).collect();
+                let v: arrow::array::Int32Array = (start..end).map(|i| (i % 5 != 0).then_some(1)).collect();
+                let b = RecordBatch::try_new(schema.clone(), vec![Arc::new(k), Arc::new(v)])?;
+                parts[(start / 8192 % 3) as usize].push(b);
+            }
+            let state = SessionStateBuilder::new()
+                .with_config(SessionConfig::new().with_target_partitions(2))
+                .with_default_features()
+                .with_physical_optimizer_rules(crate::physical_optimizer_rules())
+                .build();
+            let ctx = SessionContext::new_with_state(state);
+            ctx.register_table("t", Arc::new(MemTable::try_new(schema, parts)?))?;
+            let sql = "SELECT k, count(*), count(v) FROM t GROUP BY k";
+            let batches = rt.block_on(async {
+                let df = ctx.sql(sql).await?;
+                let plan = df.clone().create_physical_plan().await?;
+                let shown = datafusion::physical_plan::displayable(plan.as_ref()).indent(true).to_string();
+                assert!(shown.contains("CountByKeyExec"), "{shown}");
+                df.collect().await
+            })?;
+            let mut expected = std::collections::HashMap::<u64, (i64, i64)>::new();
+            for i in 0..rows {
+                let e = expected.entry(key(i)).or_default();
+                e.0 += 1;
+                e.1 += i64::from(i % 5 != 0);
+            }
+            let mut groups = 0;
+            for b in &batches {
+                let k = cast(b.column(0), &DataType::UInt64)?;
+                let k = k.as_primitive::<UInt64Type>();
+                let (n, nv) = (b.column(1).as_primitive::<Int64Type>(), b.column(2).as_primitive::<Int64Type>());
+                for r in 0..b.num_rows() {
+                    assert_eq!(expected.get(&k.value(r)), Some(&(n.value(r), nv.value(r))), "key {}", k.value(r));
+                    groups += 1;
+                }
+            }
+            assert_eq!(groups, expected.len());
+        }
+        Ok(())
     }
 
     #[test]

@@ -77,6 +77,9 @@ pub struct SessionOptions {
     /// Bytes the operators may hold (sorts, joins and aggregations spill or fail beyond it);
     /// unlimited when None.
     pub memory_limit: Option<usize>,
+    /// DataFusion's own aggregation for every group-by: rtvtk's [`CountByKey`] rule left out (to
+    /// compare the two on the same query).
+    pub stock_aggregation: bool,
 }
 
 /// [`session`] with settings.
@@ -94,7 +97,11 @@ pub async fn session_with(sources: &[TraceSource], options: &SessionOptions) -> 
         .with_config(config)
         .with_runtime_env(runtime.build_arc()?)
         .with_default_features()
-        .with_physical_optimizer_rules(physical_optimizer_rules())
+        .with_physical_optimizer_rules(if options.stock_aggregation {
+            PhysicalOptimizer::new().rules
+        } else {
+            physical_optimizer_rules()
+        })
         .build();
     let ctx = SessionContext::new_with_state(state);
     let mut names = std::collections::HashSet::new();
