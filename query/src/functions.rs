@@ -386,15 +386,13 @@ where
     // extent (a division per value was the kernel's largest cost) and redoes, exactly, the rare
     // values whose scaled position lies within 1e-6 of a rounding boundary (k + 0.5): the
     // reciprocal's error is below 1e-9 there (at most 2^21 cells), so every other value rounds
-    // as the division would. Conversions through i32 have packed instructions on x86-64
-    // (unsigned ones are branchy) and are exact here (values below 2^21); rounding is half
-    // away from zero without libm's round. Up to 10 bits per axis the bits are spread by
+    // as the division would. The exact path converts through i32 (packed instructions on
+    // x86-64, exact below 2^21) and rounds half away from zero without libm's round. Up to 10 bits per axis the bits are spread by
     // shifts and masks in 32-bit lanes, beyond by table lookups. Invalid rows compute garbage
     // their NULL hides.
     let same_bits = b.first().filter(|&&b0| b.iter().all(|&v| v == b0)).copied();
     let max_of = |bits: i64| ((1i32 << bits.clamp(0, 21)) - 1) as f64;
     let mut qs = [vec![0i32; n], vec![0i32; n], vec![0i32; n]];
-    let mut near = vec![false; n];
     for (k, (col, q)) in [x, y, z].into_iter().zip(qs.iter_mut()).enumerate() {
         let (lo, ext) = (lo[k], ext[k]);
         let exact = |v: T::Native, max: f64| -> i32 {
@@ -403,20 +401,30 @@ where
             t + i32::from(u - f64::from(t) >= 0.5)
         };
         let inv = 1.0 / ext;
-        let fast = |v: T::Native, max: f64, near: &mut bool| -> i32 {
-            let u = ((v.into() - lo) * inv).clamp(0.0, 1.0) * max;
-            let t = u as i32;
-            let f = u - f64::from(t);
-            *near = (f - 0.5).abs() < 1e-6;
-            t + i32::from(f >= 0.5)
+        // `max`/`min` (not `clamp`) turn NaN into 0. Adding 2^52 rounds to the nearest integer,
+        // which then sits in the low bits (no float-to-int conversion, so the pass stays in SIMD
+        // lanes); it differs from rounding half away from zero only on ties, which are near.
+        const TWO52: f64 = 4_503_599_627_370_496.0;
+        let fast = |v: T::Native, max: f64| -> (i32, bool) {
+            let u = ((v.into() - lo) * inv).max(0.0).min(1.0) * max;
+            let r = u + TWO52;
+            let f = u - (r - TWO52);
+            (r.to_bits() as i32, (f.abs() - 0.5).abs() < 1e-6)
         };
         match same_bits {
             Some(bits) => {
                 let max = max_of(bits);
-                q.iter_mut().zip(col).zip(near.iter_mut()).for_each(|((q, &v), nr)| *q = fast(v, max, nr));
-                if near.iter().any(|&b| b) {
-                    for (i, _) in near.iter().enumerate().filter(|(_, b)| **b) {
-                        q[i] = exact(col[i], max);
+                // Blocks of 1024: one flag per block keeps the pass in SIMD lanes; a block with a
+                // value near a boundary (a few per million values) is redone exactly.
+                for (qc, vc) in q.chunks_mut(1024).zip(col.chunks(1024)) {
+                    let mut near = false;
+                    for (q, &v) in qc.iter_mut().zip(vc) {
+                        let (qv, nr) = fast(v, max);
+                        *q = qv;
+                        near |= nr;
+                    }
+                    if near {
+                        qc.iter_mut().zip(vc).for_each(|(q, &v)| *q = exact(v, max));
                     }
                 }
             }
@@ -424,7 +432,12 @@ where
         }
     }
     let values: Vec<u64> = if same_bits.is_some_and(|b| b <= 10) {
-        qs[0].iter().zip(&qs[1]).zip(&qs[2]).map(|((&x, &y), &z)| u64::from(morton10(x, y, z))).collect()
+        let (x, y, z) = (&qs[0][..n], &qs[1][..n], &qs[2][..n]);
+        let mut values = vec![0u64; n];
+        for (i, o) in values.iter_mut().enumerate() {
+            *o = u64::from(morton10(x[i], y[i], z[i]));
+        }
+        values
     } else {
         let mut values = vec![0u64; n];
         for (k, q) in qs.iter().enumerate() {
