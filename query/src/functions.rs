@@ -401,12 +401,12 @@ where
             t + i32::from(u - f64::from(t) >= 0.5)
         };
         let inv = 1.0 / ext;
-        // `max`/`min` (not `clamp`) turn NaN into 0. Adding 2^52 rounds to the nearest integer,
+        // Adding 2^52 rounds to the nearest integer,
         // which then sits in the low bits (no float-to-int conversion, so the pass stays in SIMD
         // lanes); it differs from rounding half away from zero only on ties, which are near.
         const TWO52: f64 = 4_503_599_627_370_496.0;
         let fast = |v: T::Native, max: f64| -> (i32, bool) {
-            let u = ((v.into() - lo) * inv).max(0.0).min(1.0) * max;
+            let u = ((v.into() - lo) * inv).clamp(0.0, 1.0) * max;
             let r = u + TWO52;
             let f = u - (r - TWO52);
             (r.to_bits() as i32, (f.abs() - 0.5).abs() < 1e-6)
