@@ -9,8 +9,6 @@
 //! To regenerate an expected result after an intended change, run the query with `rtvtk sql`
 //! and paste its output.
 
-use std::path::Path;
-
 use arrow::array::{Array, RecordBatch};
 use arrow::datatypes::DataType;
 use arrow::util::display::{ArrayFormatter, FormatOptions};
@@ -103,7 +101,11 @@ fn sql_logic_tests() {
         .map(|(n, p)| query::TraceSource { name: n.to_string(), path: p.to_path_buf() })
         .collect();
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/slt");
+    // At run time: a target directory reused from a checkout elsewhere keeps env!'s old path.
+    let dir = std::path::PathBuf::from(
+        std::env::var_os("CARGO_MANIFEST_DIR").unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
+    )
+    .join("tests/slt");
     let mut files: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).collect();
     files.retain(|p| p.extension().is_some_and(|e| e == "slt"));
     files.sort();

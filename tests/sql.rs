@@ -317,7 +317,7 @@ fn prompt_reads_statements_until_quit() {
 }
 
 /// `rtvtk bench query` runs its suite in rtvtk (plain export and encoded dataset) and in DuckDB
-/// on the same files, and fails when any answer differs: a cross-engine test of seven queries
+/// on the same files, and fails when any answer differs: a cross-engine test of eight queries
 /// (octants and Morton codes against DuckDB's SQL arithmetic, coherence, per-pixel averages).
 #[test]
 fn bench_query_answers_agree_with_duckdb() {
@@ -328,5 +328,5 @@ fn bench_query_answers_agree_with_duckdb() {
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(text.contains("gave the same answers to every query"), "{text}");
-    assert_eq!(text.lines().filter(|l| l.contains("x |")).count(), 8, "{text}");
+    assert_eq!(text.lines().filter(|l| l.contains("x |")).count(), 9, "{text}");
 }

@@ -32,7 +32,9 @@ fn static_lib() -> PathBuf {
 
 #[test]
 fn c_tracer_records_and_reads_back() {
-    let manifest_dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"));
+    // At run time: a target directory reused from a checkout elsewhere keeps env!'s old path.
+    let manifest_dir =
+        std::env::var_os("CARGO_MANIFEST_DIR").map_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")), PathBuf::from);
     let tmp = tempfile::tempdir().unwrap();
     let bin = tmp.path().join("tracer");
     let cc = std::env::var("CC").unwrap_or_else(|_| "cc".into());
