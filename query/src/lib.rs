@@ -6,9 +6,11 @@ mod error;
 mod functions;
 mod scan;
 pub mod service;
+mod small_groups;
 mod tables;
 
 pub use count_by_key::{CountByKey, CountByKeyExec};
 pub use error::{Error, Result};
 pub use functions::{SceneContext, register_functions};
+pub use small_groups::{SmallGroups, SmallGroupsExec};
 pub use tables::{SessionOptions, TraceSource, physical_optimizer_rules, register_dataset, session, session_with};

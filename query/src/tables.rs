@@ -33,6 +33,7 @@ use store::Dataset;
 use crate::count_by_key::CountByKey;
 use crate::functions::{SceneContext, register_functions};
 use crate::scan::RaysTable;
+use crate::small_groups::SmallGroups;
 use crate::{Error, Result};
 
 /// A dataset to query, under a name (its tables are `NAME.rays`, `NAME.trees`, ...).
@@ -126,6 +127,8 @@ pub fn physical_optimizer_rules() -> Vec<Arc<dyn PhysicalOptimizerRule + Send + 
     let mut rules = PhysicalOptimizer::new().rules;
     let at = rules.iter().position(|r| r.name() == "EnsureRequirements" || r.name() == "EnforceDistribution");
     rules.insert(at.unwrap_or(0), Arc::new(CountByKey));
+    // Last: it keeps the partial aggregate's partitioning, so distribution is settled first.
+    rules.push(Arc::new(SmallGroups));
     rules
 }
 
