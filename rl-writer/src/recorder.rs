@@ -110,16 +110,28 @@ struct Mistakes {
     first: Vec<String>,
 }
 
+/// Where ended trees gather before they go to the sink: one per tracing thread (by a thread-local
+/// index), so its lock is normally taken by that thread alone. It also pools the buffers of ended
+/// trees for `begin_tree` and counts the trees begun minus those ended on this shard.
+struct Shard {
+    cols: RayColumns,
+    pool: Vec<RayColumns>,
+    open: i64,
+}
+
+/// A value alone on its cache lines: the tree-id counter every `begin_tree` bumps would otherwise
+/// evict the read-mostly fields the tracing threads read for every ray from the other cores.
+#[repr(align(128))]
+struct Padded<T>(T);
+
 pub(crate) struct Inner {
     payload: PayloadSchema,
     kinds: RwLock<Arc<KindTable>>,
-    next_tree: AtomicU64,
-    shards: Vec<Mutex<RayColumns>>,
-    pool: Mutex<Vec<RayColumns>>,
+    next_tree: Padded<AtomicU64>,
+    shards: Vec<Padded<Mutex<Shard>>>,
     chunk_rays: usize,
     sink: Box<dyn Sink>,
     mistakes: Mutex<Mistakes>,
-    open_trees: AtomicU64,
     mode: &'static str,
 }
 
@@ -136,34 +148,38 @@ impl Inner {
         self.kinds.read().unwrap_or_else(|p| p.into_inner()).clone()
     }
 
+    fn shard(&self) -> std::sync::MutexGuard<'_, Shard> {
+        let i = SHARD.with(|s| s.get()) % self.shards.len();
+        self.shards[i].0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
     /// Hands an ended tree to its thread's shard (or straight to the sink when it is big, and in
     /// immediate mode); a full shard goes to the sink as one chunk. The tree's buffers are pooled.
     fn seal(&self, cols: RayColumns) {
         let inner = self;
         if cols.len() >= inner.chunk_rays {
             // Big trees (and immediate mode) go straight to the sink.
+            inner.shard().open -= 1;
             inner.sink.submit(cols, &inner.kinds());
             return;
         }
-        let shard = SHARD.with(|s| s.get()) % inner.shards.len();
         let full = {
-            let mut s = inner.shards[shard].lock().unwrap_or_else(|p| p.into_inner());
-            s.append(&cols);
-            if s.len() >= inner.chunk_rays {
+            let mut s = inner.shard();
+            s.open -= 1;
+            s.cols.append(&cols);
+            let full = if s.cols.len() >= inner.chunk_rays {
                 let cap = inner.chunk_rays + inner.chunk_rays / 8;
-                Some(std::mem::replace(&mut *s, RayColumns::with_capacity(&inner.payload, cap)))
+                Some(std::mem::replace(&mut s.cols, RayColumns::with_capacity(&inner.payload, cap)))
             } else {
                 None
+            };
+            if s.pool.len() < 32 {
+                let mut cols = cols;
+                cols.clear();
+                s.pool.push(cols);
             }
+            full
         };
-        let mut cols = cols;
-        cols.clear();
-        {
-            let mut pool = inner.pool.lock().unwrap_or_else(|p| p.into_inner());
-            if pool.len() < 256 {
-                pool.push(cols);
-            }
-        }
         if let Some(chunk) = full {
             inner.sink.submit(chunk, &inner.kinds());
         }
@@ -201,18 +217,18 @@ impl Recorder {
 
     /// A recorder over any sink.
     pub fn with_sink(sink: Box<dyn Sink>, options: RecorderOptions, kinds: KindTable, mode: &'static str) -> Recorder {
-        let shards = (0..8).map(|_| Mutex::new(RayColumns::new(&options.payload))).collect();
+        let shards = (0..8)
+            .map(|_| Padded(Mutex::new(Shard { cols: RayColumns::new(&options.payload), pool: Vec::new(), open: 0 })))
+            .collect();
         Recorder {
             inner: Arc::new(Inner {
                 payload: options.payload,
                 kinds: RwLock::new(Arc::new(kinds)),
-                next_tree: AtomicU64::new(0),
+                next_tree: Padded(AtomicU64::new(0)),
                 shards,
-                pool: Mutex::new(Vec::new()),
                 chunk_rays: options.chunk_rays,
                 sink,
                 mistakes: Mutex::new(Mistakes::default()),
-                open_trees: AtomicU64::new(0),
                 mode,
             }),
         }
@@ -254,15 +270,13 @@ impl Recorder {
 
     /// Starts a tree for `(x, y)` and sample `sample`. Any number may be open at once, on any threads.
     pub fn begin_tree(&self, x: u32, y: u32, sample: u32) -> TreeBuilder {
-        let id = self.inner.next_tree.fetch_add(1, Ordering::Relaxed);
-        self.inner.open_trees.fetch_add(1, Ordering::Relaxed);
-        let cols = self
-            .inner
-            .pool
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .pop()
-            .unwrap_or_else(|| RayColumns::new(&self.inner.payload));
+        let id = self.inner.next_tree.0.fetch_add(1, Ordering::Relaxed);
+        let pooled = {
+            let mut s = self.inner.shard();
+            s.open += 1;
+            s.pool.pop()
+        };
+        let cols = pooled.unwrap_or_else(|| RayColumns::new(&self.inner.payload));
         TreeBuilder {
             rec: self.inner.clone(),
             id,
@@ -287,11 +301,11 @@ impl Recorder {
         let kinds = self.inner.kinds();
         for shard in &self.inner.shards {
             let chunk = {
-                let mut s = shard.lock().unwrap_or_else(|p| p.into_inner());
-                if s.trees.is_empty() {
+                let mut s = shard.0.lock().unwrap_or_else(|p| p.into_inner());
+                if s.cols.trees.is_empty() {
                     continue;
                 }
-                std::mem::replace(&mut *s, RayColumns::new(&self.inner.payload))
+                std::mem::replace(&mut s.cols, RayColumns::new(&self.inner.payload))
             };
             self.inner.sink.submit(chunk, &kinds);
         }
@@ -302,7 +316,7 @@ impl Recorder {
     pub fn finish(self) -> Result<Summary> {
         self.drain_shards();
         let summary = self.inner.sink.finish(&self.inner.kinds())?;
-        let open = self.inner.open_trees.load(Ordering::Relaxed);
+        let open: i64 = self.inner.shards.iter().map(|s| s.0.lock().unwrap_or_else(|p| p.into_inner()).open).sum();
         if open > 0 {
             self.inner.mistake(format!("{open} trees were begun and never ended (they are not in the trace)"));
         }
@@ -427,7 +441,6 @@ impl TreeBuilder {
             max_depth: self.max_depth,
             first_row: 0,
         });
-        self.rec.open_trees.fetch_sub(1, Ordering::Relaxed);
         self.rec.seal(cols);
         TreeId(self.id)
     }

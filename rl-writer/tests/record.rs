@@ -374,3 +374,37 @@ fn big_trees_and_empty_recordings() {
     assert_eq!(ds.tree_count(), 0);
     assert!(ds.check().is_ok());
 }
+
+/// Trees may be begun on one thread and ended on another (a wavefront renderer hands paths
+/// between threads): nothing is reported as unended, and every tree is in the dataset.
+#[test]
+fn trees_ended_on_other_threads_are_not_reported_unended() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("trace");
+    let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
+    let mut begun = Vec::new();
+    for i in 0..200u32 {
+        let mut t = rec.begin_tree(i, 0, 0);
+        t.add_ray(&f(Kind::CAMERA, Some(1.0)), Payload::NONE);
+        begun.push(t);
+    }
+    let (a, b): (Vec<_>, Vec<_>) = begun.into_iter().enumerate().partition(|(i, _)| i % 2 == 0);
+    std::thread::scope(|s| {
+        for half in [a, b] {
+            s.spawn(move || {
+                for (_, t) in half {
+                    t.end();
+                }
+            });
+        }
+    });
+    // One left open on yet another thread is reported, once.
+    let rec2 = rec.clone();
+    std::thread::spawn(move || std::mem::forget(rec2.begin_tree(9, 9, 9))).join().unwrap();
+    let err = rec.finish().err().expect("the unended tree is reported");
+    let Error::Misuse { count, first } = &err else { panic!("{err}") };
+    assert_eq!(*count, 1, "{first:?}");
+    assert!(first[0].starts_with("1 trees were begun and never ended"), "{first:?}");
+    let ds = Dataset::open(&path).unwrap();
+    assert_eq!(ds.tree_count(), 200);
+}
