@@ -401,7 +401,7 @@ fn trees_ended_on_other_threads_are_not_reported_unended() {
     // One left open on yet another thread is reported, once.
     let rec2 = rec.clone();
     std::thread::spawn(move || std::mem::forget(rec2.begin_tree(9, 9, 9))).join().unwrap();
-    let err = rec.finish().err().expect("the unended tree is reported");
+    let err = rec.finish().expect_err("the unended tree is reported");
     let Error::Misuse { count, first } = &err else { panic!("{err}") };
     assert_eq!(*count, 1, "{first:?}");
     assert!(first[0].starts_with("1 trees were begun and never ended"), "{first:?}");
