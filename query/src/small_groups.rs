@@ -272,7 +272,8 @@ impl KeyColumn {
         Ok(Self { expr, data_type: data_type.clone(), kind, numbers: HashMap::new(), strings: Vec::new() })
     }
 
-    /// Writes each row's number (0 for NULL) into `ids`; returns the largest.
+    /// Writes each row's number (0 for NULL) into `ids`; returns a value with the same highest
+    /// set bit as the largest.
     fn numbers(&mut self, a: &ArrayRef, ids: &mut Vec<u32>) -> Result<u32> {
         ids.clear();
         match self.kind {
@@ -328,7 +329,8 @@ impl KeyColumn {
                 ids[i] = 0;
             }
         }
-        Ok(ids.iter().copied().max().unwrap_or(0))
+        // The OR of the numbers has the same highest bit as their maximum: all the bits need.
+        Ok(ids.iter().fold(0, |m, &v| m | v))
     }
 
     /// The column's values for groups numbered `ids`, as the output type.
@@ -446,6 +448,7 @@ impl Grouper {
         for (c, key) in self.keys.iter_mut().enumerate() {
             let a = key.expr.evaluate(batch)?.into_array(n)?;
             let max = key.numbers(&a, &mut scratch.ids[c])?;
+            // (`max` has the largest number's highest bit, which is all `bits_for` looks at.)
             if bits_for(max) > self.bits[c] {
                 self.bits[c] = bits_for(max);
                 grew = true;
@@ -455,8 +458,8 @@ impl Grouper {
             self.rebuild();
         }
         scratch.packed.clear();
-        scratch.packed.resize(n, 0);
-        for (ids, &b) in scratch.ids.iter().zip(&self.bits) {
+        scratch.packed.extend(scratch.ids[0].iter().map(|&id| u64::from(id)));
+        for (ids, &b) in scratch.ids.iter().zip(&self.bits).skip(1) {
             for (p, &id) in scratch.packed.iter_mut().zip(ids) {
                 *p = (*p << b) | u64::from(id);
             }
