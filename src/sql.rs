@@ -36,8 +36,8 @@ pub struct SqlArgs {
     /// Print the query's wall time (seconds, after the session is open) to stderr.
     #[arg(long)]
     timing: bool,
-    /// Run every group-by through DataFusion's own aggregation (rtvtk's counting operator off),
-    /// to compare the two.
+    /// Run every group-by through DataFusion's own aggregation (rtvtk's CountByKey and
+    /// SmallGroups operators off), to compare the two.
     #[arg(long)]
     stock_aggregation: bool,
 }

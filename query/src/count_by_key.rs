@@ -23,7 +23,7 @@ use arrow::compute::cast;
 use arrow::datatypes::{DataType, Int64Type, SchemaRef, UInt64Type};
 use datafusion::common::config::ConfigOptions;
 use datafusion::common::runtime::SpawnedTask;
-use datafusion::common::tree_node::{Transformed, TreeNode, TreeNodeRecursion};
+use datafusion::common::tree_node::TreeNodeRecursion;
 use datafusion::error::{DataFusionError, Result};
 use datafusion::execution::TaskContext;
 use datafusion::execution::memory_pool::{MemoryConsumer, MemoryReservation};
@@ -33,12 +33,13 @@ use datafusion::physical_optimizer::PhysicalOptimizerRule;
 use datafusion::physical_plan::aggregates::{AggregateExec, AggregateMode};
 use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
 use datafusion::physical_plan::metrics::{BaselineMetrics, ExecutionPlanMetricsSet, MetricsSet};
-use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
 use datafusion::physical_plan::{
     DisplayAs, DisplayFormatType, ExecutionPlan, ExecutionPlanProperties, Partitioning, PlanProperties,
     SendableRecordBatchStream,
 };
 use futures::StreamExt;
+
+use crate::plan_util::{Walk, batches_stream, replace_nodes};
 
 /// Radix buckets per partition (the top bits of a key's hash).
 const BUCKET_BITS: u32 = 8;
@@ -51,11 +52,7 @@ pub struct CountByKey;
 
 impl PhysicalOptimizerRule for CountByKey {
     fn optimize(&self, plan: Arc<dyn ExecutionPlan>, _config: &ConfigOptions) -> Result<Arc<dyn ExecutionPlan>> {
-        plan.transform_down(|node| match CountByKeyExec::replacing(&node)? {
-            Some(exec) => Ok(Transformed::yes(Arc::new(exec) as Arc<dyn ExecutionPlan>)),
-            None => Ok(Transformed::no(node)),
-        })
-        .map(|t| t.data)
+        replace_nodes(plan, Walk::Down, CountByKeyExec::replacing)
     }
 
     fn name(&self) -> &str {
@@ -274,11 +271,7 @@ impl ExecutionPlan for CountByKeyExec {
             baseline.done();
             Ok::<_, DataFusionError>(batches)
         };
-        let stream = futures::stream::once(answer).flat_map(|r| match r {
-            Ok(batches) => futures::stream::iter(batches.into_iter().map(Ok)).left_stream(),
-            Err(e) => futures::stream::iter(vec![Err(e)]).right_stream(),
-        });
-        Ok(Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), stream)))
+        Ok(batches_stream(self.schema.clone(), answer))
     }
 }
 

@@ -4,6 +4,7 @@ pub mod analyze;
 mod count_by_key;
 mod error;
 mod functions;
+mod plan_util;
 mod scan;
 pub mod service;
 mod small_groups;

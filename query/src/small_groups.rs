@@ -22,7 +22,7 @@ use arrow::array::{Array, ArrayRef, AsArray, BooleanArray, RecordBatch, StringAr
 use arrow::compute::cast;
 use arrow::datatypes::{DataType, Int8Type, Int16Type, SchemaRef, UInt8Type, UInt16Type};
 use datafusion::common::config::ConfigOptions;
-use datafusion::common::tree_node::{Transformed, TreeNode, TreeNodeRecursion};
+use datafusion::common::tree_node::TreeNodeRecursion;
 use datafusion::error::{DataFusionError, Result};
 use datafusion::execution::TaskContext;
 use datafusion::execution::memory_pool::{MemoryConsumer, MemoryReservation};
@@ -33,12 +33,13 @@ use datafusion::physical_optimizer::PhysicalOptimizerRule;
 use datafusion::physical_plan::aggregates::{AggregateExec, AggregateMode};
 use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
 use datafusion::physical_plan::metrics::{BaselineMetrics, ExecutionPlanMetricsSet, MetricsSet};
-use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
 use datafusion::physical_plan::{
-    DisplayAs, DisplayFormatType, ExecutionPlan, ExecutionPlanProperties, InputOrderMode, PlanProperties,
+    DisplayAs, DisplayFormatType, ExecutionPlan, ExecutionPlanProperties, InputOrderMode, Partitioning, PlanProperties,
     SendableRecordBatchStream,
 };
 use futures::StreamExt;
+
+use crate::plan_util::{Walk, batches_stream, replace_nodes};
 
 /// Packed keys up to this many bits index a dense table (4 MiB of group numbers at most).
 pub const DENSE_BITS: u32 = 20;
@@ -50,11 +51,7 @@ pub struct SmallGroups;
 
 impl PhysicalOptimizerRule for SmallGroups {
     fn optimize(&self, plan: Arc<dyn ExecutionPlan>, _config: &ConfigOptions) -> Result<Arc<dyn ExecutionPlan>> {
-        plan.transform_up(|node| match SmallGroupsExec::replacing(&node)? {
-            Some(exec) => Ok(Transformed::yes(Arc::new(exec) as Arc<dyn ExecutionPlan>)),
-            None => Ok(Transformed::no(node)),
-        })
-        .map(|t| t.data)
+        replace_nodes(plan, Walk::Up, SmallGroupsExec::replacing)
     }
 
     fn name(&self) -> &str {
@@ -138,12 +135,7 @@ impl SmallGroupsExec {
         if width != out.fields().len() {
             return Ok(None);
         }
-        let properties = Arc::new(PlanProperties::new(
-            EquivalenceProperties::new(out.clone()),
-            node.output_partitioning().clone(),
-            EmissionType::Final,
-            Boundedness::Bounded,
-        ));
+        let properties = properties(&out, node.output_partitioning());
         Ok(Some(Self {
             input,
             groups,
@@ -154,6 +146,16 @@ impl SmallGroupsExec {
             metrics: ExecutionPlanMetricsSet::new(),
         }))
     }
+}
+
+/// The operator's plan properties: the partial aggregate's partitioning, emitted at the end.
+fn properties(schema: &SchemaRef, partitioning: &Partitioning) -> Arc<PlanProperties> {
+    Arc::new(PlanProperties::new(
+        EquivalenceProperties::new(schema.clone()),
+        partitioning.clone(),
+        EmissionType::Final,
+        Boundedness::Bounded,
+    ))
 }
 
 impl DisplayAs for SmallGroupsExec {
@@ -195,12 +197,7 @@ impl ExecutionPlan for SmallGroupsExec {
     fn with_new_children(self: Arc<Self>, children: Vec<Arc<dyn ExecutionPlan>>) -> Result<Arc<dyn ExecutionPlan>> {
         let [input] = <[_; 1]>::try_from(children)
             .map_err(|c| DataFusionError::Internal(format!("SmallGroupsExec has one child, not {}", c.len())))?;
-        let properties = Arc::new(PlanProperties::new(
-            EquivalenceProperties::new(self.schema.clone()),
-            input.output_partitioning().clone(),
-            EmissionType::Final,
-            Boundedness::Bounded,
-        ));
+        let properties = properties(&self.schema, input.output_partitioning());
         Ok(Arc::new(Self {
             input,
             groups: self.groups.clone(),
@@ -221,11 +218,12 @@ impl ExecutionPlan for SmallGroupsExec {
         let mut state = Grouper {
             keys: self.groups.iter().map(|(e, _, t)| KeyColumn::new(e.clone(), t)).collect::<Result<_>>()?,
             bits: vec![0; self.groups.len()],
-            table: Table::Dense(Vec::new()),
+            // No bits yet: one slot, for the all-NULL key.
+            table: Table::Dense(vec![u32::MAX]),
             group_keys: Vec::new(),
             groups: 0,
             accumulators: self.aggr.iter().map(|a| a.create_groups_accumulator()).collect::<Result<_>>()?,
-            aggr: self.aggr.clone(),
+            args: self.aggr.iter().map(|a| a.expressions()).collect(),
             filters: self.filters.clone(),
             reservation: MemoryConsumer::new(format!("SmallGroupsExec[{partition}]")).register(context.memory_pool()),
             scratch: Scratch::default(),
@@ -247,11 +245,7 @@ impl ExecutionPlan for SmallGroupsExec {
             baseline.done();
             Ok::<_, DataFusionError>(batches)
         };
-        let stream = futures::stream::once(answer).flat_map(|r| match r {
-            Ok(batches) => futures::stream::iter(batches.into_iter().map(Ok)).left_stream(),
-            Err(e) => futures::stream::iter(vec![Err(e)]).right_stream(),
-        });
-        Ok(Box::pin(RecordBatchStreamAdapter::new(self.schema.clone(), stream)))
+        Ok(batches_stream(self.schema.clone(), answer))
     }
 }
 
@@ -285,7 +279,6 @@ impl KeyColumn {
                 let text: Vec<Option<&str>> = match values.data_type() {
                     DataType::Utf8 => values.as_string::<i32>().iter().collect(),
                     DataType::LargeUtf8 => values.as_string::<i64>().iter().collect(),
-                    DataType::Utf8View => values.as_string_view().iter().collect(),
                     t => return Err(DataFusionError::Internal(format!("dictionary of {t} in SmallGroupsExec"))),
                 };
                 let mut of_value = Vec::with_capacity(text.len());
@@ -400,7 +393,8 @@ struct Grouper {
     group_keys: Vec<u32>,
     groups: usize,
     accumulators: Vec<Box<dyn GroupsAccumulator>>,
-    aggr: Vec<Arc<AggregateFunctionExpr>>,
+    /// Each accumulator's argument expressions.
+    args: Vec<Vec<Arc<dyn PhysicalExpr>>>,
     filters: Vec<Option<Arc<dyn PhysicalExpr>>>,
     reservation: MemoryReservation,
     scratch: Scratch,
@@ -447,14 +441,13 @@ impl Grouper {
         let mut grew = false;
         for (c, key) in self.keys.iter_mut().enumerate() {
             let a = key.expr.evaluate(batch)?.into_array(n)?;
-            let max = key.numbers(&a, &mut scratch.ids[c])?;
-            // (`max` has the largest number's highest bit, which is all `bits_for` looks at.)
-            if bits_for(max) > self.bits[c] {
-                self.bits[c] = bits_for(max);
+            let high = bits_for(key.numbers(&a, &mut scratch.ids[c])?);
+            if high > self.bits[c] {
+                self.bits[c] = high;
                 grew = true;
             }
         }
-        if grew || (self.groups == 0 && matches!(&self.table, Table::Dense(t) if t.is_empty())) {
+        if grew {
             self.rebuild();
         }
         scratch.packed.clear();
@@ -489,9 +482,8 @@ impl Grouper {
                 }
             }
         }
-        for ((acc, a), filter) in self.accumulators.iter_mut().zip(&self.aggr).zip(&self.filters) {
-            let values =
-                a.expressions().iter().map(|e| e.evaluate(batch)?.into_array(n)).collect::<Result<Vec<_>>>()?;
+        for ((acc, args), filter) in self.accumulators.iter_mut().zip(&self.args).zip(&self.filters) {
+            let values = args.iter().map(|e| e.evaluate(batch)?.into_array(n)).collect::<Result<Vec<_>>>()?;
             let filter = match filter {
                 Some(f) => Some(f.evaluate(batch)?.into_array(n)?),
                 None => None,

@@ -78,8 +78,8 @@ pub struct SessionOptions {
     /// Bytes the operators may hold (sorts, joins and aggregations spill or fail beyond it);
     /// unlimited when None.
     pub memory_limit: Option<usize>,
-    /// DataFusion's own aggregation for every group-by: rtvtk's [`CountByKey`] rule left out (to
-    /// compare the two on the same query).
+    /// DataFusion's own aggregation for every group-by: rtvtk's [`CountByKey`] and [`SmallGroups`]
+    /// rules left out (to compare the two on the same query).
     pub stock_aggregation: bool,
 }
 
@@ -121,8 +121,9 @@ pub async fn session_with(sources: &[TraceSource], options: &SessionOptions) -> 
 }
 
 /// DataFusion's physical optimizer rules with rtvtk's: [`CountByKey`] (counting group-bys on one
-/// integer key, such as Morton cells) just before distribution is enforced. Sessions built
-/// elsewhere (Ballista's, for example) run the same queries without it, only slower.
+/// integer key, such as Morton cells) just before distribution is enforced, and [`SmallGroups`]
+/// (group-bys on small-domain keys such as kind and depth) last. Sessions built
+/// elsewhere (Ballista's, for example) run the same queries without them, only slower.
 pub fn physical_optimizer_rules() -> Vec<Arc<dyn PhysicalOptimizerRule + Send + Sync>> {
     let mut rules = PhysicalOptimizer::new().rules;
     let at = rules.iter().position(|r| r.name() == "EnsureRequirements" || r.name() == "EnforceDistribution");

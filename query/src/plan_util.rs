@@ -1,0 +1,50 @@
+//! Pieces rtvtk's own physical operators share: replacing plan nodes from an optimizer rule, and
+//! streaming the batches an operator computes all at once.
+
+use std::future::Future;
+use std::sync::Arc;
+
+use arrow::array::RecordBatch;
+use arrow::datatypes::SchemaRef;
+use datafusion::common::tree_node::{Transformed, TreeNode};
+use datafusion::error::Result;
+use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
+use datafusion::physical_plan::{ExecutionPlan, SendableRecordBatchStream};
+use futures::StreamExt;
+
+/// Which way [`replace_nodes`] walks the plan.
+pub(crate) enum Walk {
+    /// Parents first (a replacement takes its whole subtree's shape into account).
+    Down,
+    /// Children first.
+    Up,
+}
+
+/// `plan` with every node that `replacing` has a replacement for replaced by it.
+pub(crate) fn replace_nodes<E: ExecutionPlan + 'static>(
+    plan: Arc<dyn ExecutionPlan>,
+    walk: Walk,
+    replacing: fn(&Arc<dyn ExecutionPlan>) -> Result<Option<E>>,
+) -> Result<Arc<dyn ExecutionPlan>> {
+    let f = |node: Arc<dyn ExecutionPlan>| match replacing(&node)? {
+        Some(exec) => Ok(Transformed::yes(Arc::new(exec) as Arc<dyn ExecutionPlan>)),
+        None => Ok(Transformed::no(node)),
+    };
+    match walk {
+        Walk::Down => plan.transform_down(f),
+        Walk::Up => plan.transform_up(f),
+    }
+    .map(|t| t.data)
+}
+
+/// A stream of the batches `answer` computes (its error, if any, as the only item).
+pub(crate) fn batches_stream(
+    schema: SchemaRef,
+    answer: impl Future<Output = Result<Vec<RecordBatch>>> + Send + 'static,
+) -> SendableRecordBatchStream {
+    let stream = futures::stream::once(answer).flat_map(|r| match r {
+        Ok(batches) => futures::stream::iter(batches.into_iter().map(Ok)).left_stream(),
+        Err(e) => futures::stream::iter(vec![Err(e)]).right_stream(),
+    });
+    Box::pin(RecordBatchStreamAdapter::new(schema, stream))
+}
