@@ -96,14 +96,14 @@ fn duckdb_reads_the_dataset_as_plain_parquet() {
     let info: Value = serde_json::from_slice(&rtvtk(&["info", dir.to_str().unwrap(), "--json"]).stdout).unwrap();
     let script = r#"
 import sys, duckdb
-for tag, d, shadow in [("", sys.argv[1], "kind_code = 1"), ("plain-", sys.argv[2], "kind = 'shadow'")]:
+for tag, d, shadow, t in [("", sys.argv[1], "kind_code = 1", "enc_t"), ("plain-", sys.argv[2], "kind = 'shadow'", "t")]:
     rays = f"read_parquet('{d}/segments/*.rays.parquet')"
     trees = f"read_parquet('{d}/segments/*.trees.parquet')"
     q = lambda s: duckdb.sql(s).fetchall()[0][0]
     print(tag + "rays", q(f"select count(*) from {rays}"))
     print(tag + "trees", q(f"select count(*) from {trees}"))
     print(tag + "shadow", q(f"select count(*) from {rays} where {shadow}"))
-    print(tag + "misses", q(f"select count(*) from {rays} where t is null"))
+    print(tag + "misses", q(f"select count(*) from {rays} where {t} is null"))
     print(tag + "joined", q(f"select count(*) from {rays} r join {trees} t using (tree_id) where t.pixel_x = 3"))
 "#;
     let out = Command::new("python3")

@@ -11,6 +11,9 @@
 //! - **Directions** are nearly unit vectors: the largest component is predicted from the other two
 //!   as `±sqrt(1 - b² - c²)` (in `f64`) and stored as its ULP distance to that prediction; the two
 //!   others are stored as their bits. Non-finite or zero directions are stored raw.
+//! - **Hit distances** (format version 3) are predicted from the plane of the hit primitive,
+//!   learned by the writer per segment (see [`crate::planes`]): the ULP distance to the
+//!   prediction is stored instead of the `t` bits.
 //! - **Lossy** `octN`: directions quantized to N bits per octahedral coordinate (unit length after
 //!   decoding). Predictions then use decoded values, so origins stay lossless.
 //!
@@ -24,9 +27,11 @@ use std::path::Path;
 use std::sync::Arc;
 
 use arrow::array::{Array, ArrayRef, AsArray, Float32Array, RecordBatch, UInt8Array, UInt32Array};
+use arrow::buffer::NullBuffer;
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef, UInt8Type, UInt32Type, UInt64Type};
 
 use crate::columns::{NONE_U32, RayColumns, kind_array};
+use crate::planes::{PlaneLearner, Planes};
 use crate::schema::KindTable;
 use crate::stats::Stats;
 use crate::{Error, Result};
@@ -93,13 +98,25 @@ pub const ENCODED_COLUMNS: [&str; 7] =
 /// The kind column of encoded ray files: the kind code of each ray.
 pub const KIND_CODE: &str = "kind_code";
 
+/// The hit-distance column of encoded ray files from format version 3 on (`t` before).
+pub const ENC_T: &str = "enc_t";
+
+/// Bit of `enc_dir_code`: `enc_t` is the residual of `t` against the hit primitive's plane
+/// (otherwise it holds the bits of `t`).
+const T_PREDICTED: u8 = 1 << 6;
+
+/// Residuals of `t` at least this large are stored as raw bits instead (a prediction that far
+/// off is no prediction).
+const T_RESIDUAL_LIMIT: u32 = 1 << 20;
+
 /// Direction codes (low 3 bits of `enc_dir_code`): 0..=5 predicted axis (`axis + 3 * negative`),
 /// raw bits, octahedral. Bits 3..=5 flag origin components stored raw instead of predicted.
 const DIR_RAW: u8 = 6;
 const DIR_OCT: u8 = 7;
 
-/// The schema of the ray files for `plain` (the ray table schema) and encoded layouts.
-pub fn file_schema(plain: &SchemaRef, encoding: Encoding) -> SchemaRef {
+/// The schema of the ray files for `plain` (the ray table schema) and encoded layouts, as
+/// `format_version` writes them (`t` is encoded from version 3 on).
+pub fn file_schema(plain: &SchemaRef, encoding: Encoding, format_version: u32) -> SchemaRef {
     if encoding == Encoding::Plain {
         return plain.clone();
     }
@@ -110,6 +127,7 @@ pub fn file_schema(plain: &SchemaRef, encoding: Encoding) -> SchemaRef {
             // Kind codes as recorded (names in the manifest's `kinds`): writing a string
             // dictionary column costs a hash per row.
             "kind" => fields.push(Field::new(KIND_CODE, DataType::UInt8, false)),
+            "t" if format_version >= 3 => fields.push(Field::new(ENC_T, DataType::UInt32, true)),
             // The encoded columns go where origin_x was.
             "origin_x" => {
                 for name in ENCODED_COLUMNS {
@@ -300,6 +318,9 @@ pub(crate) struct EncodedCore {
     pub origin: [Vec<u32>; 3],
     pub code: Vec<u8>,
     pub dir: [Vec<u32>; 3],
+    /// `enc_t` (null where the ray missed).
+    pub t: Vec<u32>,
+    pub hit: Vec<bool>,
 }
 
 impl EncodedCore {
@@ -314,6 +335,7 @@ impl EncodedCore {
             Arc::new(UInt32Array::from(u)),
             Arc::new(UInt32Array::from(v)),
             Arc::new(UInt32Array::from(r)),
+            Arc::new(UInt32Array::new(self.t.into(), Some(NullBuffer::from(self.hit)))),
         ]
     }
 }
@@ -368,24 +390,33 @@ fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], 
     }
 }
 
-/// Encodes the origin and direction columns of `cols` (whole trees, each contiguous from ray 0).
-/// Adds every ray's bounds to `stats` on the way (one pass over the columns instead of two).
-pub(crate) fn encode(cols: &RayColumns, encoding: Encoding, stats: &mut Stats) -> Result<EncodedCore> {
+/// Encodes the origin, direction and hit-distance columns of `cols` (whole trees, each
+/// contiguous from ray 0), learning primitive planes into `planes` (the segment's) on the way.
+/// Adds every ray's bounds to `stats` too (one pass over the columns instead of two).
+pub(crate) fn encode(
+    cols: &RayColumns,
+    encoding: Encoding,
+    stats: &mut Stats,
+    planes: &mut PlaneLearner,
+) -> Result<EncodedCore> {
     let n = cols.len();
     let mut out = EncodedCore {
         origin: [vec![0; n], vec![0; n], vec![0; n]],
         code: vec![0; n],
         dir: [vec![0; n], vec![0; n], vec![0; n]],
+        t: vec![0; n],
+        hit: cols.hit[..n].to_vec(),
     };
     let mut st = TreeState::default();
     let (tree, ray, parent) = (&cols.tree_id[..n], &cols.ray[..n], &cols.parent[..n]);
     let (ox, oy, oz) = (&cols.origin[0][..n], &cols.origin[1][..n], &cols.origin[2][..n]);
     let (dx, dy, dz) = (&cols.direction[0][..n], &cols.direction[1][..n], &cols.direction[2][..n]);
-    let (t, hit) = (&cols.t[..n], &cols.hit[..n]);
+    let (t, hit, prim) = (&cols.t[..n], &cols.hit[..n], &cols.prim[..n]);
     let [eox, eoy, eoz] = &mut out.origin;
     let [eu, ev, er] = &mut out.dir;
     let (eox, eoy, eoz, code_out) = (&mut eox[..n], &mut eoy[..n], &mut eoz[..n], &mut out.code[..n]);
     let (eu, ev, er) = (&mut eu[..n], &mut ev[..n], &mut er[..n]);
+    let et = &mut out.t[..n];
     for i in 0..n {
         let p = parent[i];
         st.advance(tree[i], ray[i], p).map_err(Error::Encoding)?;
@@ -406,7 +437,27 @@ pub(crate) fn encode(cols: &RayColumns, encoding: Encoding, stats: &mut Stats) -
         }
         (eox[i], eoy[i], eoz[i]) = (res[0], res[1], res[2]);
         let (code, w, decoded) = encode_dir(d, encoding);
-        code_out[i] = code | (raw_flags << 3);
+        let mut t_flag = 0u8;
+        if hit[i] {
+            // The plane's prediction from what the decoder will have (the decoded direction).
+            let pred = match planes.planes.get(prim[i]) {
+                Some(plane) => plane.predict(o, decoded),
+                None => {
+                    if prim[i] != NONE_U32 {
+                        planes.observe(prim[i], o, d, t[i]);
+                    }
+                    None
+                }
+            };
+            et[i] = match pred.map(|p| residual(t[i], p)) {
+                Some(r) if r < T_RESIDUAL_LIMIT => {
+                    t_flag = T_PREDICTED;
+                    r
+                }
+                _ => t[i].to_bits(),
+            };
+        }
+        code_out[i] = code | (raw_flags << 3) | t_flag;
         (eu[i], ev[i], er[i]) = (w[0], w[1], w[2]);
         st.push(p, o, decoded, hit[i].then_some(t[i]));
     }
@@ -430,12 +481,21 @@ pub struct Decoder {
     plain: SchemaRef,
     kinds: KindTable,
     state: TreeState,
+    /// The planes of the segment being decoded (its ray file's `rtvtk.planes`).
+    planes: Arc<Planes>,
 }
 
 impl Decoder {
-    /// A decoder to the ray table schema `plain`; `kinds` names the kind codes.
+    /// A decoder to the ray table schema `plain`; `kinds` names the kind codes. Files of format
+    /// version 3 also need their segment's planes ([`Decoder::with_planes`]).
     pub fn new(encoding: Encoding, plain: SchemaRef, kinds: KindTable) -> Self {
-        Self { encoding, plain, kinds, state: TreeState::default() }
+        Self { encoding, plain, kinds, state: TreeState::default(), planes: Arc::default() }
+    }
+
+    /// The decoder for a segment whose ray file holds `planes`.
+    pub fn with_planes(mut self, planes: Arc<Planes>) -> Self {
+        self.planes = planes;
+        self
     }
 
     /// Decodes one batch of a ray file at `path` (named in errors).
@@ -460,10 +520,10 @@ impl Decoder {
         RecordBatch::try_new(self.plain.clone(), columns).map_err(|e| corrupt(format!("decoded batch: {e}")))
     }
 
-    /// Decodes the directions of a batch of a ray file, and its origins when `origins` is set.
-    /// Directions need only `enc_dir_*`; origins also need `tree_id`, `ray`, `parent`, `t` and
-    /// `enc_origin_*` (the tree structure they are predicted from), and batches that start at a
-    /// tree, in file order.
+    /// Decodes the directions of a batch of a ray file, and its origins (and encoded hit
+    /// distances) when `origins` is set. Directions need only `enc_dir_*`; origins also need
+    /// `tree_id`, `ray`, `parent`, `t` (or `enc_t` and `prim`) and `enc_origin_*` (the tree
+    /// structure they are predicted from), and batches that start at a tree, in file order.
     pub(crate) fn decode_geometry(&mut self, batch: &RecordBatch, path: &Path, origins: bool) -> Result<Geometry> {
         let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
         let typed_u32 = |name: &str| -> Result<&UInt32Array> {
@@ -485,9 +545,19 @@ impl Decoder {
             let tree = file_column(batch, "tree_id", path)?
                 .as_primitive_opt::<UInt64Type>()
                 .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
-            let t = file_column(batch, "t", path)?
-                .as_primitive_opt::<arrow::datatypes::Float32Type>()
-                .ok_or_else(|| corrupt("column t is not Float32".into()))?;
+            let t = match batch.column_by_name(ENC_T) {
+                Some(e) => {
+                    let e = e
+                        .as_primitive_opt::<UInt32Type>()
+                        .ok_or_else(|| corrupt(format!("column {ENC_T} is not UInt32")))?;
+                    HitDistances::Encoded(e, typed_u32("prim")?)
+                }
+                None => HitDistances::Plain(
+                    file_column(batch, "t", path)?
+                        .as_primitive_opt::<arrow::datatypes::Float32Type>()
+                        .ok_or_else(|| corrupt("column t is not Float32".into()))?,
+                ),
+            };
             let eo = [typed_u32(ENCODED_COLUMNS[0])?, typed_u32(ENCODED_COLUMNS[1])?, typed_u32(ENCODED_COLUMNS[2])?];
             Some((tree, typed_u32("ray")?, typed_u32("parent")?, t, eo))
         } else {
@@ -508,7 +578,7 @@ impl Decoder {
             let [dx, dy, dz] = &mut dir;
             let (dx, dy, dz) = (&mut dx[..n], &mut dy[..n], &mut dz[..n]);
             for (i, &c) in codes.iter().enumerate() {
-                if c >> 6 != 0 {
+                if c >> 7 != 0 {
                     return Err(corrupt(format!("{}: enc_dir_code {c} has unknown bits", row_name(i))));
                 }
                 let (code, w) = (c & 7, [e0[i], e1[i], e2[i]]);
@@ -521,10 +591,12 @@ impl Decoder {
             }
         }
         let Some((tree, ray, parent, t, eo)) = structure else {
-            return Ok(Geometry { origin: None, dir: dir.map(Float32Array::from) });
+            return Ok(Geometry { origin: None, dir: dir.map(Float32Array::from), t: None });
         };
-        // Origins, predicted from the tree (previous sibling, else the parent's hit point).
+        // Origins, predicted from the tree (previous sibling, else the parent's hit point); then
+        // encoded hit distances, predicted from the hit primitive's plane.
         let mut origin = [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
+        let mut decoded_t: Vec<f32> = Vec::with_capacity(if matches!(t, HitDistances::Encoded(..)) { n } else { 0 });
         let st = &mut self.state;
         for (i, &c) in codes.iter().enumerate() {
             let p = if parent.is_null(i) { NONE_U32 } else { parent.value(i) };
@@ -534,16 +606,60 @@ impl Decoder {
             for (out, v) in origin.iter_mut().zip(o) {
                 out.push(v);
             }
-            st.push(p, o, [dir[0][i], dir[1][i], dir[2][i]], if t.is_null(i) { None } else { Some(t.value(i)) });
+            let d = [dir[0][i], dir[1][i], dir[2][i]];
+            let ti = match t {
+                HitDistances::Plain(t) => {
+                    if c & T_PREDICTED != 0 {
+                        return Err(corrupt(format!(
+                            "{}: enc_dir_code {c} flags a predicted t in a file without {ENC_T}",
+                            row_name(i)
+                        )));
+                    }
+                    (!t.is_null(i)).then(|| t.value(i))
+                }
+                HitDistances::Encoded(e, prim) => {
+                    let v = if e.is_null(i) {
+                        None
+                    } else if c & T_PREDICTED != 0 {
+                        let pr = if prim.is_null(i) { NONE_U32 } else { prim.value(i) };
+                        let tp = self.planes.get(pr).and_then(|plane| plane.predict(o, d)).ok_or_else(|| {
+                            corrupt(format!(
+                                "{}: t is predicted from primitive {pr}, which has no usable plane",
+                                row_name(i)
+                            ))
+                        })?;
+                        Some(apply(e.value(i), tp))
+                    } else {
+                        Some(f32::from_bits(e.value(i)))
+                    };
+                    decoded_t.push(v.unwrap_or(0.0));
+                    v
+                }
+            };
+            st.push(p, o, d, ti);
         }
-        Ok(Geometry { origin: Some(origin.map(Float32Array::from)), dir: dir.map(Float32Array::from) })
+        let t = match t {
+            HitDistances::Encoded(e, _) => Some(Float32Array::new(decoded_t.into(), e.nulls().cloned())),
+            HitDistances::Plain(_) => None,
+        };
+        Ok(Geometry { origin: Some(origin.map(Float32Array::from)), dir: dir.map(Float32Array::from), t })
     }
 }
 
-/// Decoded origins (when asked for) and directions of a batch.
+/// The hit-distance column of a ray file: plain (format version 2), or encoded with the
+/// primitive column that names each ray's plane.
+#[derive(Clone, Copy)]
+enum HitDistances<'a> {
+    Plain(&'a Float32Array),
+    Encoded(&'a UInt32Array, &'a UInt32Array),
+}
+
+/// Decoded origins (when asked for), directions, and hit distances (when encoded and origins
+/// were asked for) of a batch.
 pub(crate) struct Geometry {
     pub origin: Option<[Float32Array; 3]>,
     pub dir: [Float32Array; 3],
+    pub t: Option<Float32Array>,
 }
 
 impl Geometry {
@@ -555,6 +671,9 @@ impl Geometry {
         }
         let [x, y, z] = self.dir;
         out.extend([("dir_x", Arc::new(x) as ArrayRef), ("dir_y", Arc::new(y)), ("dir_z", Arc::new(z))]);
+        if let Some(t) = self.t {
+            out.push(("t", Arc::new(t)));
+        }
         out
     }
 }

@@ -15,9 +15,10 @@ use parquet::arrow::arrow_reader::{
 };
 use parquet::file::metadata::PageIndexPolicy;
 
-use crate::codec::{Decoder, Encoding, file_schema};
+use crate::codec::{Decoder, ENC_T, Encoding, file_schema};
 use crate::error::{arrow_err, io_err, pq_err};
 use crate::manifest::{MANIFEST_FILE, Manifest, SegmentEntry};
+use crate::planes::{PLANES_KEY, Planes};
 use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
 use crate::stats::Stats;
 use crate::tree::{Tree, TreeId, TreeInfo, rays_from_batch, tree_ids_of, validate_tree};
@@ -44,6 +45,8 @@ struct SegmentMeta {
     meta: ArrowReaderMetadata,
     /// First row of each row group.
     row_group_starts: Vec<u64>,
+    /// The planes hit distances are predicted from (format version 3; empty before).
+    planes: Arc<Planes>,
 }
 
 /// A trace dataset opened for reading.
@@ -105,7 +108,7 @@ impl Dataset {
         let segment_trees = manifest.segments.iter().map(|_| OnceLock::new()).collect();
         let schema = ray_schema(&payload);
         Ok(Self {
-            file_schema: file_schema(&schema, manifest.encoding),
+            file_schema: file_schema(&schema, manifest.encoding, manifest.format_version),
             schema,
             dir,
             manifest,
@@ -198,7 +201,20 @@ impl Dataset {
                 message: format!("manifest lists {} rows, file holds {row}", self.segment(i).rays.rows),
             });
         }
-        let m = Arc::new(SegmentMeta { meta, row_group_starts: starts });
+        let planes = match meta
+            .metadata()
+            .file_metadata()
+            .key_value_metadata()
+            .and_then(|kv| kv.iter().find(|e| e.key == PLANES_KEY).and_then(|e| e.value.as_deref()))
+        {
+            Some(v) => Planes::from_metadata(v).map_err(|message| Error::Corrupt {
+                path: path.clone(),
+                what: "ray file metadata".into(),
+                message,
+            })?,
+            None => Planes::default(),
+        };
+        let m = Arc::new(SegmentMeta { meta, row_group_starts: starts, planes: Arc::new(planes) });
         let _ = self.metas[i].set(m.clone());
         Ok(m)
     }
@@ -490,7 +506,7 @@ impl Dataset {
                 message: format!("expected {count} rows from row {first}, read {}", batch.num_rows()),
             });
         }
-        self.decoder().decode(batch, &path)
+        self.decoder(i)?.decode(batch, &path)
     }
 
     /// Every ray batch of segment `i`, in file order.
@@ -506,7 +522,7 @@ impl Dataset {
         rows: Option<&[std::ops::Range<u64>]>,
     ) -> Result<impl Iterator<Item = Result<RecordBatch>> + use<>> {
         let (path, reader) = self.ray_reader(i, None, rows, 64 * 1024)?;
-        let mut decoder = self.decoder();
+        let mut decoder = self.decoder(i)?;
         Ok(reader.map(move |b| {
             let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
             decoder.decode(b, &path)
@@ -566,7 +582,9 @@ impl Dataset {
             }
         };
         let encoded = self.encoding() != Encoding::Plain;
-        let is_origin = |n: &str| n.starts_with("origin_");
+        // From format version 3 `t` is encoded too, predicted from the decoded origin and direction.
+        let t_encoded = self.file_schema.index_of(ENC_T).is_ok();
+        let is_origin = |n: &str| n.starts_with("origin_") || (t_encoded && n == "t");
         let is_dir = |n: &str| n.starts_with("dir_");
         let want_origin = encoded && names.iter().any(|n| is_origin(n));
         let want_geometry = want_origin || (encoded && names.iter().any(|n| is_dir(n)));
@@ -583,12 +601,13 @@ impl Dataset {
         }
         if want_origin {
             file_names.extend(&crate::codec::ENCODED_COLUMNS[..3]);
-            file_names.extend(["tree_id", "ray", "parent", "t"]);
+            file_names.extend(["tree_id", "ray", "parent"]);
+            file_names.extend(if t_encoded { [ENC_T, "prim"] } else { ["t", "t"] });
         }
         let roots: BTreeSet<usize> = file_names.iter().filter_map(|n| self.file_schema.index_of(n).ok()).collect();
         let (path, reader) = self.ray_reader(i, Some(roots.into_iter().collect()), rows, 64 * 1024)?;
         let kinds = self.kinds.clone();
-        let mut decoder = self.decoder();
+        let mut decoder = self.decoder(i)?;
         Ok(Box::new(reader.map(move |b| {
             let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
             let mut fields: Vec<arrow::datatypes::FieldRef> = b.schema().fields().iter().cloned().collect();
@@ -626,9 +645,14 @@ impl Dataset {
         self.file_schema.clone()
     }
 
-    /// A decoder from ray-file batches (starting at a tree) to ray-table batches.
-    pub fn decoder(&self) -> Decoder {
-        Decoder::new(self.manifest.encoding, self.schema.clone(), self.kinds.clone())
+    /// A decoder from segment `i`'s ray-file batches (starting at a tree) to ray-table batches.
+    pub fn decoder(&self, i: usize) -> Result<Decoder> {
+        let planes = if self.manifest.encoding == Encoding::Plain {
+            Arc::default()
+        } else {
+            self.segment_meta(i)?.planes.clone()
+        };
+        Ok(Decoder::new(self.manifest.encoding, self.schema.clone(), self.kinds.clone()).with_planes(planes))
     }
 
     /// Every tree, segment by segment in file order: a sequential scan that reads each page once.

@@ -6,16 +6,18 @@ mod columns;
 mod dataset;
 mod error;
 mod manifest;
+mod planes;
 mod schema;
 mod stats;
 mod tree;
 mod writer;
 
-pub use codec::{Decoder, ENCODED_COLUMNS, Encoding, KIND_CODE, angle_between, file_schema};
+pub use codec::{Decoder, ENC_T, ENCODED_COLUMNS, Encoding, KIND_CODE, angle_between, file_schema};
 pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
 pub use dataset::{CheckReport, Dataset, TreeEntry, TreeIter};
 pub use error::{Error, Result};
 pub use manifest::{FORMAT_NAME, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, PayloadColumnDecl, SegmentEntry};
+pub use planes::{PLANES_KEY, Planes};
 pub use schema::{
     BUILTIN_KINDS, BytesPayload, CORE_COLUMN_COUNT, CORE_RAY_COLUMNS, Kind, KindTable, PayloadField, PayloadSchema,
     Storage, kind_data_type, ray_schema, tree_schema,

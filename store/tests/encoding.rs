@@ -1,4 +1,5 @@
-//! Format version 2 encodings: bit-exact round trips, lossy error bounds, reading version 1.
+//! Encodings (format versions 2 and 3): bit-exact round trips, lossy error bounds, reading
+//! versions 1 and 2.
 #![allow(clippy::unwrap_used)]
 
 use std::path::Path;
@@ -6,7 +7,7 @@ use std::sync::Arc;
 
 use arrow::array::{ArrayRef, RecordBatch, UInt8Array, UInt32Array};
 use store::{
-    Dataset, DatasetWriter, Decoder, Encoding, Kind, KindTable, PayloadSchema, RayColumns, RayFields, TreeId, TreeRow,
+    Dataset, DatasetWriter, Encoding, Kind, KindTable, PayloadSchema, RayColumns, RayFields, TreeId, TreeRow,
     WriteOptions,
 };
 
@@ -106,6 +107,96 @@ fn trees(n: u64, scale: f32, offset: f32) -> RayColumns {
     cols
 }
 
+/// Rays bouncing inside a box, each stopping where it meets a wall (the wall is its primitive),
+/// with shadow rays to points on the top wall: hit distances a renderer would record, on flat
+/// primitives. The box is tilted (no wall is axis-aligned), `scale` wide, `offset` from the origin.
+fn box_trees(n: u64, scale: f32, offset: f32) -> RayColumns {
+    let mut rng = Rng(0x2545_F491_4F6C_DD1D);
+    let mut cols = RayColumns::new(&PayloadSchema::default());
+    // A rotation (unit quaternion (0.9, 0.3, 0.3, 0.1) as a matrix) into world space.
+    let (w, x, y, z) = (0.9f32, 0.3f32, 0.3f32, 0.1f32);
+    let l = (w * w + x * x + y * y + z * z).sqrt();
+    let (w, x, y, z) = (w / l, x / l, y / l, z / l);
+    let m = [
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+    ];
+    let rot = |v: [f32; 3]| [0, 1, 2].map(|r| m[r][0] * v[0] + m[r][1] * v[1] + m[r][2] * v[2]);
+    let world = |p: [f32; 3]| rot(p.map(|c| c * scale)).map(|c| c + offset);
+    // Box space is [0, 1]^3: the distance to the wall a ray leaves through, and that wall's id.
+    let exit = |o: [f32; 3], d: [f32; 3]| -> (f32, u32) {
+        let mut best = (f32::INFINITY, 0);
+        for a in 0..3 {
+            if d[a] != 0.0 {
+                let wall = if d[a] > 0.0 { 1.0 } else { 0.0 };
+                let t = (wall - o[a]) / d[a];
+                if t < best.0 {
+                    best = (t, a as u32 * 2 + u32::from(d[a] > 0.0));
+                }
+            }
+        }
+        best
+    };
+    for id in 0..n {
+        let first = cols.len() as u64;
+        let mut k = 0u32;
+        let mut o = [0.5f32, 0.5, 0.5];
+        let mut d = rng.unit();
+        let mut parent = store::NONE_U32;
+        let mut depth = 0u16;
+        let mut max_depth = 0u16;
+        for b in 0..=(rng.next() % 5) {
+            let (t, wall) = exit(o, d);
+            let kind = if b == 0 { Kind::CAMERA } else { Kind::DIFFUSE };
+            // World-space rays: directions keep their length, so box-space t is the world t.
+            let fields = RayFields { origin: world(o), direction: rot(d), t: Some(t * scale), kind, prim: Some(wall) };
+            cols.push_core(id, k, parent, depth, &fields);
+            let me = k;
+            k += 1;
+            depth += 1;
+            let hit = [0, 1, 2].map(|a| (o[a] + d[a] * t).clamp(0.0, 1.0));
+            // A shadow ray to a random point of the top wall (y = 1).
+            let target = [rng.f(), 1.0, rng.f()];
+            let to = [target[0] - hit[0], target[1] - hit[1], target[2] - hit[2]];
+            let len = (to[0] * to[0] + to[1] * to[1] + to[2] * to[2]).sqrt();
+            if len > 1e-3 && to[1] > 1e-3 {
+                let sd = to.map(|c| c / len);
+                let st = (1.0 - hit[1]) / sd[1];
+                let f = RayFields {
+                    origin: world(hit),
+                    direction: rot(sd),
+                    t: Some(st * scale),
+                    kind: Kind::SHADOW,
+                    prim: Some(3),
+                };
+                cols.push_core(id, k, me, depth, &f);
+                k += 1;
+                max_depth = depth;
+            }
+            o = hit;
+            d = rng.unit();
+            // Turn the bounce back into the box.
+            for a in 0..3 {
+                if (o[a] >= 1.0 && d[a] > 0.0) || (o[a] <= 0.0 && d[a] < 0.0) {
+                    d[a] = -d[a];
+                }
+            }
+            parent = me;
+        }
+        cols.trees.push(TreeRow {
+            tree_id: id,
+            pixel_x: (id % 64) as u32,
+            pixel_y: (id / 64) as u32,
+            sample: 0,
+            ray_count: k,
+            max_depth: max_depth.max(depth - 1),
+            first_row: first,
+        });
+    }
+    cols
+}
+
 fn write(dir: &Path, cols: &RayColumns, encoding: Encoding, chunks: usize) {
     let schema = PayloadSchema::default();
     let opts = WriteOptions { row_group_rows: 1000, page_rows: 100, encoding, ..Default::default() };
@@ -143,8 +234,11 @@ fn bits3(v: [f32; 3]) -> [u32; 3] {
 
 #[test]
 fn lossless_and_plain_round_trip_bit_exactly_at_any_scale() {
-    for (scale, offset) in [(1.0, 0.0), (1e-4, 0.0), (1e5, 0.0), (1.0, 1e6)] {
-        let cols = trees(400, scale, offset);
+    for (scale, offset, flat) in [(1.0, 0.0, false), (1e-4, 0.0, false), (1e5, 0.0, false), (1.0, 1e6, false)]
+        .into_iter()
+        .chain([(500.0, 0.0, true), (1e-4, 0.0, true), (1e5, 0.0, true), (1.0, 1e6, true), (500.0, -3e4, true)])
+    {
+        let cols = if flat { box_trees(400, scale, offset) } else { trees(400, scale, offset) };
         for encoding in [Encoding::Lossless, Encoding::Plain] {
             let dir = tempfile::tempdir().unwrap();
             let path = dir.path().join("ds");
@@ -194,6 +288,62 @@ fn lossless_is_smaller_than_plain_on_tree_structured_rays() {
     assert!(sizes[1] * 10 < sizes[0] * 8, "lossless {} B vs plain {} B", sizes[1], sizes[0]);
 }
 
+/// Hit distances on flat primitives are predicted from planes the writer learns: the planes
+/// are in the ray file's metadata, nearly every hit is flagged as predicted, and `enc_t` costs a
+/// fraction of the raw `t` bits. Curved or random hits (the other generator) get no planes.
+#[test]
+fn hit_distances_on_flat_primitives_are_predicted_from_learned_planes() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, cols) in [("box", box_trees(3000, 500.0, 0.0)), ("random", trees(3000, 1.0, 0.0))] {
+        let path = dir.path().join(name);
+        write(&path, &cols, Encoding::Lossless, 3);
+        let ds = Dataset::open(&path).unwrap();
+        let file = &ds.ray_files()[0];
+        let reader = parquet::file::reader::SerializedFileReader::new(std::fs::File::open(file).unwrap()).unwrap();
+        let meta = parquet::file::reader::FileReader::metadata(&reader);
+        let planes = meta
+            .file_metadata()
+            .key_value_metadata()
+            .and_then(|kv| kv.iter().find(|e| e.key == store::PLANES_KEY).and_then(|e| e.value.clone()));
+        let column_bytes = |col: &str| -> i64 {
+            meta.row_groups()
+                .iter()
+                .map(|g| g.columns().iter().find(|c| c.column_path().string() == col).unwrap().compressed_size())
+                .sum()
+        };
+        let raw: Vec<RecordBatch> =
+            parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(file).unwrap())
+                .unwrap()
+                .build()
+                .unwrap()
+                .map(Result::unwrap)
+                .collect();
+        let (mut hits, mut predicted) = (0usize, 0usize);
+        for b in &raw {
+            let codes = b.column_by_name("enc_dir_code").unwrap().as_any().downcast_ref::<UInt8Array>().unwrap();
+            let t = b.column_by_name(store::ENC_T).unwrap();
+            for i in 0..b.num_rows() {
+                if arrow::array::Array::is_valid(t, i) {
+                    hits += 1;
+                    predicted += usize::from(codes.value(i) & 64 != 0);
+                }
+            }
+        }
+        let t_bytes = column_bytes(store::ENC_T) as f64 / hits as f64;
+        if name == "box" {
+            // Six walls; every hit after a wall's first dozen is predicted.
+            let planes = store::Planes::from_metadata(&planes.expect("planes in the metadata")).unwrap();
+            assert_eq!(planes.len(), 6);
+            assert!(predicted * 100 > hits * 95, "{predicted} of {hits} hits predicted");
+            assert!(t_bytes < 1.5, "{t_bytes} B per hit distance");
+        } else {
+            assert!(planes.is_none(), "random hit points share no plane");
+            assert_eq!(predicted, 0);
+            assert!(t_bytes > 2.5, "{t_bytes} B per raw hit distance");
+        }
+    }
+}
+
 #[test]
 fn octahedral_directions_stay_within_their_error_and_the_rest_is_exact() {
     let cols = trees(300, 1.0, 1e3);
@@ -224,23 +374,26 @@ fn octahedral_directions_stay_within_their_error_and_the_rest_is_exact() {
     }
 }
 
-#[test]
-fn version_1_datasets_still_read() {
+/// Reads a committed fixture of an older format version and compares every ray with the CSV
+/// written beside it when it was recorded.
+fn older_fixture_reads_back(name: &str, version: u32, encoding: Encoding) {
     // At run time: a target directory reused from a checkout elsewhere keeps env!'s old path.
     let dir = std::path::PathBuf::from(
         std::env::var_os("CARGO_MANIFEST_DIR").unwrap_or_else(|| env!("CARGO_MANIFEST_DIR").into()),
     )
-    .join("tests/fixtures/v1-cornell");
+    .join("tests/fixtures")
+    .join(name);
     let ds = Dataset::open(&dir).unwrap();
-    assert_eq!(ds.manifest().format_version, 1);
-    assert_eq!(ds.encoding(), Encoding::Plain);
+    assert_eq!(ds.manifest().format_version, version);
+    assert_eq!(ds.encoding(), encoding);
     assert!(ds.check().is_ok(), "{:?}", ds.check());
     let csv = std::fs::read_to_string(dir.join("rays.csv")).unwrap();
     let mut lines = csv.lines();
     let header: Vec<&str> = lines.next().unwrap().split(',').collect();
     let col = |name: &str| header.iter().position(|h| *h == name).unwrap();
     let f = |s: &str| -> Option<f32> { (!s.is_empty()).then(|| s.parse::<f64>().unwrap() as f32) };
-    let mut n = 0;
+    let mut n = 0u64;
+    let mut hits = 0u64;
     for line in lines {
         let v: Vec<&str> = line.split(',').collect();
         let tree = ds.tree(TreeId(v[col("tree_id")].parse().unwrap())).unwrap();
@@ -253,11 +406,24 @@ fn version_1_datasets_still_read() {
         assert_eq!(bits3(r.direction), bits3(d));
         assert_eq!(r.t.map(f32::to_bits), f(v[col("t")]).map(f32::to_bits));
         assert_eq!(r.prim, v[col("prim")].parse().ok());
+        hits += u64::from(r.t.is_some());
         n += 1;
     }
     assert_eq!(n, ds.ray_count());
-    // The payload columns declared in version 1 read through unchanged.
+    assert!(hits > n / 2, "{hits} of {n} rays hit");
+    // The payload columns declared then read through unchanged.
     assert!(ds.payload_schema().index_of("throughput").is_some());
+}
+
+#[test]
+fn version_1_datasets_still_read() {
+    older_fixture_reads_back("v1-cornell", 1, Encoding::Plain);
+}
+
+#[test]
+fn version_2_lossless_datasets_still_read() {
+    // Version 2 stored `t` as plain floats in encoded files (version 3 predicts it).
+    older_fixture_reads_back("v2-cornell-lossless", 2, Encoding::Lossless);
 }
 
 #[test]
@@ -276,13 +442,7 @@ fn corrupt_encoded_rows_are_errors_that_name_the_file() {
     let raw = arrow::compute::concat_batches(&ds.file_schema(), &raw).unwrap();
     assert!(raw.num_rows() > 4);
     // The untouched rows decode; each kind of damage is an error naming the file, not a panic.
-    assert_eq!(
-        Decoder::new(Encoding::Lossless, ds.ray_schema(), ds.kinds().clone())
-            .decode(raw.clone(), file)
-            .unwrap()
-            .num_rows(),
-        raw.num_rows()
-    );
+    assert_eq!(ds.decoder(0).unwrap().decode(raw.clone(), file).unwrap().num_rows(), raw.num_rows());
     let replace = |name: &str, col: ArrayRef| {
         let mut cols = raw.columns().to_vec();
         cols[raw.schema().index_of(name).unwrap()] = col;
@@ -298,10 +458,7 @@ fn corrupt_encoded_rows_are_errors_that_name_the_file() {
         (replace("enc_dir_code", Arc::new(UInt8Array::from(vec![7u8; n]))), "direction code 7"),
     ];
     for (batch, expected) in cases {
-        let err = Decoder::new(Encoding::Lossless, ds.ray_schema(), ds.kinds().clone())
-            .decode(batch, file)
-            .unwrap_err()
-            .to_string();
+        let err = ds.decoder(0).unwrap().decode(batch, file).unwrap_err().to_string();
         assert!(err.contains(expected) && err.contains("000001.rays.parquet"), "{err}");
     }
 }
@@ -328,7 +485,7 @@ fn every_row_group_starts_at_a_tree_and_decodes_alone() {
                 .with_row_groups(vec![g])
                 .build()
                 .unwrap();
-        let mut dec = Decoder::new(Encoding::Lossless, ds.ray_schema(), ds.kinds().clone());
+        let mut dec = ds.decoder(0).unwrap();
         for b in reader {
             rows += dec.decode(b.unwrap(), file).unwrap().num_rows();
         }
@@ -341,8 +498,13 @@ fn every_row_group_starts_at_a_tree_and_decodes_alone() {
 /// a full decode, for every encoding, whole segments and subsets of trees.
 #[test]
 fn projected_columns_equal_the_full_decode() {
-    let cols = trees(600, 1e3, 1e5);
-    for encoding in [Encoding::Lossless, Encoding::Plain, Encoding::Oct(12)] {
+    for (cols, encoding) in [
+        (trees(600, 1e3, 1e5), Encoding::Lossless),
+        (trees(600, 1e3, 1e5), Encoding::Plain),
+        (trees(600, 1e3, 1e5), Encoding::Oct(12)),
+        (box_trees(600, 500.0, 0.0), Encoding::Lossless),
+        (box_trees(600, 500.0, 0.0), Encoding::Oct(12)),
+    ] {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ds");
         write(&path, &cols, encoding, 4);
@@ -359,6 +521,8 @@ fn projected_columns_equal_the_full_decode() {
             vec!["kind", "dir_z", "depth"],
             vec!["origin_y", "kind"],
             vec!["dir_y", "origin_x", "t", "origin_z", "tree_id"],
+            vec!["t"],
+            vec!["prim", "t", "depth"],
         ] {
             let names: Vec<String> = names.into_iter().map(String::from).collect();
             for rows in [None, Some(&subset[..])] {
