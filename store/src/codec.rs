@@ -440,15 +440,7 @@ pub(crate) fn encode(
         let mut t_flag = 0u8;
         if hit[i] {
             // The plane's prediction from what the decoder will have (the decoded direction).
-            let pred = match planes.planes.get(prim[i]) {
-                Some(plane) => plane.predict(o, decoded),
-                None => {
-                    if prim[i] != NONE_U32 {
-                        planes.observe(prim[i], o, d, t[i]);
-                    }
-                    None
-                }
-            };
+            let pred = if prim[i] == NONE_U32 { None } else { planes.predict_or_observe(prim[i], o, decoded, d, t[i]) };
             et[i] = match pred.map(|p| residual(t[i], p)) {
                 Some(r) if r < T_RESIDUAL_LIMIT => {
                     t_flag = T_PREDICTED;

@@ -25,8 +25,8 @@ pub const PLANES_KEY: &str = "rtvtk.planes";
 /// more while they are collinear, up to [`MAX_FIT_POINTS`]).
 const FIT_POINTS: usize = 12;
 const MAX_FIT_POINTS: usize = 4 * FIT_POINTS;
-/// Primitives collecting hit points at once (bounds the learner's memory: ~300 B each).
-const MAX_PENDING: usize = 1 << 16;
+/// Primitives collecting hit points at once (bounds the learner's memory: ~350 B each).
+const MAX_PENDING: usize = 1 << 15;
 /// Bytes of one plane record: primitive id (u32) and normal x/y/z and offset (f64), little-endian.
 const RECORD: usize = 4 + 4 * 8;
 
@@ -182,43 +182,82 @@ impl Planes {
     }
 }
 
+/// What the learner knows of one primitive.
+enum Slot {
+    Plane(Plane),
+    /// Hit points so far (fewer than needed, or collinear so far).
+    Pending(Vec<[f64; 3]>),
+    /// Its hit points are not coplanar: it collects nothing more.
+    NotFlat,
+}
+
 /// Learns the planes of a segment's primitives from their hit points while it is written.
 #[derive(Default)]
 pub(crate) struct PlaneLearner {
-    pub planes: Planes,
-    /// Hit points of primitives without a plane yet; an empty list once a primitive was found
-    /// not to be flat (it collects nothing more).
-    pending: IdMap<Vec<[f64; 3]>>,
+    slots: IdMap<Slot>,
+    /// Slots holding a list of points.
+    pending: usize,
+    planes: usize,
 }
 
 impl PlaneLearner {
-    /// Records a hit point of `prim` (which has no plane yet); fits its plane once enough are in.
-    pub fn observe(&mut self, prim: u32, o: [f32; 3], d: [f32; 3], t: f32) {
-        let p = [0, 1, 2].map(|k| f64::from(o[k]) + f64::from(d[k]) * f64::from(t));
-        if !(p[0].is_finite() && p[1].is_finite() && p[2].is_finite()) {
-            return;
-        }
-        let full = self.pending.len() >= MAX_PENDING;
-        let pts = match self.pending.get_mut(&prim) {
-            Some(pts) => pts,
-            None if full => return,
-            None => self.pending.entry(prim).or_insert_with(|| Vec::with_capacity(FIT_POINTS)),
+    /// The hit distance the plane of `prim` predicts for a ray from `o` along `dir` (the
+    /// direction as the decoder will see it); without a plane yet, records the hit point
+    /// `o + d · t` (`d`: the recorded direction) and fits the plane once enough are in. One
+    /// lookup per ray.
+    #[inline]
+    pub fn predict_or_observe(&mut self, prim: u32, o: [f32; 3], dir: [f32; 3], d: [f32; 3], t: f32) -> Option<f32> {
+        let point = || {
+            let p = [0, 1, 2].map(|k| f64::from(o[k]) + f64::from(d[k]) * f64::from(t));
+            (p[0].is_finite() && p[1].is_finite() && p[2].is_finite()).then_some(p)
         };
-        if pts.capacity() == 0 {
-            return; // not flat
-        }
-        pts.push(p);
-        if !pts.len().is_multiple_of(FIT_POINTS) {
-            return;
-        }
-        match Plane::fit(pts) {
-            Fit::Plane(plane) => {
-                self.planes.map.insert(prim, plane);
-                self.pending.remove(&prim);
+        let pts = match self.slots.get_mut(&prim) {
+            Some(Slot::Plane(plane)) => return plane.predict(o, dir),
+            Some(Slot::NotFlat) => return None,
+            Some(Slot::Pending(pts)) => pts,
+            None => {
+                if self.pending < MAX_PENDING
+                    && let Some(p) = point()
+                {
+                    let mut pts = Vec::with_capacity(FIT_POINTS);
+                    pts.push(p);
+                    self.slots.insert(prim, Slot::Pending(pts));
+                    self.pending += 1;
+                }
+                return None;
             }
-            Fit::Collinear if pts.len() < MAX_FIT_POINTS => {}
-            Fit::Collinear | Fit::Curved => *pts = Vec::new(),
+        };
+        pts.push(point()?);
+        if !pts.len().is_multiple_of(FIT_POINTS) {
+            return None;
         }
+        let next = match Plane::fit(pts) {
+            Fit::Plane(plane) => Slot::Plane(plane),
+            Fit::Collinear if pts.len() < MAX_FIT_POINTS => return None,
+            Fit::Collinear | Fit::Curved => Slot::NotFlat,
+        };
+        self.pending -= 1;
+        self.planes += usize::from(matches!(next, Slot::Plane(_)));
+        self.slots.insert(prim, next);
+        None
+    }
+
+    /// Planes learned so far.
+    pub fn plane_count(&self) -> usize {
+        self.planes
+    }
+
+    /// The planes learned.
+    pub fn planes(&self) -> Planes {
+        let map = self
+            .slots
+            .iter()
+            .filter_map(|(&prim, s)| match s {
+                Slot::Plane(p) => Some((prim, *p)),
+                _ => None,
+            })
+            .collect();
+        Planes { map }
     }
 }
 
@@ -226,13 +265,14 @@ impl PlaneLearner {
 mod tests {
     use super::*;
 
-    fn learn(points: &[[f32; 3]]) -> PlaneLearner {
+    fn learn(points: &[[f32; 3]]) -> Planes {
         let mut l = PlaneLearner::default();
         for p in points {
             // A ray from the origin along p with t = 1 hits p.
-            l.observe(7, [0.0; 3], *p, 1.0);
+            l.predict_or_observe(7, [0.0; 3], *p, *p, 1.0);
         }
-        l
+        assert_eq!(l.plane_count(), l.planes().len());
+        l.planes()
     }
 
     #[test]
@@ -244,8 +284,8 @@ mod tests {
                 [x, y, (600.0 - x - 2.0 * y) / 3.0]
             })
             .collect();
-        let l = learn(&pts);
-        let plane = l.planes.get(7).expect("fitted");
+        let planes = learn(&pts);
+        let plane = planes.get(7).expect("fitted");
         let (o, d) = ([10.0f32, 20.0, -400.0], [0.1f32, 0.2, 0.9746794]);
         let t = plane.predict(o, d).unwrap();
         let hit = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
@@ -255,7 +295,7 @@ mod tests {
         assert_eq!(plane.predict(o, [f32::NAN, 0.0, 1.0]), None);
         assert_eq!(plane.predict(o, [-0.1, -0.2, -0.97]), None);
         // Round trip through the metadata, bit for bit.
-        let back = Planes::from_metadata(&l.planes.to_metadata()).unwrap();
+        let back = Planes::from_metadata(&planes.to_metadata()).unwrap();
         assert_eq!(back.get(7), Some(plane));
     }
 
@@ -267,17 +307,18 @@ mod tests {
                 [a.cos() * b.cos(), a.sin() * b.cos(), b.sin()]
             })
             .collect();
-        assert!(learn(&sphere).planes.is_empty());
+        assert!(learn(&sphere).is_empty());
         let line: Vec<[f32; 3]> = (0..20).map(|i| [i as f32, 2.0 * i as f32, 1.0]).collect();
-        assert!(learn(&line).planes.is_empty());
+        assert!(learn(&line).is_empty());
         let same: Vec<[f32; 3]> = vec![[1.0, 2.0, 3.0]; 20];
-        assert!(learn(&same).planes.is_empty());
+        assert!(learn(&same).is_empty());
         let mut l = PlaneLearner::default();
         for _ in 0..40 {
-            l.observe(1, [0.0; 3], [f32::NAN, 0.0, 1.0], 1.0);
-            l.observe(2, [0.0; 3], [f32::INFINITY, 0.0, 1.0], 1.0);
+            for (prim, d) in [(1, [f32::NAN, 0.0, 1.0]), (2, [f32::INFINITY, 0.0, 1.0])] {
+                assert_eq!(l.predict_or_observe(prim, [0.0; 3], d, d, 1.0), None);
+            }
         }
-        assert!(l.planes.is_empty());
+        assert!(l.planes().is_empty());
     }
 
     #[test]
@@ -285,9 +326,9 @@ mod tests {
         assert!(Planes::from_metadata("not base64!").unwrap_err().contains("not base64"));
         assert!(Planes::from_metadata("AAAA").unwrap_err().contains("multiple of 36"));
         assert!(Planes::from_metadata("").unwrap().is_empty());
-        let mut l = learn(&[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.5, 0.5, 0.0]].repeat(3));
-        l.planes.map.insert(8, l.planes.map[&7]);
-        let two = l.planes.to_metadata();
+        let mut planes = learn(&[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.5, 0.5, 0.0]].repeat(3));
+        planes.map.insert(8, planes.map[&7]);
+        let two = planes.to_metadata();
         let bytes = base64::engine::general_purpose::STANDARD.decode(&two).unwrap();
         let twice = base64::engine::general_purpose::STANDARD.encode([&bytes[..RECORD], &bytes[..RECORD]].concat());
         assert!(Planes::from_metadata(&twice).unwrap_err().contains("twice"));
