@@ -317,6 +317,24 @@ mod tests {
     }
 
     #[test]
+    fn dense_and_sparse_primitive_ids_find_their_planes() {
+        let a = Plane { n: [0.0, 1.0, 0.0], offset: 2.0 };
+        let b = Plane { n: [1.0, 0.0, 0.0], offset: -3.0 };
+        for ids in [[5u32, 9], [5, 1 << 30], [u32::MAX - 1, 0]] {
+            let map: IdMap<Plane> = [(ids[0], a), (ids[1], b)].into_iter().collect();
+            let planes = Planes::new(map);
+            assert_eq!(planes.dense.is_empty(), ids.iter().any(|&i| i > 10_000), "{ids:?}");
+            assert_eq!(planes.get(ids[0]), Some(&a));
+            assert_eq!(planes.get(ids[1]), Some(&b));
+            for missing in [1u32, 7, 1 << 29, u32::MAX] {
+                assert_eq!(planes.get(missing), None, "{ids:?} {missing}");
+            }
+            let back = Planes::from_metadata(&planes.to_metadata()).unwrap();
+            assert_eq!(back.get(ids[1]), Some(&b));
+        }
+    }
+
+    #[test]
     fn curved_collinear_and_non_finite_hits_get_no_plane() {
         let sphere: Vec<[f32; 3]> = (0..20)
             .map(|i| {
