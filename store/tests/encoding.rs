@@ -33,6 +33,19 @@ impl Rng {
     }
 }
 
+/// The tree-table row of synthetic tree `id` (pixels laid out 64 wide, sample 0).
+fn tree_row(id: u64, ray_count: u32, max_depth: u16, first_row: u64) -> TreeRow {
+    TreeRow {
+        tree_id: id,
+        pixel_x: (id % 64) as u32,
+        pixel_y: (id / 64) as u32,
+        sample: 0,
+        ray_count,
+        max_depth,
+        first_row,
+    }
+}
+
 /// Path-tracer-like trees: a camera ray, then per bounce a shadow ray and a bounce ray leaving a
 /// point just off the parent's hit point; plus rays with every special value.
 fn trees(n: u64, scale: f32, offset: f32) -> RayColumns {
@@ -93,16 +106,7 @@ fn trees(n: u64, scale: f32, offset: f32) -> RayColumns {
             d = rng.unit();
             parent = me;
         }
-        let max_depth = depth;
-        cols.trees.push(TreeRow {
-            tree_id: id,
-            pixel_x: (id % 64) as u32,
-            pixel_y: (id / 64) as u32,
-            sample: 0,
-            ray_count: k,
-            max_depth,
-            first_row: first,
-        });
+        cols.trees.push(tree_row(id, k, depth, first));
     }
     cols
 }
@@ -184,15 +188,7 @@ fn box_trees(n: u64, scale: f32, offset: f32) -> RayColumns {
             }
             parent = me;
         }
-        cols.trees.push(TreeRow {
-            tree_id: id,
-            pixel_x: (id % 64) as u32,
-            pixel_y: (id / 64) as u32,
-            sample: 0,
-            ray_count: k,
-            max_depth: max_depth.max(depth - 1),
-            first_row: first,
-        });
+        cols.trees.push(tree_row(id, k, max_depth.max(depth - 1), first));
     }
     cols
 }
@@ -456,6 +452,24 @@ fn corrupt_encoded_rows_are_errors_that_name_the_file() {
             "is not an earlier ray",
         ),
         (replace("enc_dir_code", Arc::new(UInt8Array::from(vec![7u8; n]))), "direction code 7"),
+        (replace("enc_dir_code", Arc::new(UInt8Array::from(vec![128u8; n]))), "unknown bits"),
+        (
+            // Hit distances flagged as predicted in a segment whose ray file holds no planes.
+            replace(
+                "enc_dir_code",
+                Arc::new(UInt8Array::from_iter_values(
+                    raw.column_by_name("enc_dir_code")
+                        .unwrap()
+                        .as_any()
+                        .downcast_ref::<UInt8Array>()
+                        .unwrap()
+                        .values()
+                        .iter()
+                        .map(|c| c | 64),
+                )),
+            ),
+            "which has no usable plane",
+        ),
     ];
     for (batch, expected) in cases {
         let err = ds.decoder(0).unwrap().decode(batch, file).unwrap_err().to_string();
