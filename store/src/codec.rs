@@ -318,13 +318,14 @@ pub(crate) struct EncodedCore {
     pub origin: [Vec<u32>; 3],
     pub code: Vec<u8>,
     pub dir: [Vec<u32>; 3],
-    /// `enc_t` (null where the ray missed).
+    /// `enc_t` values (0 where the ray missed).
     pub t: Vec<u32>,
-    pub hit: Vec<bool>,
 }
 
 impl EncodedCore {
-    pub fn into_arrays(self) -> Vec<ArrayRef> {
+    /// The encoded columns in file order; `enc_t` gets `t_nulls`, the misses (the plain `t`
+    /// column's null buffer, built once for both).
+    pub fn into_arrays(self, t_nulls: Option<NullBuffer>) -> Vec<ArrayRef> {
         let [ox, oy, oz] = self.origin;
         let [u, v, r] = self.dir;
         vec![
@@ -335,7 +336,7 @@ impl EncodedCore {
             Arc::new(UInt32Array::from(u)),
             Arc::new(UInt32Array::from(v)),
             Arc::new(UInt32Array::from(r)),
-            Arc::new(UInt32Array::new(self.t.into(), Some(NullBuffer::from(self.hit)))),
+            Arc::new(UInt32Array::new(self.t.into(), t_nulls)),
         ]
     }
 }
@@ -405,7 +406,6 @@ pub(crate) fn encode(
         code: vec![0; n],
         dir: [vec![0; n], vec![0; n], vec![0; n]],
         t: vec![0; n],
-        hit: cols.hit[..n].to_vec(),
     };
     let mut st = TreeState::default();
     let (tree, ray, parent) = (&cols.tree_id[..n], &cols.ray[..n], &cols.parent[..n]);

@@ -602,7 +602,11 @@ impl Dataset {
         if want_origin {
             file_names.extend(&crate::codec::ENCODED_COLUMNS[..3]);
             file_names.extend(["tree_id", "ray", "parent"]);
-            file_names.extend(if t_encoded { [ENC_T, "prim"] } else { ["t", "t"] });
+            if t_encoded {
+                file_names.extend([ENC_T, "prim"]);
+            } else {
+                file_names.push("t");
+            }
         }
         let roots: BTreeSet<usize> = file_names.iter().filter_map(|n| self.file_schema.index_of(n).ok()).collect();
         let (path, reader) = self.ray_reader(i, Some(roots.into_iter().collect()), rows, 64 * 1024)?;

@@ -244,7 +244,8 @@ impl SegmentWriter {
         self.stats.merge(&stats);
         let mut batch = cols.into_ray_batch(payload, kinds)?;
         if let Some((enc, kind_codes)) = encoded {
-            let mut arrays = enc.into_arrays().into_iter();
+            let t_nulls = batch.column_by_name("t").and_then(|t| t.nulls().cloned());
+            let mut arrays = enc.into_arrays(t_nulls).into_iter();
             let kind_codes: arrow::array::ArrayRef = std::sync::Arc::new(kind_codes);
             let mut columns = Vec::with_capacity(self.schema.fields().len());
             for f in self.schema.fields() {
@@ -291,8 +292,9 @@ impl SegmentWriter {
             let _ = fs::remove_file(&self.tmp);
             return Ok(None);
         }
-        if self.planes.plane_count() > 0 {
-            writer.append_key_value_metadata(KeyValue::new(PLANES_KEY.into(), self.planes.planes().to_metadata()));
+        let planes = self.planes.planes();
+        if !planes.is_empty() {
+            writer.append_key_value_metadata(KeyValue::new(PLANES_KEY.into(), planes.to_metadata()));
         }
         let sink = writer.into_inner().map_err(pq_err(&self.tmp))?;
         let rays = finish_file(sink, &self.tmp, ds.options.sync)?;
