@@ -151,18 +151,18 @@ struct ThreadOut {
     visits: Vec<(u64, u32, u32)>,
 }
 
-/// Hands one sample's rays to the recorder as one tree.
+/// Hands one sample's rays to the recorder as one tree (`[x, y, sample]`); `map` is scratch
+/// space reused from tree to tree.
 fn emit(
     rec: &Recorder,
-    x: u32,
-    y: u32,
-    s: u32,
+    [x, y, s]: [u32; 3],
     sr: &SampleRecord,
     keep: Option<&[Kind]>,
     visits: Option<&mut Vec<(u64, u32, u32)>>,
+    map: &mut Vec<Option<RayId>>,
 ) {
     let mut tree = rec.begin_tree(x, y, s);
-    let mut map: Vec<Option<RayId>> = Vec::with_capacity(sr.rays.len());
+    map.clear();
     let mut visits = visits;
     for r in &sr.rays {
         let parent = r.parent.and_then(|p| map[p as usize]);
@@ -227,6 +227,7 @@ pub fn render(
                 s.spawn(move || {
                     let mut out = ThreadOut { rows: Vec::new(), rays: [0; 256], samples: 0, visits: Vec::new() };
                     let mut sr = SampleRecord::new(rec.is_some());
+                    let mut map = Vec::new();
                     loop {
                         let y = next_row.fetch_add(1, Ordering::Relaxed);
                         if y >= y1 {
@@ -248,7 +249,7 @@ pub fn render(
                                 };
                                 if let Some(rec) = rec {
                                     let v = ctx.record_visits.then_some(&mut out.visits);
-                                    emit(rec, x, y, s, &sr, keep, v);
+                                    emit(rec, [x, y, s], &sr, keep, v, &mut map);
                                 }
                                 if l.is_finite() {
                                     sum += l;

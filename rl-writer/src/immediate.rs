@@ -6,7 +6,7 @@ use std::path::Path;
 use std::sync::{Arc, RwLock};
 
 use arrow::array::RecordBatch;
-use store::{Kind, KindTable, PayloadSchema, RayColumns, Stats, Tree, TreeId, TreeInfo, TreeRow};
+use store::{Kind, KindTable, PayloadSchema, RayRows, RowLayout, Stats, Tree, TreeId, TreeInfo, TreeRow};
 
 use crate::recorder::{Sink, Summary};
 use crate::{Error, Result};
@@ -44,6 +44,7 @@ struct MemShared {
 /// The immediate-mode sink.
 pub(crate) struct ImmediateSink {
     shared: Arc<MemShared>,
+    layout: RowLayout,
 }
 
 /// A read handle on an immediate-mode recording; clone it into any thread.
@@ -54,8 +55,9 @@ pub struct MemoryTrace {
 
 impl ImmediateSink {
     pub(crate) fn new(payload: PayloadSchema, budget: usize) -> (Self, MemoryTrace) {
+        let layout = RowLayout::new(&payload);
         let shared = Arc::new(MemShared { payload, budget, state: RwLock::new(MemState::default()) });
-        (Self { shared: shared.clone() }, MemoryTrace { shared })
+        (Self { shared: shared.clone(), layout }, MemoryTrace { shared })
     }
 }
 
@@ -72,7 +74,15 @@ impl Sink for ImmediateSink {
         Ok(())
     }
 
-    fn submit(&self, chunk: RayColumns, kinds: &Arc<KindTable>) {
+    fn submit(&self, chunk: RayRows, kinds: &Arc<KindTable>) {
+        let chunk = match chunk.into_columns(&self.layout) {
+            Ok(c) => c,
+            Err(e) => {
+                let mut st = self.shared.state.write().unwrap_or_else(|p| p.into_inner());
+                st.error.get_or_insert_with(|| e.to_string());
+                return;
+            }
+        };
         let stats = Stats::of_columns(&chunk, kinds);
         let trees = chunk.trees.clone();
         let bytes = chunk.heap_bytes();

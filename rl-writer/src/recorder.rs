@@ -7,7 +7,9 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
 use std::time::Duration;
 
-use store::{KindTable, PayloadMismatch, PayloadSchema, RayColumns, RayFields, TreeId, TreeRow, Value, WriteOptions};
+use store::{
+    KindTable, PayloadMismatch, PayloadSchema, RayFields, RayRows, RowLayout, TreeId, TreeRow, Value, WriteOptions,
+};
 
 use crate::immediate::{ImmediateSink, MemoryTrace};
 use crate::write::WriteSink;
@@ -92,8 +94,9 @@ pub struct Summary {
 
 /// Where sealed chunks of whole trees go: the one interface behind write and immediate mode.
 pub trait Sink: Send + Sync {
-    /// Takes a chunk of whole trees; may block to stay within the memory budget.
-    fn submit(&self, chunk: RayColumns, kinds: &Arc<KindTable>);
+    /// Takes a chunk of whole trees (as the tracing threads recorded them: rows); may block to
+    /// stay within the memory budget.
+    fn submit(&self, chunk: RayRows, kinds: &Arc<KindTable>);
     /// Makes every submitted tree durable (write mode) or visible (immediate mode).
     fn flush(&self, kinds: &Arc<KindTable>) -> Result<()>;
     /// Flushes, stops background work and reports what was recorded.
@@ -114,8 +117,8 @@ struct Mistakes {
 /// index), so its lock is normally taken by that thread alone. It also pools the buffers of ended
 /// trees for `begin_tree` and counts the trees begun minus those ended on this shard.
 struct Shard {
-    cols: RayColumns,
-    pool: Vec<RayColumns>,
+    cols: RayRows,
+    pool: Vec<RayRows>,
     open: i64,
 }
 
@@ -126,6 +129,7 @@ struct Padded<T>(T);
 
 pub(crate) struct Inner {
     payload: PayloadSchema,
+    layout: RowLayout,
     kinds: RwLock<Arc<KindTable>>,
     next_tree: Padded<AtomicU64>,
     shards: Vec<Padded<Mutex<Shard>>>,
@@ -155,7 +159,7 @@ impl Inner {
 
     /// Hands an ended tree to its thread's shard (or straight to the sink when it is big, and in
     /// immediate mode); a full shard goes to the sink as one chunk. The tree's buffers are pooled.
-    fn seal(&self, cols: RayColumns) {
+    fn seal(&self, cols: RayRows) {
         let inner = self;
         if cols.len() >= inner.chunk_rays {
             // Big trees (and immediate mode) go straight to the sink.
@@ -169,7 +173,7 @@ impl Inner {
             s.cols.append(&cols);
             let full = if s.cols.len() >= inner.chunk_rays {
                 let cap = inner.chunk_rays + inner.chunk_rays / 8;
-                Some(std::mem::replace(&mut s.cols, RayColumns::with_capacity(&inner.payload, cap)))
+                Some(std::mem::replace(&mut s.cols, RayRows::with_capacity(&inner.payload, &inner.layout, cap)))
             } else {
                 None
             };
@@ -218,10 +222,11 @@ impl Recorder {
     /// A recorder over any sink.
     pub fn with_sink(sink: Box<dyn Sink>, options: RecorderOptions, kinds: KindTable, mode: &'static str) -> Recorder {
         let shards = (0..8)
-            .map(|_| Padded(Mutex::new(Shard { cols: RayColumns::new(&options.payload), pool: Vec::new(), open: 0 })))
+            .map(|_| Padded(Mutex::new(Shard { cols: RayRows::new(&options.payload), pool: Vec::new(), open: 0 })))
             .collect();
         Recorder {
             inner: Arc::new(Inner {
+                layout: RowLayout::new(&options.payload),
                 payload: options.payload,
                 kinds: RwLock::new(Arc::new(kinds)),
                 next_tree: Padded(AtomicU64::new(0)),
@@ -276,7 +281,7 @@ impl Recorder {
             s.open += 1;
             s.pool.pop()
         };
-        let cols = pooled.unwrap_or_else(|| RayColumns::new(&self.inner.payload));
+        let cols = pooled.unwrap_or_else(|| RayRows::new(&self.inner.payload));
         TreeBuilder {
             rec: self.inner.clone(),
             id,
@@ -305,7 +310,7 @@ impl Recorder {
                 if s.cols.trees.is_empty() {
                     continue;
                 }
-                std::mem::replace(&mut s.cols, RayColumns::new(&self.inner.payload))
+                std::mem::replace(&mut s.cols, RayRows::new(&self.inner.payload))
             };
             self.inner.sink.submit(chunk, &kinds);
         }
@@ -344,7 +349,7 @@ pub struct TreeBuilder {
     id: u64,
     pixel: [u32; 2],
     sample: u32,
-    cols: RayColumns,
+    cols: RayRows,
     stack: Vec<u32>,
     last: Option<u32>,
     max_depth: u16,
@@ -385,15 +390,21 @@ impl TreeBuilder {
     #[inline]
     fn push(&mut self, parent: Option<u32>, ray: &RayFields, payload: Payload<'_>) -> RayId {
         let index = self.cols.len() as u32;
-        let depth = parent.map_or(0, |p| self.cols.depth[p as usize] + 1);
+        let depth = parent.map_or(0, |p| self.cols.core.get(p as usize).map_or(0, |r| r.depth + 1));
         self.max_depth = self.max_depth.max(depth);
-        self.cols.push_core(self.id, index, parent.unwrap_or(store::NONE_U32), depth, ray);
+        self.cols.push_core(parent.unwrap_or(store::NONE_U32), depth, ray);
         if !self.rec.payload.fields.is_empty()
             || self.rec.payload.bytes.is_some()
             || payload.bytes.is_some()
             || !payload.values.is_empty()
         {
-            self.cols.push_payload(&self.rec.payload, payload.values, payload.bytes, &mut self.mismatches);
+            self.cols.push_payload(
+                &self.rec.payload,
+                &self.rec.layout,
+                payload.values,
+                payload.bytes,
+                &mut self.mismatches,
+            );
         }
         self.last = Some(index);
         RayId(index)

@@ -7,14 +7,14 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use store::{DatasetWriter, KindTable, RayColumns, SegmentWriter};
+use store::{DatasetWriter, KindTable, RayRows, RowLayout, SegmentWriter};
 
 use crate::budget::Budget;
 use crate::recorder::{RecorderOptions, Sink, Summary};
 use crate::{Error, Result};
 
 enum Msg {
-    Chunk(Box<RayColumns>, Arc<KindTable>, usize),
+    Chunk(Box<RayRows>, Arc<KindTable>, usize),
     Flush(Arc<KindTable>, Sender<()>),
 }
 
@@ -50,6 +50,9 @@ struct Worker {
 /// The write-mode sink.
 pub(crate) struct WriteSink {
     ds: Arc<DatasetWriter>,
+    /// Optional tables being written in the background (`write_table` returns at once: the
+    /// renderer's BVH table would otherwise hold up its first traced ray).
+    tables: Mutex<Vec<JoinHandle<store::Result<()>>>>,
     workers: Mutex<Vec<Worker>>,
     next: AtomicUsize,
     budget: Arc<Budget>,
@@ -66,6 +69,7 @@ impl WriteSink {
             let (tx, rx) = mpsc::channel();
             let ctx = WorkerCtx {
                 ds: ds.clone(),
+                layout: RowLayout::new(&options.payload),
                 budget: budget.clone(),
                 shared: shared.clone(),
                 segment_rays: options.segment_rays.max(1),
@@ -83,7 +87,14 @@ impl WriteSink {
                 })?;
             workers.push(Worker { tx: Some(tx), join: Some(join) });
         }
-        Ok(Self { ds, workers: Mutex::new(workers), next: AtomicUsize::new(0), budget, shared })
+        Ok(Self {
+            ds,
+            tables: Mutex::new(Vec::new()),
+            workers: Mutex::new(workers),
+            next: AtomicUsize::new(0),
+            budget,
+            shared,
+        })
     }
 
     fn send_all(&self, kinds: &Arc<KindTable>) -> Vec<mpsc::Receiver<()>> {
@@ -98,6 +109,22 @@ impl WriteSink {
             }
         }
         acks
+    }
+
+    /// Waits for the tables being written; the first failure comes back.
+    fn join_tables(&self) -> Result<()> {
+        let joins = std::mem::take(&mut *self.tables.lock().unwrap_or_else(|p| p.into_inner()));
+        let mut first = Ok(());
+        for j in joins {
+            let r = match j.join() {
+                Ok(r) => r.map_err(Error::Store),
+                Err(_) => Err(Error::WorkerPanicked),
+            };
+            if first.is_ok() {
+                first = r;
+            }
+        }
+        first
     }
 
     fn error(&self) -> Result<()> {
@@ -120,14 +147,27 @@ impl WriteSink {
 
 impl Sink for WriteSink {
     fn write_table(&self, name: &str, batch: arrow::array::RecordBatch) -> Result<()> {
-        Ok(self.ds.write_table(name, &batch)?)
+        DatasetWriter::check_table_name(name)?;
+        let (ds, name) = (self.ds.clone(), name.to_string());
+        let join = std::thread::Builder::new()
+            .name("rl-table".into())
+            .spawn(move || ds.write_table(&name, &batch))
+            .map_err(|e| {
+                Error::Store(store::Error::Io {
+                    action: "starting a table writer thread",
+                    path: self.ds.dir().to_path_buf(),
+                    source: e,
+                })
+            })?;
+        self.tables.lock().unwrap_or_else(|p| p.into_inner()).push(join);
+        Ok(())
     }
 
     fn set_attributes(&self, attributes: Vec<(String, String)>) -> Result<()> {
         Ok(self.ds.set_attributes(attributes)?)
     }
 
-    fn submit(&self, chunk: RayColumns, kinds: &Arc<KindTable>) {
+    fn submit(&self, chunk: RayRows, kinds: &Arc<KindTable>) {
         let bytes = chunk.heap_bytes();
         self.budget.acquire(bytes);
         let workers = self.workers.lock().unwrap_or_else(|p| p.into_inner());
@@ -149,6 +189,7 @@ impl Sink for WriteSink {
         for ack in self.send_all(kinds) {
             let _ = ack.recv();
         }
+        self.join_tables()?;
         self.error()
     }
 
@@ -182,6 +223,7 @@ impl Sink for WriteSink {
 impl Drop for WriteSink {
     fn drop(&mut self) {
         // A recorder dropped without `finish` still seals what it has.
+        let _ = self.join_tables();
         let workers = self.workers.get_mut().unwrap_or_else(|p| p.into_inner());
         for w in workers.iter_mut() {
             w.tx.take();
@@ -194,6 +236,7 @@ impl Drop for WriteSink {
 
 struct WorkerCtx {
     ds: Arc<DatasetWriter>,
+    layout: RowLayout,
     budget: Arc<Budget>,
     shared: Arc<Shared>,
     segment_rays: u64,
@@ -232,12 +275,19 @@ impl WorkerCtx {
         }
     }
 
-    fn write(&mut self, chunk: RayColumns) {
+    fn write(&mut self, chunk: RayRows) {
         let trees = chunk.trees.len() as u64;
         if self.shared.failed() {
             self.shared.lost_trees.fetch_add(trees, Ordering::Relaxed);
             return;
         }
+        let chunk = match chunk.into_columns(&self.layout) {
+            Ok(c) => c,
+            Err(e) => {
+                self.shared.fail(e, trees);
+                return;
+            }
+        };
         if self.segment.is_none() {
             match self.ds.open_segment() {
                 Ok(s) => self.segment = Some((s, Instant::now(), 0)),

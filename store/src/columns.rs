@@ -62,7 +62,7 @@ macro_rules! le_extend {
 }
 
 impl Value<'_> {
-    fn storage(&self) -> Option<Storage> {
+    pub(crate) fn storage(&self) -> Option<Storage> {
         Some(match self {
             Value::Null | Value::List(_) => return None,
             Value::Bool(_) => Storage::Bool,
@@ -110,7 +110,7 @@ impl ListValue<'_> {
         }
     }
 
-    fn storage(&self) -> Storage {
+    pub(crate) fn storage(&self) -> Storage {
         match self {
             ListValue::I8(_) => Storage::Int(1),
             ListValue::I16(_) => Storage::Int(2),
@@ -126,7 +126,7 @@ impl ListValue<'_> {
         }
     }
 
-    fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.describe().1
     }
 
@@ -324,13 +324,7 @@ impl RayColumns {
         for (i, field) in schema.fields.iter().enumerate() {
             let buf = &mut self.payload[i];
             let value = values.get(i).copied().unwrap_or(Value::Null);
-            let storage = field.storage();
-            let ok = match (value, field.list_len) {
-                (Value::Null, _) => false,
-                (Value::List(l), Some(n)) => l.storage() == storage && l.len() == n,
-                (v, None) => v.storage() == Some(storage),
-                _ => false,
-            };
+            let ok = crate::rows::fits(value, field.storage(), field.list_len);
             if ok {
                 match value {
                     Value::Bool(b) => buf.bytes.push(u8::from(b)),
@@ -367,49 +361,7 @@ impl RayColumns {
                 found: format!("{} values", values.len()),
             });
         }
-        match (&mut self.bytes, schema.bytes) {
-            (Some(buf), Some(decl)) => {
-                let ok = match (bytes, decl) {
-                    (Some(b), BytesPayload::Fixed(n)) => {
-                        if b.len() == n {
-                            buf.data.extend_from_slice(b);
-                            true
-                        } else {
-                            mismatches.push(PayloadMismatch {
-                                column: "payload".into(),
-                                expected: format!("{n} bytes"),
-                                found: format!("{} bytes", b.len()),
-                            });
-                            buf.data.resize(buf.data.len() + n, 0);
-                            false
-                        }
-                    }
-                    (None, BytesPayload::Fixed(n)) => {
-                        buf.data.resize(buf.data.len() + n, 0);
-                        false
-                    }
-                    (Some(b), BytesPayload::Variable) => {
-                        buf.data.extend_from_slice(b);
-                        buf.offsets.push(buf.data.len() as i32);
-                        true
-                    }
-                    (None, BytesPayload::Variable) => {
-                        buf.offsets.push(buf.data.len() as i32);
-                        false
-                    }
-                };
-                buf.valid.push(ok);
-            }
-            (_, _) => {
-                if bytes.is_some() {
-                    mismatches.push(PayloadMismatch {
-                        column: "payload".into(),
-                        expected: "no bytes payload (none was declared)".into(),
-                        found: "bytes".into(),
-                    });
-                }
-            }
-        }
+        push_bytes(&mut self.bytes, schema.bytes, bytes, mismatches);
     }
 
     /// Appends all rays of `other` (whose `trees` must describe them) after the rays held.
@@ -565,4 +517,57 @@ pub(crate) fn kind_array(codes: &[u8], kinds: &KindTable) -> Result<DictionaryAr
     }
     let keys = UInt8Array::from(codes.iter().map(|&k| remap[k as usize]).collect::<Vec<_>>());
     DictionaryArray::try_new(keys, Arc::new(StringArray::from(names))).map_err(arrow_err("kind column"))
+}
+
+/// Appends one ray's opaque bytes payload to `buf` (declared as `decl`); bytes that do not fit
+/// the declaration are stored as null and reported.
+pub(crate) fn push_bytes(
+    buf: &mut Option<BytesBuf>,
+    decl: Option<BytesPayload>,
+    bytes: Option<&[u8]>,
+    mismatches: &mut Vec<PayloadMismatch>,
+) {
+    match (buf, decl) {
+        (Some(buf), Some(decl)) => {
+            let ok = match (bytes, decl) {
+                (Some(b), BytesPayload::Fixed(n)) => {
+                    if b.len() == n {
+                        buf.data.extend_from_slice(b);
+                        true
+                    } else {
+                        mismatches.push(PayloadMismatch {
+                            column: "payload".into(),
+                            expected: format!("{n} bytes"),
+                            found: format!("{} bytes", b.len()),
+                        });
+                        buf.data.resize(buf.data.len() + n, 0);
+                        false
+                    }
+                }
+                (None, BytesPayload::Fixed(n)) => {
+                    buf.data.resize(buf.data.len() + n, 0);
+                    false
+                }
+                (Some(b), BytesPayload::Variable) => {
+                    buf.data.extend_from_slice(b);
+                    buf.offsets.push(buf.data.len() as i32);
+                    true
+                }
+                (None, BytesPayload::Variable) => {
+                    buf.offsets.push(buf.data.len() as i32);
+                    false
+                }
+            };
+            buf.valid.push(ok);
+        }
+        (_, _) => {
+            if bytes.is_some() {
+                mismatches.push(PayloadMismatch {
+                    column: "payload".into(),
+                    expected: "no bytes payload (none was declared)".into(),
+                    found: "bytes".into(),
+                });
+            }
+        }
+    }
 }

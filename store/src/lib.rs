@@ -7,6 +7,7 @@ mod dataset;
 mod error;
 mod manifest;
 mod planes;
+mod rows;
 mod schema;
 mod stats;
 mod tree;
@@ -18,6 +19,7 @@ pub use dataset::{CheckReport, Dataset, TreeEntry, TreeIter};
 pub use error::{Error, Result};
 pub use manifest::{FORMAT_NAME, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, PayloadColumnDecl, SegmentEntry};
 pub use planes::{PLANES_KEY, Planes};
+pub use rows::{CoreRow, RayRows, RowLayout};
 pub use schema::{
     BUILTIN_KINDS, BytesPayload, CORE_COLUMN_COUNT, CORE_RAY_COLUMNS, Kind, KindTable, PayloadField, PayloadSchema,
     Storage, kind_data_type, ray_schema, tree_schema,

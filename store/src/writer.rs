@@ -163,9 +163,7 @@ impl DatasetWriter {
     /// Writes an optional whole-dataset table (`tables/NAME.parquet`) atomically and lists it in
     /// the manifest. Replaces an earlier table of that name.
     pub fn write_table(&self, name: &str, batch: &arrow::array::RecordBatch) -> Result<()> {
-        if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
-            return Err(Error::PayloadDecl(format!("table name must be ASCII letters, digits or '_', got {name:?}")));
-        }
+        Self::check_table_name(name)?;
         let rel = format!("tables/{name}.parquet");
         let dir = self.dir.join("tables");
         fs::create_dir_all(&dir).map_err(io_err("creating the tables directory", &dir))?;
@@ -181,6 +179,14 @@ impl DatasetWriter {
         next.tables.insert(name.to_string(), FileEntry { path: rel, bytes, crc32: crc, rows: batch.num_rows() as u64 });
         next.store(&self.dir, self.options.sync)?;
         *m = next;
+        Ok(())
+    }
+
+    /// Whether `name` may name an optional table (ASCII letters, digits or '_').
+    pub fn check_table_name(name: &str) -> Result<()> {
+        if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') {
+            return Err(Error::PayloadDecl(format!("table name must be ASCII letters, digits or '_', got {name:?}")));
+        }
         Ok(())
     }
 
