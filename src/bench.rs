@@ -41,6 +41,9 @@ pub enum BenchCommand {
         /// Recorder background writer threads.
         #[arg(long, default_value_t = 1)]
         workers: usize,
+        /// Rays per chunk handed from the tracing threads to the writers.
+        #[arg(long, default_value_t = RecorderOptions::default().chunk_rays)]
+        chunk_rays: usize,
         /// Random trees fetched for the latency figures.
         #[arg(long, default_value_t = 2000)]
         fetches: usize,
@@ -100,11 +103,23 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             }
             crate::bench_query::run(&dataset, plain, runs.max(1), memory_limit.as_deref(), !no_duckdb)
         }
-        BenchCommand::Store { rays, threads, workers, fetches, dir, scene, encodings, no_duckdb, no_sync } => {
+        BenchCommand::Store {
+            rays,
+            threads,
+            workers,
+            chunk_rays,
+            fetches,
+            dir,
+            scene,
+            encodings,
+            no_duckdb,
+            no_sync,
+        } => {
             let encodings = encodings.iter().map(|e| Encoding::parse(e)).collect::<Result<Vec<_>, _>>()?;
             let args = StoreArgs {
                 threads: threads.max(1),
                 workers: workers.max(1),
+                chunk_rays: chunk_rays.max(1),
                 fetches,
                 duckdb: !no_duckdb,
                 sync: !no_sync,
@@ -219,6 +234,7 @@ struct StoreArgs {
     sync: bool,
     threads: usize,
     workers: usize,
+    chunk_rays: usize,
     fetches: usize,
     duckdb: bool,
 }
@@ -231,7 +247,7 @@ fn record_trace(
     args: &StoreArgs,
     encoding: Encoding,
 ) -> Result<(f64, rl::Summary, Vec<TreeId>)> {
-    let mut options = RecorderOptions { workers: args.workers, ..Default::default() };
+    let mut options = RecorderOptions { workers: args.workers, chunk_rays: args.chunk_rays, ..Default::default() };
     options.write.encoding = encoding;
     options.write.sync = args.sync;
     let threads = args.threads;

@@ -64,6 +64,10 @@ pub struct RecordArgs {
     /// Rays per segment file (segments are the unit of parallel reads and of crash safety).
     #[arg(long, default_value_t = 4 << 20, value_parser = clap::value_parser!(u64).range(1..))]
     pub segment_rays: u64,
+    /// Rays a tracing thread gathers before handing them to a writer thread as one chunk
+    /// (smaller chunks keep the writers' working set out of the tracers' caches).
+    #[arg(long, default_value_t = RecorderOptions::default().chunk_rays as u64, value_parser = clap::value_parser!(u64).range(1..))]
+    pub chunk_rays: u64,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Tracing threads (default: all cores).
@@ -216,6 +220,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
             };
             options.write.encoding = a.encoding;
             options.segment_rays = a.segment_rays;
+            options.chunk_rays = a.chunk_rays as usize;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
             renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
             Some(rec)

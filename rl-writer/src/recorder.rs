@@ -68,7 +68,7 @@ impl Default for RecorderOptions {
             payload: PayloadSchema::default(),
             kinds: Vec::new(),
             memory_budget: 256 << 20,
-            chunk_rays: 64 * 1024,
+            chunk_rays: 16 * 1024,
             segment_rays: 4 << 20,
             seal_interval: Duration::from_secs(2),
             workers: 1,
