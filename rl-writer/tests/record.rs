@@ -408,3 +408,40 @@ fn trees_ended_on_other_threads_are_not_reported_unended() {
     let ds = Dataset::open(&path).unwrap();
     assert_eq!(ds.tree_count(), 200);
 }
+
+/// Tables are written in the background: `write_table` returns at once, `flush`/`finish` wait for
+/// them, and a table that cannot be written comes back from `flush` naming the path, while the
+/// trees recorded beside it are kept.
+#[test]
+fn tables_are_written_in_the_background_and_their_failures_reported() {
+    use arrow::array::{RecordBatch, UInt32Array};
+    let batch =
+        || RecordBatch::try_from_iter([("id", std::sync::Arc::new(UInt32Array::from(vec![1, 2, 3])) as _)]).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("trace");
+    let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
+    rec.write_table("bvh_nodes", batch()).unwrap();
+    assert!(rec.write_table("bad name", batch()).is_err(), "a bad name is refused at once");
+    let mut t = rec.begin_tree(0, 0, 0);
+    t.add_ray(&f(Kind::CAMERA, Some(1.0)), Payload::NONE);
+    let id = t.end();
+    rec.finish().unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    assert_eq!(ds.table("bvh_nodes").unwrap().unwrap().num_rows(), 3);
+    assert_eq!(ds.tree(id).unwrap().rays.len(), 1);
+
+    // A file where the tables directory should be: the background write fails.
+    let path = dir.path().join("trace2");
+    let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
+    std::fs::write(path.join("tables"), b"in the way").unwrap();
+    rec.write_table("lights", batch()).unwrap();
+    let mut t = rec.begin_tree(1, 1, 0);
+    t.add_ray(&f(Kind::CAMERA, Some(1.0)), Payload::NONE);
+    let id = t.end();
+    let err = rec.flush().expect_err("the failed table is reported").to_string();
+    assert!(err.contains("tables"), "{err}");
+    rec.finish().unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    assert_eq!(ds.tree(id).unwrap().rays.len(), 1);
+    assert!(ds.table("lights").unwrap().is_none());
+}
