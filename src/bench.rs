@@ -83,6 +83,17 @@ pub enum BenchCommand {
         #[arg(long)]
         no_duckdb: bool,
     },
+    /// Recording overhead: wall time of `rtvtk record ARGS` with write-mode recording over the
+    /// same command with `--no-record` (same scene, seed and threads), alternating pairs of runs.
+    Record {
+        /// Pairs of runs.
+        #[arg(long, default_value_t = 5)]
+        runs: usize,
+        /// Arguments of `rtvtk record` without `--out`, e.g. `--scene cornell --subdivide 118
+        /// --size 256x256 --spp 8 --threads 1`.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true, required = true)]
+        args: Vec<String>,
+    },
     /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
     Fetch {
         dataset: PathBuf,
@@ -97,6 +108,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp } => crate::bench_trace::run(subdivide, rotate, width, spp),
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
+        BenchCommand::Record { runs, args } => crate::bench_record::run(runs, &args),
         BenchCommand::Query { dataset, plain, runs, memory_limit, no_duckdb } => {
             if let Some(m) = &memory_limit {
                 crate::sql::parse_bytes(m).map_err(anyhow::Error::msg)?;

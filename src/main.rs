@@ -3,6 +3,7 @@
 mod analyze;
 mod bench;
 mod bench_query;
+mod bench_record;
 mod bench_trace;
 mod commands;
 #[cfg(feature = "embree")]

@@ -246,3 +246,22 @@ fn closed_stdout_pipe_is_not_a_panic() {
     assert!(!err.contains("panicked"), "{err}");
     assert_ne!(out.status.code(), Some(101), "exit code 101 is a Rust panic");
 }
+
+/// `rtvtk bench record` times the same record command with and without recording and reports
+/// the ratio; it refuses arguments it sets itself and reports a failing record command.
+#[test]
+fn bench_record_reports_the_recording_overhead() {
+    let args =
+        ["bench", "record", "--runs", "1", "--scene", "cornell", "--size", "12x10", "--spp", "1", "--threads", "1"];
+    let out = rtvtk(&args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let s = String::from_utf8_lossy(&out.stdout);
+    assert!(s.contains("| 1 |") && s.contains("overhead"), "{s}");
+    assert!(s.contains("recorded 120 trees"), "{s}");
+    let o = rtvtk(&["bench", "record", "--scene", "cornell", "--out", "/tmp/x"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("sets --out itself"));
+    let o = rtvtk(&["bench", "record", "--runs", "1", "--scene", "nowhere.obj"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("failed"), "{}", String::from_utf8_lossy(&o.stderr));
+}
