@@ -226,7 +226,8 @@ fn make_trace(min_rays: u64) -> Trace {
     Trace { trees, rays }
 }
 
-fn dir_bytes(dir: &std::path::Path) -> u64 {
+/// Bytes of the files under `dir`.
+pub(crate) fn dir_bytes(dir: &std::path::Path) -> u64 {
     fn walk(p: &std::path::Path) -> u64 {
         std::fs::read_dir(p)
             .map(|rd| {

@@ -200,9 +200,15 @@ fn reported_peak(stderr: &str) -> Option<u64> {
     stderr.lines().find_map(|l| l.strip_prefix("peak rss bytes: ")).and_then(|v| v.trim().parse().ok())
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// The median (the mean of the middle two for an even count); NaN for none.
+pub(crate) fn median(v: &[f64]) -> f64 {
+    let mut v = v.to_vec();
     v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    match v.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => v[n / 2],
+        n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
+    }
 }
 
 /// rtvtk's answer as CSV rows, or with `json` as JSON lines (for nested payload columns).
@@ -240,7 +246,7 @@ fn ours(dataset: &Path, case: &Case, runs: usize, memory_limit: Option<&str>) ->
             .map(|l| l.split(',').map(str::to_string).collect())
             .collect();
     }
-    Ok(Measured { secs: median(times), rss, rows })
+    Ok(Measured { secs: median(&times), rss, rows })
 }
 
 /// Rewrites the plain export's ray files under `out/segments` with no Parquet statistics (no

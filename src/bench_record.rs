@@ -8,6 +8,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 
+use crate::bench::dir_bytes;
+use crate::bench_query::median;
+
 /// Wall seconds of `rtvtk record ARGS --out OUT --quiet [--no-record]`.
 fn timed_record(exe: &Path, args: &[String], out: &Path, record: bool) -> Result<f64> {
     if out.exists() {
@@ -25,16 +28,6 @@ fn timed_record(exe: &Path, args: &[String], out: &Path, record: bool) -> Result
         bail!("`rtvtk record {}` failed ({status})", args.join(" "));
     }
     Ok(secs)
-}
-
-fn median(v: &[f64]) -> f64 {
-    let mut v = v.to_vec();
-    v.sort_by(f64::total_cmp);
-    match v.len() {
-        0 => f64::NAN,
-        n if n % 2 == 1 => v[n / 2],
-        n => 0.5 * (v[n / 2 - 1] + v[n / 2]),
-    }
 }
 
 pub fn run(runs: usize, args: &[String]) -> Result<()> {
@@ -62,7 +55,7 @@ pub fn run(runs: usize, args: &[String]) -> Result<()> {
     let (mr, mn) = (median(&rec), median(&norec));
     timed_record(&exe, args, &out, true)?;
     let ds = rl::Dataset::open(&out)?;
-    let bytes: u64 = walk_bytes(&out);
+    let bytes = dir_bytes(&out);
     println!(
         "\nmedian: record {mr:.3} s, no-record {mn:.3} s: overhead {:.3}x (median of the pair ratios {:.3}x, range {:.3}–{:.3}x)",
         mr / mn,
@@ -78,11 +71,4 @@ pub fn run(runs: usize, args: &[String]) -> Result<()> {
         bytes as f64 / ds.ray_count().max(1) as f64
     );
     Ok(())
-}
-
-fn walk_bytes(p: &Path) -> u64 {
-    match std::fs::read_dir(p) {
-        Ok(rd) => rd.flatten().map(|e| walk_bytes(&e.path())).sum(),
-        Err(_) => std::fs::metadata(p).map_or(0, |m| m.len()),
-    }
 }

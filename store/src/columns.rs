@@ -53,16 +53,8 @@ pub enum ListValue<'a> {
     F64(&'a [f64]),
 }
 
-macro_rules! le_extend {
-    ($out:expr, $slice:expr) => {
-        for v in $slice.iter() {
-            $out.extend_from_slice(&v.to_le_bytes());
-        }
-    };
-}
-
 impl Value<'_> {
-    pub(crate) fn storage(&self) -> Option<Storage> {
+    fn storage(&self) -> Option<Storage> {
         Some(match self {
             Value::Null | Value::List(_) => return None,
             Value::Bool(_) => Storage::Bool,
@@ -110,7 +102,7 @@ impl ListValue<'_> {
         }
     }
 
-    pub(crate) fn storage(&self) -> Storage {
+    fn storage(&self) -> Storage {
         match self {
             ListValue::I8(_) => Storage::Int(1),
             ListValue::I16(_) => Storage::Int(2),
@@ -126,24 +118,57 @@ impl ListValue<'_> {
         }
     }
 
-    pub(crate) fn len(&self) -> usize {
+    fn len(&self) -> usize {
         self.describe().1
     }
+}
 
-    fn write(&self, out: &mut Vec<u8>) {
-        match self {
-            ListValue::I8(s) => le_extend!(out, s),
-            ListValue::I16(s) => le_extend!(out, s),
-            ListValue::I32(s) => le_extend!(out, s),
-            ListValue::I64(s) => le_extend!(out, s),
-            ListValue::U8(s) => out.extend_from_slice(s),
-            ListValue::U16(s) => le_extend!(out, s),
-            ListValue::U32(s) => le_extend!(out, s),
-            ListValue::U64(s) => le_extend!(out, s),
-            ListValue::F16(s) => le_extend!(out, s),
-            ListValue::F32(s) => le_extend!(out, s),
-            ListValue::F64(s) => le_extend!(out, s),
+/// Whether `value` fits a column of `storage` (a list of `list_len` elements when given).
+pub(crate) fn fits(value: Value<'_>, storage: Storage, list_len: Option<usize>) -> bool {
+    match (value, list_len) {
+        (Value::Null, _) => false,
+        (Value::List(l), Some(n)) => l.storage() == storage && l.len() == n,
+        (v, None) => v.storage() == Some(storage),
+        _ => false,
+    }
+}
+
+macro_rules! le_into {
+    ($out:expr, $slice:expr, $w:expr) => {
+        for (o, v) in $out.chunks_exact_mut($w).zip($slice.iter()) {
+            o.copy_from_slice(&v.to_le_bytes());
         }
+    };
+}
+
+/// Writes a value that [`fits`] its column into `out` (exactly its row width).
+pub(crate) fn write_value(value: Value<'_>, out: &mut [u8]) {
+    use ListValue as L;
+    match value {
+        Value::Bool(b) => out[0] = u8::from(b),
+        Value::I8(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::I16(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::I32(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::I64(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::U8(v) => out[0] = v,
+        Value::U16(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::U32(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::U64(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::F16(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::F32(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::F64(v) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::List(L::I8(s)) => le_into!(out, s, 1),
+        Value::List(L::I16(s)) => le_into!(out, s, 2),
+        Value::List(L::I32(s)) => le_into!(out, s, 4),
+        Value::List(L::I64(s)) => le_into!(out, s, 8),
+        Value::List(L::U8(s)) => out.copy_from_slice(s),
+        Value::List(L::U16(s)) => le_into!(out, s, 2),
+        Value::List(L::U32(s)) => le_into!(out, s, 4),
+        Value::List(L::U64(s)) => le_into!(out, s, 8),
+        Value::List(L::F16(s)) => le_into!(out, s, 2),
+        Value::List(L::F32(s)) => le_into!(out, s, 4),
+        Value::List(L::F64(s)) => le_into!(out, s, 8),
+        Value::Null => {}
     }
 }
 
@@ -165,6 +190,23 @@ pub struct BytesBuf {
 impl Default for BytesBuf {
     fn default() -> Self {
         Self { offsets: vec![0], data: Vec::new(), valid: Vec::new() }
+    }
+}
+
+impl BytesBuf {
+    /// Empties the buffer, keeping its allocations.
+    pub fn clear(&mut self) {
+        self.offsets.truncate(1);
+        self.data.clear();
+        self.valid.clear();
+    }
+
+    /// Appends the values of `other` (variable-size offsets shifted after the data held).
+    pub fn append(&mut self, other: &BytesBuf) {
+        let shift = self.data.len() as i32;
+        self.data.extend_from_slice(&other.data);
+        self.offsets.extend(other.offsets.iter().skip(1).map(|x| x + shift));
+        self.valid.extend_from_slice(&other.valid);
     }
 }
 
@@ -282,7 +324,7 @@ impl RayColumns {
             p.valid.clear();
         }
         if let Some(b) = &mut self.bytes {
-            *b = BytesBuf::default();
+            b.clear();
         }
         self.trees.clear();
     }
@@ -324,33 +366,17 @@ impl RayColumns {
         for (i, field) in schema.fields.iter().enumerate() {
             let buf = &mut self.payload[i];
             let value = values.get(i).copied().unwrap_or(Value::Null);
-            let ok = crate::rows::fits(value, field.storage(), field.list_len);
+            let ok = fits(value, field.storage(), field.list_len);
+            let start = buf.bytes.len();
+            buf.bytes.resize(start + field.row_width(), 0);
             if ok {
-                match value {
-                    Value::Bool(b) => buf.bytes.push(u8::from(b)),
-                    Value::I8(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::I16(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::I32(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::I64(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::U8(v) => buf.bytes.push(v),
-                    Value::U16(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::U32(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::U64(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::F16(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::F32(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::F64(v) => buf.bytes.extend_from_slice(&v.to_le_bytes()),
-                    Value::List(l) => l.write(&mut buf.bytes),
-                    Value::Null => {}
-                }
-            } else {
-                if value != Value::Null {
-                    mismatches.push(PayloadMismatch {
-                        column: field.name.clone(),
-                        expected: field.type_name(),
-                        found: value.describe(),
-                    });
-                }
-                buf.bytes.resize(buf.bytes.len() + field.row_width(), 0);
+                write_value(value, &mut buf.bytes[start..]);
+            } else if value != Value::Null {
+                mismatches.push(PayloadMismatch {
+                    column: field.name.clone(),
+                    expected: field.type_name(),
+                    found: value.describe(),
+                });
             }
             buf.valid.push(ok);
         }
@@ -384,10 +410,7 @@ impl RayColumns {
             p.valid.extend_from_slice(&q.valid);
         }
         if let (Some(b), Some(o)) = (&mut self.bytes, &other.bytes) {
-            let shift = b.data.len() as i32;
-            b.data.extend_from_slice(&o.data);
-            b.offsets.extend(o.offsets[1..].iter().map(|x| x + shift));
-            b.valid.extend_from_slice(&o.valid);
+            b.append(o);
         }
         self.trees.extend(other.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
     }

@@ -6,7 +6,9 @@
 //! ray and two copies per tree. The transposition into columns happens where the rays are
 //! encoded anyway, off the tracing threads.
 
-use crate::columns::{BytesBuf, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
+use crate::columns::{
+    BytesBuf, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value, fits, write_value,
+};
 use crate::schema::{PayloadSchema, Storage};
 use crate::{Error, Result};
 
@@ -82,55 +84,6 @@ impl RowLayout {
     }
 }
 
-/// Whether `value` fits a column of `storage` (a list of `list_len` elements when given).
-pub(crate) fn fits(value: Value<'_>, storage: Storage, list_len: Option<usize>) -> bool {
-    match (value, list_len) {
-        (Value::Null, _) => false,
-        (Value::List(l), Some(n)) => l.storage() == storage && l.len() == n,
-        (v, None) => v.storage() == Some(storage),
-        _ => false,
-    }
-}
-
-macro_rules! le_into {
-    ($out:expr, $slice:expr, $w:expr) => {
-        for (o, v) in $out.chunks_exact_mut($w).zip($slice.iter()) {
-            o.copy_from_slice(&v.to_le_bytes());
-        }
-    };
-}
-
-/// Writes a value that [`fits`] its column into `out` (exactly its row width).
-fn write_value(value: Value<'_>, out: &mut [u8]) {
-    use crate::columns::ListValue as L;
-    match value {
-        Value::Bool(b) => out[0] = u8::from(b),
-        Value::I8(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::I16(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::I32(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::I64(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::U8(v) => out[0] = v,
-        Value::U16(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::U32(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::U64(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::F16(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::F32(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::F64(v) => out.copy_from_slice(&v.to_le_bytes()),
-        Value::List(L::I8(s)) => le_into!(out, s, 1),
-        Value::List(L::I16(s)) => le_into!(out, s, 2),
-        Value::List(L::I32(s)) => le_into!(out, s, 4),
-        Value::List(L::I64(s)) => le_into!(out, s, 8),
-        Value::List(L::U8(s)) => out.copy_from_slice(s),
-        Value::List(L::U16(s)) => le_into!(out, s, 2),
-        Value::List(L::U32(s)) => le_into!(out, s, 4),
-        Value::List(L::U64(s)) => le_into!(out, s, 8),
-        Value::List(L::F16(s)) => le_into!(out, s, 2),
-        Value::List(L::F32(s)) => le_into!(out, s, 4),
-        Value::List(L::F64(s)) => le_into!(out, s, 8),
-        Value::Null => {}
-    }
-}
-
 /// Rays of whole trees as rows, plus their tree rows (`first_row` within this buffer).
 #[derive(Clone, Debug, Default)]
 pub struct RayRows {
@@ -172,9 +125,7 @@ impl RayRows {
         self.core.clear();
         self.payload.clear();
         if let Some(b) = &mut self.bytes {
-            b.offsets.truncate(1);
-            b.data.clear();
-            b.valid.clear();
+            b.clear();
         }
         self.trees.clear();
     }
@@ -240,10 +191,7 @@ impl RayRows {
         self.core.extend_from_slice(&other.core);
         self.payload.extend_from_slice(&other.payload);
         if let (Some(b), Some(o)) = (&mut self.bytes, &other.bytes) {
-            let shift = b.data.len() as i32;
-            b.data.extend_from_slice(&o.data);
-            b.offsets.extend(o.offsets[1..].iter().map(|x| x + shift));
-            b.valid.extend_from_slice(&o.valid);
+            b.append(o);
         }
         self.trees.extend(other.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
     }
