@@ -22,7 +22,7 @@ use crate::columns::{RayColumns, TreeRow};
 use crate::error::{io_err, pq_err};
 use crate::manifest::{FileEntry, Manifest, SegmentEntry, segment_file, sync_dir};
 use crate::planes::{PLANES_KEY, PlaneLearner};
-use crate::schema::{KindTable, PayloadSchema, ray_schema};
+use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
 use crate::stats::Stats;
 use crate::{Error, FORMAT_VERSION, Result};
 
@@ -134,6 +134,7 @@ impl DatasetWriter {
             tmp,
             writer: Some(writer),
             trees: Vec::new(),
+            tree_count: 0,
             rows: 0,
             stats: Stats::default(),
             encoding: self.options.encoding,
@@ -168,7 +169,7 @@ impl DatasetWriter {
         let dir = self.dir.join("tables");
         fs::create_dir_all(&dir).map_err(io_err("creating the tables directory", &dir))?;
         let tmp = self.dir.join(format!("{rel}.tmp"));
-        let (crc, bytes) = write_small_table(&tmp, name, batch, self.options.sync)?;
+        let (crc, bytes) = write_small_table(&tmp, name, &batch.schema(), [Ok(batch.clone())], self.options.sync)?;
         let path = self.dir.join(&rel);
         fs::rename(&tmp, &path).map_err(io_err("moving a table into place", &path))?;
         if self.options.sync {
@@ -200,12 +201,19 @@ impl DatasetWriter {
     }
 }
 
+/// Trees per batch handed to the tree file's writer at seal.
+const TREE_BATCH_ROWS: usize = 64 * 1024;
+
 /// One segment being filled by one worker.
 pub struct SegmentWriter {
     id: u32,
     tmp: PathBuf,
     writer: Option<ArrowWriter<FileSink>>,
-    trees: Vec<TreeRow>,
+    /// The tree rows of each written chunk, rows made file-relative. Kept as the chunks came
+    /// (merged by id at seal) rather than appended to one vector: a 4M-ray segment holds ~45 MB of
+    /// them, and growing one vector that large copied it and faulted fresh pages in each time.
+    trees: Vec<Vec<TreeRow>>,
+    tree_count: usize,
     rows: u64,
     stats: Stats,
     encoding: Encoding,
@@ -227,7 +235,7 @@ impl SegmentWriter {
     }
 
     /// Appends whole trees to the segment.
-    pub fn write(&mut self, cols: RayColumns, payload: &PayloadSchema, kinds: &KindTable) -> Result<()> {
+    pub fn write(&mut self, mut cols: RayColumns, payload: &PayloadSchema, kinds: &KindTable) -> Result<()> {
         let n = cols.len() as u64;
         if n == 0 && cols.trees.is_empty() {
             return Ok(());
@@ -237,8 +245,6 @@ impl SegmentWriter {
         ends.sort_unstable();
         let plain = self.encoding == Encoding::Plain;
         let mut stats = Stats::of_columns_with(&cols, kinds, plain);
-        let base = self.rows;
-        self.trees.extend(cols.trees.iter().map(|t| TreeRow { first_row: t.first_row + base, ..*t }));
         let encoded = if self.encoding == Encoding::Plain {
             None
         } else {
@@ -248,6 +254,10 @@ impl SegmentWriter {
             ))
         };
         self.stats.merge(&stats);
+        let mut trees = std::mem::take(&mut cols.trees);
+        for t in &mut trees {
+            t.first_row += self.rows;
+        }
         let mut batch = cols.into_ray_batch(payload, kinds)?;
         if let Some((enc, kind_codes)) = encoded {
             let t_nulls = batch.column_by_name("t").and_then(|t| t.nulls().cloned());
@@ -284,6 +294,10 @@ impl SegmentWriter {
             writer.write(&batch.slice(start, batch.num_rows() - start)).map_err(pq_err(&self.tmp))?;
         }
         self.rows += n;
+        if !trees.is_empty() {
+            self.tree_count += trees.len();
+            self.trees.push(trees);
+        }
         Ok(())
     }
 
@@ -293,7 +307,7 @@ impl SegmentWriter {
         let Some(mut writer) = self.writer.take() else {
             return Ok(None);
         };
-        if self.trees.is_empty() {
+        if self.tree_count == 0 {
             drop(writer);
             let _ = fs::remove_file(&self.tmp);
             return Ok(None);
@@ -308,9 +322,18 @@ impl SegmentWriter {
         let rays_rel = segment_file(self.id, "rays");
         let trees_rel = segment_file(self.id, "trees");
         let trees_tmp = ds.dir.join(format!("{trees_rel}.tmp"));
-        self.trees.sort_unstable_by_key(|t| t.tree_id);
-        let batch = RayColumns::to_tree_batch(&self.trees, self.id)?;
-        let trees = write_small_table(&trees_tmp, "trees", &batch, ds.options.sync)?;
+        for chunk in &mut self.trees {
+            chunk.sort_unstable_by_key(|t| t.tree_id);
+        }
+        let id_min = self.trees.iter().filter_map(|c| c.first()).map(|t| t.tree_id).min().unwrap_or(0);
+        let id_max = self.trees.iter().filter_map(|c| c.last()).map(|t| t.tree_id).max().unwrap_or(0);
+        let trees = write_small_table(
+            &trees_tmp,
+            "trees",
+            &tree_schema(),
+            RayColumns::merged_tree_batches(&self.trees, self.id, TREE_BATCH_ROWS),
+            ds.options.sync,
+        )?;
 
         let rays_path = ds.dir.join(&rays_rel);
         let trees_path = ds.dir.join(&trees_rel);
@@ -322,9 +345,9 @@ impl SegmentWriter {
         let entry = SegmentEntry {
             id: self.id,
             rays: FileEntry { path: rays_rel, bytes: rays.1, crc32: rays.0, rows: self.rows },
-            trees: FileEntry { path: trees_rel, bytes: trees.1, crc32: trees.0, rows: self.trees.len() as u64 },
-            tree_id_min: self.trees.first().map_or(0, |t| t.tree_id),
-            tree_id_max: self.trees.last().map_or(0, |t| t.tree_id),
+            trees: FileEntry { path: trees_rel, bytes: trees.1, crc32: trees.0, rows: self.tree_count as u64 },
+            tree_id_min: id_min,
+            tree_id_max: id_max,
             stats: std::mem::take(&mut self.stats),
         };
         ds.commit(entry.clone(), kinds)?;
@@ -383,15 +406,25 @@ fn ray_properties(options: &WriteOptions, dir: &Path, row_group_cap: Option<usiz
 
 /// Writes one small Parquet file (a segment's tree table, an optional table) to `tmp` in one go:
 /// zstd, page statistics, rtvtk key-value metadata. Returns its CRC32 and size; the caller renames it.
-fn write_small_table(tmp: &Path, table: &str, batch: &arrow::array::RecordBatch, sync: bool) -> Result<(u32, u64)> {
+fn write_small_table(
+    tmp: &Path,
+    table: &str,
+    schema: &arrow::datatypes::SchemaRef,
+    batches: impl IntoIterator<Item = Result<arrow::array::RecordBatch>>,
+    sync: bool,
+) -> Result<(u32, u64)> {
     let file = File::create(tmp).map_err(io_err("creating a table file", tmp))?;
     let mut props = WriterProperties::builder();
     if table == "trees" {
-        // Sorted ids and rows: deltas of +1 and of the tree sizes.
-        for name in ["tree_id", "first_row"] {
-            props = props
-                .set_column_dictionary_enabled(ColumnPath::from(name), false)
-                .set_column_encoding(ColumnPath::from(name), Encoding_::DELTA_BINARY_PACKED);
+        // Sorted ids and rows: deltas of +1 and of the tree sizes; pixels, samples and the
+        // segment: runs and steps of +1. Tree sizes and depths: small values, one byte plane.
+        // No dictionaries: hashing every row cost ~2% of a writer thread.
+        props = props.set_dictionary_enabled(false);
+        for name in ["tree_id", "first_row", "pixel_x", "pixel_y", "sample", "segment"] {
+            props = props.set_column_encoding(ColumnPath::from(name), Encoding_::DELTA_BINARY_PACKED);
+        }
+        for name in ["ray_count", "max_depth"] {
+            props = props.set_column_encoding(ColumnPath::from(name), Encoding_::BYTE_STREAM_SPLIT);
         }
     }
     let props = props
@@ -403,8 +436,10 @@ fn write_small_table(tmp: &Path, table: &str, batch: &arrow::array::RecordBatch,
         ]))
         .build();
     let mut w =
-        ArrowWriter::try_new(CrcWriter::new(BufWriter::new(file)), batch.schema(), Some(props)).map_err(pq_err(tmp))?;
-    w.write(batch).map_err(pq_err(tmp))?;
+        ArrowWriter::try_new(CrcWriter::new(BufWriter::new(file)), schema.clone(), Some(props)).map_err(pq_err(tmp))?;
+    for batch in batches {
+        w.write(&batch?).map_err(pq_err(tmp))?;
+    }
     let sink = w.into_inner().map_err(pq_err(tmp))?;
     finish_file(sink, tmp, sync)
 }
