@@ -44,6 +44,9 @@ pub enum BenchCommand {
         /// Rays per chunk handed from the tracing threads to the writers.
         #[arg(long, default_value_t = RecorderOptions::default().chunk_rays)]
         chunk_rays: usize,
+        /// Rows per Parquet data page of the ray files (the unit a one-tree fetch decompresses).
+        #[arg(long, default_value_t = store::WriteOptions::default().page_rows)]
+        page_rows: usize,
         /// Random trees fetched for the latency figures.
         #[arg(long, default_value_t = 2000)]
         fetches: usize,
@@ -120,6 +123,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             threads,
             workers,
             chunk_rays,
+            page_rows,
             fetches,
             dir,
             scene,
@@ -132,6 +136,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
                 threads: threads.max(1),
                 workers: workers.max(1),
                 chunk_rays: chunk_rays.max(1),
+                page_rows: page_rows.max(1),
                 fetches,
                 duckdb: !no_duckdb,
                 sync: !no_sync,
@@ -226,6 +231,17 @@ fn make_trace(min_rays: u64) -> Trace {
     Trace { trees, rays }
 }
 
+/// CPU seconds (user + system) this process has used so far, all threads.
+fn cpu_seconds() -> f64 {
+    // SAFETY: getrusage only writes the struct it is given.
+    let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+    if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } != 0 {
+        return f64::NAN;
+    }
+    let tv = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    tv(u.ru_utime) + tv(u.ru_stime)
+}
+
 /// Bytes of the files under `dir`.
 pub(crate) fn dir_bytes(dir: &std::path::Path) -> u64 {
     fn walk(p: &std::path::Path) -> u64 {
@@ -248,6 +264,7 @@ struct StoreArgs {
     threads: usize,
     workers: usize,
     chunk_rays: usize,
+    page_rows: usize,
     fetches: usize,
     duckdb: bool,
 }
@@ -263,6 +280,7 @@ fn record_trace(
     let mut options = RecorderOptions { workers: args.workers, chunk_rays: args.chunk_rays, ..Default::default() };
     options.write.encoding = encoding;
     options.write.sync = args.sync;
+    options.write.page_rows = args.page_rows;
     let threads = args.threads;
     let t = Instant::now();
     let rec = Recorder::create(path, options)?;
@@ -457,6 +475,7 @@ fn store_bench(
     // Baseline: arrow-rs ArrowWriter, default properties with zstd(1), one file.
     eprintln!("writing the baseline ...");
     let base_path = root.join("baseline.parquet");
+    let cpu0 = cpu_seconds();
     let t = Instant::now();
     {
         let props = WriterProperties::builder().set_compression(Compression::ZSTD(ZstdLevel::try_new(1)?)).build();
@@ -468,6 +487,7 @@ fn store_bench(
         w.close()?;
     }
     let base_secs = t.elapsed().as_secs_f64();
+    let base_cpu = cpu_seconds() - cpu0;
     let base_bytes = std::fs::metadata(&base_path)?.len();
     drop(batches);
     let n = trace.rays as f64;
@@ -483,21 +503,24 @@ fn store_bench(
     );
     println!();
     println!(
-        "| writer | Mrays/s | B/ray | time s | write speed vs baseline | bytes vs baseline | max angle error (rad) | mean angle error (rad) | max origin error / scene | max hit-point error / scene |"
+        "| writer | Mrays/s | B/ray | time s | CPU s | write speed vs baseline | CPU vs baseline | bytes vs baseline | max angle error (rad) | mean angle error (rad) | max origin error / scene | max hit-point error / scene |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     println!(
-        "| arrow-rs ArrowWriter, default properties, zstd-1 (baseline) | {:.2} | {:.2} | {:.2} | 1.00x | 1.00x | 0 | 0 | 0 | 0 |",
+        "| arrow-rs ArrowWriter, default properties, zstd-1 (baseline) | {:.2} | {:.2} | {:.2} | {:.2} | 1.00x | 1.00x | 1.00x | 0 | 0 | 0 | 0 |",
         n / base_secs / 1e6,
         base_bytes as f64 / n,
-        base_secs
+        base_secs,
+        base_cpu
     );
     let mut fetch_ds: Option<PathBuf> = None;
     let mut peak = 0u64;
     for &encoding in encodings {
         let ds_path = root.join(format!("trace-{}", encoding.name()));
         eprintln!("recording {} ...", encoding.name());
+        let cpu0 = cpu_seconds();
         let (secs, summary, ids) = record_trace(&trace, &ds_path, args, encoding)?;
+        let cpu = cpu_seconds() - cpu0;
         peak = peak.max(summary.peak_buffered_bytes);
         let bytes = dir_bytes(&ds_path);
         let (mut errs, mut scene_size) = (Errors::default(), f64::NAN);
@@ -524,13 +547,15 @@ fn store_bench(
             "0 (bit-exact) | 0 | 0 | 0".to_string()
         };
         println!(
-            "| rtvtk {} ({} segments) | {:.2} | {:.2} | {:.2} | {:.2}x | {:.2}x | {err_cols} |",
+            "| rtvtk {} ({} segments) | {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x | {:.2}x | {:.2}x | {err_cols} |",
             encoding.name(),
             summary.segments,
             n / secs / 1e6,
             bytes as f64 / n,
             secs,
+            cpu,
             base_secs / secs,
+            cpu / base_cpu,
             bytes as f64 / base_bytes as f64,
         );
         if fetch_ds.is_none() {

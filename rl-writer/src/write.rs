@@ -13,6 +13,9 @@ use crate::budget::Budget;
 use crate::recorder::{RecorderOptions, Sink, Summary};
 use crate::{Error, Result};
 
+/// Chunks that may wait for each writer thread before `end_tree` blocks (besides the byte budget).
+const QUEUED_CHUNKS_PER_WRITER: usize = 4;
+
 enum Msg {
     Chunk(Box<RayRows>, Arc<KindTable>, usize),
     Flush(Arc<KindTable>, Sender<()>),
@@ -62,7 +65,10 @@ pub(crate) struct WriteSink {
 impl WriteSink {
     pub(crate) fn start(dir: &Path, options: &RecorderOptions) -> Result<Self> {
         let ds = Arc::new(DatasetWriter::create(dir, options.payload.clone(), options.write.clone())?);
-        let budget = Arc::new(Budget::new(options.memory_budget));
+        // A few chunks queued per writer keep it busy; more would only be memory the tracing
+        // threads fault in fresh while they run ahead of the writers (in `bench store`, whose
+        // replay outruns them, a full 256 MB queue cost ~0.25 s of page zeroing per 10M rays).
+        let budget = Arc::new(Budget::new(options.memory_budget, QUEUED_CHUNKS_PER_WRITER * options.workers.max(1)));
         let shared = Arc::new(Shared::default());
         let mut workers = Vec::new();
         for i in 0..options.workers.max(1) {
