@@ -271,32 +271,6 @@ impl RayColumns {
         }
     }
 
-    /// Empty buffers with room for `rays` rays.
-    pub fn with_capacity(schema: &PayloadSchema, rays: usize) -> Self {
-        fn v<T>(n: usize) -> Vec<T> {
-            Vec::with_capacity(n)
-        }
-        Self {
-            tree_id: v(rays),
-            ray: v(rays),
-            parent: v(rays),
-            depth: v(rays),
-            kind: v(rays),
-            origin: [v(rays), v(rays), v(rays)],
-            direction: [v(rays), v(rays), v(rays)],
-            t: v(rays),
-            hit: v(rays),
-            prim: v(rays),
-            payload: schema
-                .fields
-                .iter()
-                .map(|f| PayloadBuf { bytes: Vec::with_capacity(rays * f.row_width()), valid: v(rays) })
-                .collect(),
-            bytes: schema.bytes.map(|_| BytesBuf::default()),
-            trees: Vec::with_capacity(rays / 4 + 1),
-        }
-    }
-
     /// Number of rays held.
     pub fn len(&self) -> usize {
         self.tree_id.len()
@@ -304,29 +278,6 @@ impl RayColumns {
 
     pub fn is_empty(&self) -> bool {
         self.tree_id.is_empty()
-    }
-
-    /// Empties the buffers, keeping their allocations.
-    pub fn clear(&mut self) {
-        self.tree_id.clear();
-        self.ray.clear();
-        self.parent.clear();
-        self.depth.clear();
-        self.kind.clear();
-        for c in self.origin.iter_mut().chain(self.direction.iter_mut()) {
-            c.clear();
-        }
-        self.t.clear();
-        self.hit.clear();
-        self.prim.clear();
-        for p in &mut self.payload {
-            p.bytes.clear();
-            p.valid.clear();
-        }
-        if let Some(b) = &mut self.bytes {
-            b.clear();
-        }
-        self.trees.clear();
     }
 
     /// Approximate heap bytes held (for the memory budget).

@@ -29,11 +29,18 @@ impl Bounds {
     /// Grows the box to hold `p` if all its coordinates are finite.
     #[inline]
     pub fn add(&mut self, p: [f32; 3]) {
-        if p.iter().all(|c| c.is_finite()) {
-            for (i, c) in p.into_iter().enumerate() {
-                self.min[i] = self.min[i].min(c);
-                self.max[i] = self.max[i].max(c);
-            }
+        if all_finite(p) {
+            self.grow(p);
+        }
+    }
+
+    /// Grows the bounds to `p`, known finite: plain `<`/`>` compile to min/max instructions
+    /// (no NaN can reach them), unlike the NaN-aware `f32::min`/`max`.
+    #[inline(always)]
+    fn grow(&mut self, p: [f32; 3]) {
+        for ((lo, hi), c) in self.min.iter_mut().zip(self.max.iter_mut()).zip(p) {
+            *lo = if c < *lo { c } else { *lo };
+            *hi = if c > *hi { c } else { *hi };
         }
     }
 
@@ -64,6 +71,14 @@ pub struct Stats {
     /// Bounds of the finite hit points (origin + t · direction; absent while empty).
     #[serde(default, skip_serializing_if = "Bounds::is_empty")]
     pub hit_bounds: Bounds,
+}
+
+/// Whether every coordinate is finite: the exponent bits are not all ones (bit tests instead of
+/// classifying each float).
+#[inline(always)]
+fn all_finite(v: [f32; 3]) -> bool {
+    const EXP: u32 = 0x7f80_0000;
+    v.iter().fold(true, |ok, c| ok & (c.to_bits() & EXP != EXP))
 }
 
 fn bump(v: &mut Vec<u64>, i: usize, by: u64) {
@@ -128,35 +143,19 @@ impl Stats {
     /// Adds one ray's origin and hit point to the bounds, and counts it as a miss or non-finite.
     #[inline]
     pub(crate) fn add_ray(&mut self, o: [f32; 3], d: [f32; 3], t: f32, hit: bool) {
-        // Finite: the exponent bits are not all ones. Bit tests instead of six classifications,
-        // and plain `<`/`>` that compile to min/max instructions (no NaN can reach them).
-        #[inline(always)]
-        fn finite(v: [f32; 3]) -> bool {
-            const EXP: u32 = 0x7f80_0000;
-            v.iter().fold(true, |ok, c| ok & (c.to_bits() & EXP != EXP))
-        }
-        #[inline(always)]
-        fn grow(b: &mut Bounds, p: [f32; 3]) {
-            for ((lo, hi), c) in b.min.iter_mut().zip(b.max.iter_mut()).zip(p) {
-                *lo = if c < *lo { c } else { *lo };
-                *hi = if c > *hi { c } else { *hi };
-            }
-        }
-        let finite_o = finite(o);
-        self.non_finite += u64::from(!(finite_o & finite(d)));
+        let finite_o = all_finite(o);
+        self.non_finite += u64::from(!(finite_o & all_finite(d)));
         if finite_o {
-            grow(&mut self.origin_bounds, o);
+            self.origin_bounds.grow(o);
         }
         if hit {
-            let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
-            if finite(p) {
-                grow(&mut self.hit_bounds, p);
-            }
+            self.hit_bounds.add([o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]);
         } else {
             self.misses += 1;
         }
     }
 
+    /// Adds another set of statistics into this one.
     pub fn merge(&mut self, other: &Stats) {
         self.rays += other.rays;
         self.trees += other.trees;

@@ -134,7 +134,6 @@ impl DatasetWriter {
             tmp,
             writer: Some(writer),
             trees: Vec::new(),
-            tree_count: 0,
             rows: 0,
             stats: Stats::default(),
             encoding: self.options.encoding,
@@ -213,7 +212,6 @@ pub struct SegmentWriter {
     /// (merged by id at seal) rather than appended to one vector: a 4M-ray segment holds ~45 MB of
     /// them, and growing one vector that large copied it and faulted fresh pages in each time.
     trees: Vec<Vec<TreeRow>>,
-    tree_count: usize,
     rows: u64,
     stats: Stats,
     encoding: Encoding,
@@ -295,7 +293,6 @@ impl SegmentWriter {
         }
         self.rows += n;
         if !trees.is_empty() {
-            self.tree_count += trees.len();
             self.trees.push(trees);
         }
         Ok(())
@@ -307,7 +304,7 @@ impl SegmentWriter {
         let Some(mut writer) = self.writer.take() else {
             return Ok(None);
         };
-        if self.tree_count == 0 {
+        if self.trees.is_empty() {
             drop(writer);
             let _ = fs::remove_file(&self.tmp);
             return Ok(None);
@@ -325,6 +322,7 @@ impl SegmentWriter {
         for chunk in &mut self.trees {
             chunk.sort_unstable_by_key(|t| t.tree_id);
         }
+        let tree_count: usize = self.trees.iter().map(Vec::len).sum();
         let id_min = self.trees.iter().filter_map(|c| c.first()).map(|t| t.tree_id).min().unwrap_or(0);
         let id_max = self.trees.iter().filter_map(|c| c.last()).map(|t| t.tree_id).max().unwrap_or(0);
         let trees = write_small_table(
@@ -345,7 +343,7 @@ impl SegmentWriter {
         let entry = SegmentEntry {
             id: self.id,
             rays: FileEntry { path: rays_rel, bytes: rays.1, crc32: rays.0, rows: self.rows },
-            trees: FileEntry { path: trees_rel, bytes: trees.1, crc32: trees.0, rows: self.tree_count as u64 },
+            trees: FileEntry { path: trees_rel, bytes: trees.1, crc32: trees.0, rows: tree_count as u64 },
             tree_id_min: id_min,
             tree_id_max: id_max,
             stats: std::mem::take(&mut self.stats),
