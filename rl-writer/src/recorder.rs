@@ -105,6 +105,11 @@ pub trait Sink: Send + Sync {
     fn write_table(&self, name: &str, batch: arrow::array::RecordBatch) -> Result<()>;
     /// Records free-form facts about the recording (scene, tracer, seed, ...).
     fn set_attributes(&self, attributes: Vec<(String, String)>) -> Result<()>;
+    /// An emptied chunk buffer handed back by the sink once it was done with it, for the next
+    /// chunk (so that the tracing threads refill memory already faulted in instead of fresh pages).
+    fn spare(&self) -> Option<RayRows> {
+        None
+    }
 }
 
 #[derive(Default)]
@@ -172,8 +177,11 @@ impl Inner {
             s.open -= 1;
             s.cols.append(&cols);
             let full = if s.cols.len() >= inner.chunk_rays {
-                let cap = inner.chunk_rays + inner.chunk_rays / 8;
-                Some(std::mem::replace(&mut s.cols, RayRows::with_capacity(&inner.payload, &inner.layout, cap)))
+                let next = inner.sink.spare().unwrap_or_else(|| {
+                    let cap = inner.chunk_rays + inner.chunk_rays / 8;
+                    RayRows::with_capacity(&inner.payload, &inner.layout, cap)
+                });
+                Some(std::mem::replace(&mut s.cols, next))
             } else {
                 None
             };

@@ -16,6 +16,9 @@ use crate::{Error, Result};
 /// Chunks that may wait for each writer thread before `end_tree` blocks (besides the byte budget).
 const QUEUED_CHUNKS_PER_WRITER: usize = 4;
 
+/// Emptied chunk buffers kept for the tracing threads, per writer thread.
+const SPARE_CHUNKS_PER_WRITER: usize = 2 * QUEUED_CHUNKS_PER_WRITER;
+
 enum Msg {
     Chunk(Box<RayRows>, Arc<KindTable>, usize),
     Flush(Arc<KindTable>, Sender<()>),
@@ -29,6 +32,13 @@ struct Shared {
     rays: AtomicU64,
     segments: AtomicU64,
     bytes: AtomicU64,
+    /// Chunk buffers the writers are done with, emptied, for the tracing threads to fill again:
+    /// a buffer allocated by a tracing thread and freed by a writer went back to the allocator,
+    /// and the next chunk faulted fresh pages in (half the replay thread's time in `bench store`).
+    spare: Mutex<Vec<RayRows>>,
+    /// The most spare buffers kept, and the largest (in rays) worth keeping.
+    spare_count: usize,
+    spare_rays: usize,
 }
 
 impl Shared {
@@ -69,9 +79,14 @@ impl WriteSink {
         // threads fault in fresh while they run ahead of the writers (in `bench store`, whose
         // replay outruns them, a full 256 MB queue cost ~0.25 s of page zeroing per 10M rays).
         let budget = Arc::new(Budget::new(options.memory_budget, QUEUED_CHUNKS_PER_WRITER * options.workers.max(1)));
-        let shared = Arc::new(Shared::default());
+        let workers_n = options.workers.max(1);
+        let shared = Arc::new(Shared {
+            spare_count: SPARE_CHUNKS_PER_WRITER * workers_n,
+            spare_rays: 2 * options.chunk_rays.max(1),
+            ..Default::default()
+        });
         let mut workers = Vec::new();
-        for i in 0..options.workers.max(1) {
+        for i in 0..workers_n {
             let (tx, rx) = mpsc::channel();
             let ctx = WorkerCtx {
                 ds: ds.clone(),
@@ -171,6 +186,10 @@ impl Sink for WriteSink {
 
     fn set_attributes(&self, attributes: Vec<(String, String)>) -> Result<()> {
         Ok(self.ds.set_attributes(attributes)?)
+    }
+
+    fn spare(&self) -> Option<RayRows> {
+        self.shared.spare.lock().unwrap_or_else(|p| p.into_inner()).pop()
     }
 
     fn submit(&self, chunk: RayRows, kinds: &Arc<KindTable>) {
@@ -281,13 +300,25 @@ impl WorkerCtx {
         }
     }
 
-    fn write(&mut self, chunk: RayRows) {
-        let trees = chunk.trees.len() as u64;
+    /// Writes a chunk, then hands its emptied buffers back for the tracing threads.
+    fn write(&mut self, mut rows: RayRows) {
+        self.write_rows(&rows);
+        if rows.core.capacity() <= self.shared.spare_rays {
+            rows.clear();
+            let mut spare = self.shared.spare.lock().unwrap_or_else(|p| p.into_inner());
+            if spare.len() < self.shared.spare_count {
+                spare.push(rows);
+            }
+        }
+    }
+
+    fn write_rows(&mut self, rows: &RayRows) {
+        let trees = rows.trees.len() as u64;
         if self.shared.failed() {
             self.shared.lost_trees.fetch_add(trees, Ordering::Relaxed);
             return;
         }
-        let chunk = match chunk.into_columns(&self.layout) {
+        let chunk = match rows.to_columns(&self.layout) {
             Ok(c) => c,
             Err(e) => {
                 self.shared.fail(e, trees);

@@ -391,6 +391,9 @@ fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], 
     }
 }
 
+/// Rays whose bounds are added to the statistics at a time while encoding.
+const STATS_BLOCK: usize = 256;
+
 /// Encodes the origin, direction and hit-distance columns of `cols` (whole trees, each
 /// contiguous from ray 0), learning primitive planes into `planes` (the segment's) on the way.
 /// Adds every ray's bounds to `stats` too (one pass over the columns instead of two).
@@ -418,11 +421,20 @@ pub(crate) fn encode(
     let (eu, ev, er) = (&mut eu[..n], &mut ev[..n], &mut er[..n]);
     let et = &mut out.t[..n];
     for i in 0..n {
+        if i % STATS_BLOCK == 0 {
+            // Bounds block by block, just before the block is encoded, while its rays are in L1.
+            let b = i..(i + STATS_BLOCK).min(n);
+            stats.add_rays(
+                [&ox[b.clone()], &oy[b.clone()], &oz[b.clone()]],
+                [&dx[b.clone()], &dy[b.clone()], &dz[b.clone()]],
+                &t[b.clone()],
+                &hit[b],
+            );
+        }
         let p = parent[i];
         st.advance(tree[i], ray[i], p).map_err(Error::Encoding)?;
         let o = [ox[i], oy[i], oz[i]];
         let d = [dx[i], dy[i], dz[i]];
-        stats.add_ray(o, d, t[i], hit[i]);
         let pred = st.predict_origin(p);
         let mut raw_flags = 0u8;
         let mut res = [0u32; 3];

@@ -198,11 +198,23 @@ impl RayRows {
 
     /// The rays as columns. The tree rows must cover the rays in order, each from its
     /// `first_row`, as trees recorded through `rl` do.
-    pub fn into_columns(self, layout: &RowLayout) -> Result<RayColumns> {
+    pub fn into_columns(mut self, layout: &RowLayout) -> Result<RayColumns> {
+        let bytes = self.bytes.take();
+        let trees = std::mem::take(&mut self.trees);
+        self.columns_with(layout, bytes, trees)
+    }
+
+    /// The rays as columns, leaving these buffers as they are (to be cleared and filled again:
+    /// a writer hands them back to the tracing threads instead of freeing them).
+    pub fn to_columns(&self, layout: &RowLayout) -> Result<RayColumns> {
+        self.columns_with(layout, self.bytes.clone(), self.trees.clone())
+    }
+
+    fn columns_with(&self, layout: &RowLayout, bytes: Option<BytesBuf>, trees: Vec<TreeRow>) -> Result<RayColumns> {
         let n = self.len();
         let mut tree_id = Vec::with_capacity(n);
         let mut ray = Vec::with_capacity(n);
-        for t in &self.trees {
+        for t in &trees {
             if t.first_row != tree_id.len() as u64 {
                 return Err(uncovered(format!(
                     "tree {} starts at row {}, expected {}",
@@ -254,8 +266,8 @@ impl RayRows {
             hit: core.iter().map(|r| r.hit).collect(),
             prim: core.iter().map(|r| r.prim).collect(),
             payload,
-            bytes: self.bytes,
-            trees: self.trees,
+            bytes,
+            trees,
         })
     }
 }
@@ -348,9 +360,11 @@ mod tests {
             assert_eq!(m_rows, m_cols);
             assert!(!m_rows.is_empty(), "the u8 in a boolean column is reported");
             assert_eq!(rows.len(), 15);
+            let kept = rows.to_columns(&RowLayout::new(&schema)).unwrap();
             let got = rows.into_columns(&RowLayout::new(&schema)).unwrap();
             // NaN payloads compare by bits through the byte buffers.
             assert_eq!(format!("{got:?}"), format!("{cols:?}"));
+            assert_eq!(format!("{kept:?}"), format!("{cols:?}"), "to_columns reads the same columns");
         }
     }
 

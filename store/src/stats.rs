@@ -81,6 +81,35 @@ fn all_finite(v: [f32; 3]) -> bool {
     v.iter().fold(true, |ok, c| ok & (c.to_bits() & EXP != EXP))
 }
 
+/// The least of `init` and `c` (no NaN in them), in eight lanes the compiler keeps in vector
+/// registers (a single running minimum of floats is not vectorized: it would reorder NaNs).
+#[inline(always)]
+fn lane_min(c: &[f32], init: f32) -> f32 {
+    let mut acc = [init; 8];
+    let chunks = c.chunks_exact(8);
+    let rest = chunks.remainder();
+    for ch in chunks {
+        for (a, &v) in acc.iter_mut().zip(ch) {
+            *a = if v < *a { v } else { *a };
+        }
+    }
+    acc.iter().chain(rest).fold(init, |m, &v| if v < m { v } else { m })
+}
+
+/// The greatest of `init` and `c`, as [`lane_min`].
+#[inline(always)]
+fn lane_max(c: &[f32], init: f32) -> f32 {
+    let mut acc = [init; 8];
+    let chunks = c.chunks_exact(8);
+    let rest = chunks.remainder();
+    for ch in chunks {
+        for (a, &v) in acc.iter_mut().zip(ch) {
+            *a = if v > *a { v } else { *a };
+        }
+    }
+    acc.iter().chain(rest).fold(init, |m, &v| if v > m { v } else { m })
+}
+
 fn bump(v: &mut Vec<u64>, i: usize, by: u64) {
     if v.len() <= i {
         v.resize(i + 1, 0);
@@ -95,7 +124,7 @@ impl Stats {
     }
 
     /// Counts by kind and depth, and — when `with_bounds` — bounds, misses and non-finite rays
-    /// (otherwise the caller adds every ray with [`Stats::add_ray`] in its own pass).
+    /// (otherwise the caller adds every ray with [`Stats::add_rays`] in its own pass).
     pub(crate) fn of_columns_with(cols: &RayColumns, kinds: &KindTable, with_bounds: bool) -> Stats {
         let n = cols.len();
         let mut s = Stats { rays: n as u64, trees: cols.trees.len() as u64, ..Default::default() };
@@ -114,10 +143,7 @@ impl Stats {
         if with_bounds {
             let (ox, oy, oz) = (&cols.origin[0][..n], &cols.origin[1][..n], &cols.origin[2][..n]);
             let (dx, dy, dz) = (&cols.direction[0][..n], &cols.direction[1][..n], &cols.direction[2][..n]);
-            let (t, hit) = (&cols.t[..n], &cols.hit[..n]);
-            for i in 0..n {
-                s.add_ray([ox[i], oy[i], oz[i]], [dx[i], dy[i], dz[i]], t[i], hit[i]);
-            }
+            s.add_rays([ox, oy, oz], [dx, dy, dz], &cols.t[..n], &cols.hit[..n]);
         }
         for (code, mut counts) in deep.into_iter().enumerate() {
             let row = &shallow[code * SHALLOW..(code + 1) * SHALLOW];
@@ -155,6 +181,63 @@ impl Stats {
         }
     }
 
+    /// [`Stats::add_ray`] for columns of rays (all slices as long as `t`): blocks whose origins and
+    /// directions are all finite (nearly all of them) take branch-free loops the compiler turns
+    /// into vector min/max; a block holding a NaN or an infinity goes ray by ray.
+    pub(crate) fn add_rays(&mut self, o: [&[f32]; 3], d: [&[f32]; 3], t: &[f32], hit: &[bool]) {
+        const BLOCK: usize = 256;
+        const EXP: u32 = 0x7f80_0000;
+        let n = t.len().min(hit.len()).min(o.iter().chain(&d).map(|c| c.len()).min().unwrap_or(0));
+        let mut start = 0;
+        while start < n {
+            let end = (start + BLOCK).min(n);
+            let r = start..end;
+            let finite = |c: &[f32]| c.iter().fold(0u32, |acc, v| acc | u32::from(v.to_bits() & EXP == EXP)) == 0;
+            if !o.iter().chain(&d).all(|c| finite(&c[r.clone()])) {
+                for i in r {
+                    self.add_ray([o[0][i], o[1][i], o[2][i]], [d[0][i], d[1][i], d[2][i]], t[i], hit[i]);
+                }
+                start = end;
+                continue;
+            }
+            let hit = &hit[r.clone()];
+            let t = &t[r.clone()];
+            self.misses += hit.iter().map(|&h| u64::from(!h)).sum::<u64>();
+            for (k, oc) in o.iter().enumerate() {
+                let oc = &oc[r.clone()];
+                self.origin_bounds.min[k] = lane_min(oc, self.origin_bounds.min[k]);
+                self.origin_bounds.max[k] = lane_max(oc, self.origin_bounds.max[k]);
+            }
+            // Hit points: a miss, or a point that overflowed, stays out of the box; a point must
+            // be finite in all three coordinates, so validity is found before the min/max.
+            let len = hit.len();
+            let mut valid = [true; BLOCK];
+            let mut p = [[0f32; BLOCK]; 3];
+            for k in 0..3 {
+                let (oc, dc) = (&o[k][r.clone()], &d[k][r.clone()]);
+                for (i, ((pv, (&ov, &dv)), &tv)) in p[k].iter_mut().zip(oc.iter().zip(dc)).zip(t).enumerate() {
+                    *pv = ov + tv * dv;
+                    valid[i] &= pv.to_bits() & EXP != EXP;
+                }
+            }
+            for (v, &h) in valid.iter_mut().zip(hit) {
+                *v &= h;
+            }
+            let mut masked = [0f32; BLOCK];
+            for (k, pk) in p.iter().enumerate() {
+                for ((m, &v), &ok) in masked.iter_mut().zip(pk).zip(&valid) {
+                    *m = if ok { v } else { f32::INFINITY };
+                }
+                self.hit_bounds.min[k] = lane_min(&masked[..len], self.hit_bounds.min[k]);
+                for ((m, &v), &ok) in masked.iter_mut().zip(pk).zip(&valid) {
+                    *m = if ok { v } else { f32::NEG_INFINITY };
+                }
+                self.hit_bounds.max[k] = lane_max(&masked[..len], self.hit_bounds.max[k]);
+            }
+            start = end;
+        }
+    }
+
     /// Adds another set of statistics into this one.
     pub fn merge(&mut self, other: &Stats) {
         self.rays += other.rays;
@@ -188,5 +271,61 @@ impl Stats {
             }
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The column path gives the statistics of adding ray by ray, NaN, infinities, overflowing
+    /// hit points and misses included, across block boundaries.
+    #[test]
+    fn columns_of_rays_give_the_stats_of_single_rays() {
+        let n = 1000;
+        let mut cols: [Vec<f32>; 7] = Default::default();
+        let mut hit = Vec::new();
+        let mut x = 12345u32;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x
+        };
+        for i in 0..n {
+            for c in cols.iter_mut() {
+                c.push((next() % 20_000) as f32 * 0.01 - 100.0);
+            }
+            hit.push(next() % 4 != 0);
+            match i {
+                300 => cols[0][i] = f32::NAN,
+                301 => cols[4][i] = f32::INFINITY,
+                302 => cols[6][i] = 3.0e38, // the hit point overflows
+                700 => cols[2][i] = f32::NEG_INFINITY,
+                _ => {}
+            }
+        }
+        let mut one = Stats::default();
+        for i in 0..n {
+            one.add_ray([cols[0][i], cols[1][i], cols[2][i]], [cols[3][i], cols[4][i], cols[5][i]], cols[6][i], hit[i]);
+        }
+        let mut all = Stats::default();
+        all.add_rays([&cols[0], &cols[1], &cols[2]], [&cols[3], &cols[4], &cols[5]], &cols[6], &hit);
+        assert_eq!(all, one);
+        assert_eq!(all.non_finite, 3);
+        assert!(all.misses > 0 && !all.hit_bounds.is_empty());
+        // Only finite rays in a block: still the same.
+        let mut a = Stats::default();
+        let mut b = Stats::default();
+        a.add_rays(
+            [&cols[0][..256], &cols[1][..256], &cols[2][..256]],
+            [&cols[3][..256], &cols[4][..256], &cols[5][..256]],
+            &cols[6][..256],
+            &hit[..256],
+        );
+        for i in 0..256 {
+            b.add_ray([cols[0][i], cols[1][i], cols[2][i]], [cols[3][i], cols[4][i], cols[5][i]], cols[6][i], hit[i]);
+        }
+        assert_eq!(a, b);
     }
 }

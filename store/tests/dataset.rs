@@ -384,3 +384,43 @@ fn tree_lookups_by_id_range_read_the_right_pages() {
         assert_eq!(got, want, "{ranges:?} (cached)");
     }
 }
+
+/// Trees written out of id order (as tracing threads end them), more than one block of tree rows
+/// per segment, and a second segment that refills the first one's emptied blocks: every tree
+/// file comes out sorted by id and every tree is found by id with its own rays.
+#[test]
+fn many_trees_out_of_order_seal_sorted_across_segments() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    let schema = PayloadSchema::default();
+    let w = DatasetWriter::create(&path, schema.clone(), WriteOptions::default()).unwrap();
+    let kinds = KindTable::default();
+    let per_segment = 40_000u64;
+    for s in 0..2u64 {
+        let mut seg = w.open_segment().unwrap();
+        // Chunks of 1000 trees; within a chunk and across chunks ids run backwards and interleave.
+        for c in 0..(per_segment / 1000) {
+            let mut cols = RayColumns::new(&schema);
+            for k in (0..1000u64).rev() {
+                let id = s * per_segment + k * (per_segment / 1000) + c;
+                chain(&mut cols, &schema, id, (id % 3 + 1) as u32, [(id % 640) as u32, (id / 640) as u32]);
+            }
+            seg.write(cols, &schema, &kinds).unwrap();
+        }
+        seg.seal(&w, &kinds).unwrap();
+    }
+    w.mark_complete().unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    assert_eq!(ds.tree_count(), 2 * per_segment);
+    for i in 0..2 {
+        let ids: Vec<u64> = ds.segment_tree_entries(i).unwrap().iter().map(|e| e.info.id.0).collect();
+        assert_eq!(ids.len() as u64, per_segment);
+        assert!(ids.windows(2).all(|w| w[0] < w[1]), "segment {i}'s tree file is sorted by id");
+    }
+    for id in [0u64, 1, 39, 40, 12_345, 39_999, 40_000, 55_555, 79_999] {
+        let t = ds.tree(TreeId(id)).unwrap();
+        assert_eq!(t.rays.len() as u64, id % 3 + 1, "tree {id}");
+        assert_eq!(t.rays[0].origin[1], id as f32, "tree {id} has its own rays");
+        assert_eq!(t.info.pixel, [(id % 640) as u32, (id / 640) as u32]);
+    }
+}
