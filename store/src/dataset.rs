@@ -489,15 +489,37 @@ impl Dataset {
             return Ok(RecordBatch::new_empty(self.schema.clone()));
         }
         let one = [std::ops::Range { start: first, end: first + count }];
-        let (path, reader) = self.ray_reader(i, None, Some(&one), count as usize)?;
-        let mut batches = Vec::new();
-        for b in reader {
-            batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
-        }
-        let batch = if batches.len() == 1 {
-            batches.pop().unwrap_or_else(|| RecordBatch::new_empty(self.file_schema.clone()))
+        let roots = self.file_schema.fields().len();
+        let path = self.dir.join(&self.segment(i).rays.path);
+        // A few trees' rows cost one page of each column, mostly zstd decompression (and two
+        // codec contexts per column, made anew by the parquet reader): two threads decode the
+        // two halves of the columns at once where there is a second core.
+        let split = roots >= 4 && count <= PARALLEL_READ_ROWS && cores() > 1;
+        let batch = if split {
+            let half = roots / 2;
+            let (a, b) = std::thread::scope(|s| {
+                let other = std::thread::Builder::new()
+                    .name("rtvtk-fetch".into())
+                    .spawn_scoped(s, || self.read_rows_of(i, Some((half..roots).collect()), &one, count));
+                let a = self.read_rows_of(i, Some((0..half).collect()), &one, count);
+                let b = match other {
+                    Ok(h) => h.join().unwrap_or_else(|_| {
+                        Err(Error::Corrupt {
+                            path: path.clone(),
+                            what: "ray file".into(),
+                            message: "the thread decoding half of the columns panicked".into(),
+                        })
+                    }),
+                    // No thread to be had: decode the other half here.
+                    Err(_) => self.read_rows_of(i, Some((half..roots).collect()), &one, count),
+                };
+                (a, b)
+            });
+            let (a, b) = (a?, b?);
+            let columns = a.columns().iter().chain(b.columns()).cloned().collect();
+            RecordBatch::try_new(self.file_schema.clone(), columns).map_err(arrow_err(path.display().to_string()))?
         } else {
-            concat_batches(&self.file_schema, &batches).map_err(arrow_err(path.display().to_string()))?
+            self.read_rows_of(i, None, &one, count)?
         };
         if batch.num_rows() as u64 != count {
             return Err(Error::Corrupt {
@@ -507,6 +529,28 @@ impl Dataset {
             });
         }
         self.decoder(i)?.decode(batch, &path)
+    }
+
+    /// Rows `rows` of segment `i`'s ray file, the `roots` columns (all when None), undecoded,
+    /// as one batch.
+    fn read_rows_of(
+        &self,
+        i: usize,
+        roots: Option<Vec<usize>>,
+        rows: &[std::ops::Range<u64>],
+        count: u64,
+    ) -> Result<RecordBatch> {
+        let (path, reader) = self.ray_reader(i, roots, Some(rows), count.max(1) as usize)?;
+        let schema = arrow::record_batch::RecordBatchReader::schema(&reader);
+        let mut batches = Vec::new();
+        for b in reader {
+            batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
+        }
+        if batches.len() == 1 {
+            Ok(batches.pop().unwrap_or_else(|| RecordBatch::new_empty(schema)))
+        } else {
+            concat_batches(&schema, &batches).map_err(arrow_err(path.display().to_string()))
+        }
     }
 
     /// Every ray batch of segment `i`, in file order.
@@ -842,6 +886,15 @@ impl Iterator for TreeIter<'_> {
             }
         }
     }
+}
+
+/// Rows up to which [`Dataset::read_rows`] decodes two halves of the columns on two threads.
+const PARALLEL_READ_ROWS: u64 = 64 * 1024;
+
+/// Cores this process may use (asked once).
+fn cores() -> usize {
+    static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
 
 fn check_schema(found: &SchemaRef, expected: &SchemaRef, path: &Path) -> Result<()> {
