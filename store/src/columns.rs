@@ -427,7 +427,7 @@ impl RayColumns {
         segment: u32,
         batch_rows: usize,
     ) -> impl Iterator<Item = Result<RecordBatch>> + '_ {
-        let mut merge = TreeMerge::new(chunks);
+        let mut merge = RunMerge::new(chunks, |t: &TreeRow| t.tree_id);
         let batch_rows = batch_rows.max(1);
         std::iter::from_fn(move || {
             let mut cols = TreeCols::with_capacity(batch_rows);
@@ -443,44 +443,45 @@ impl RayColumns {
 }
 
 /// Merges runs of tree rows, each sorted by id, into one sorted run.
-struct TreeMerge<'a> {
-    chunks: &'a [Vec<TreeRow>],
-    /// (next id, chunk, position) of every chunk not yet drained, smallest id first.
+/// A merge of runs each sorted by a `u64` key into one run sorted by it (equal keys in no
+/// particular order). Takes whole stretches of one run while they stay below every other run's head, so
+/// runs that barely interleave cost about a comparison per element.
+pub(crate) struct RunMerge<'a, T> {
+    runs: &'a [Vec<T>],
+    key: fn(&T) -> u64,
+    /// (next key, run, position) of every run not yet drained, smallest key first.
     heads: std::collections::BinaryHeap<std::cmp::Reverse<(u64, usize, usize)>>,
-    /// The chunk being drained and its position, while its ids stay below every other head.
+    /// The run being drained and its position, while its keys stay below every other head.
     run: Option<(usize, usize)>,
 }
 
-impl<'a> TreeMerge<'a> {
-    fn new(chunks: &'a [Vec<TreeRow>]) -> Self {
-        let heads = chunks
-            .iter()
-            .enumerate()
-            .filter_map(|(c, v)| v.first().map(|t| std::cmp::Reverse((t.tree_id, c, 0))))
-            .collect();
-        Self { chunks, heads, run: None }
+impl<'a, T> RunMerge<'a, T> {
+    pub(crate) fn new(runs: &'a [Vec<T>], key: fn(&T) -> u64) -> Self {
+        let heads =
+            runs.iter().enumerate().filter_map(|(c, v)| v.first().map(|t| std::cmp::Reverse((key(t), c, 0)))).collect();
+        Self { runs, key, heads, run: None }
     }
 }
 
-impl<'a> Iterator for TreeMerge<'a> {
-    type Item = &'a TreeRow;
+impl<'a, T> Iterator for RunMerge<'a, T> {
+    type Item = &'a T;
 
-    fn next(&mut self) -> Option<&'a TreeRow> {
+    fn next(&mut self) -> Option<&'a T> {
         if let Some((c, j)) = self.run {
-            let chunk = &self.chunks[c];
-            match chunk.get(j) {
-                Some(t) if self.heads.peek().is_none_or(|std::cmp::Reverse((id, _, _))| t.tree_id <= *id) => {
+            let run = &self.runs[c];
+            match run.get(j) {
+                Some(t) if self.heads.peek().is_none_or(|std::cmp::Reverse((k, _, _))| (self.key)(t) <= *k) => {
                     self.run = Some((c, j + 1));
                     return Some(t);
                 }
-                Some(t) => self.heads.push(std::cmp::Reverse((t.tree_id, c, j))),
+                Some(t) => self.heads.push(std::cmp::Reverse(((self.key)(t), c, j))),
                 None => {}
             }
             self.run = None;
         }
         let std::cmp::Reverse((_, c, j)) = self.heads.pop()?;
         self.run = Some((c, j + 1));
-        self.chunks[c].get(j)
+        self.runs[c].get(j)
     }
 }
 

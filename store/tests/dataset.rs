@@ -386,8 +386,9 @@ fn tree_lookups_by_id_range_read_the_right_pages() {
 }
 
 /// Trees written out of id order (as tracing threads end them), more than one block of tree rows
-/// per segment, and a second segment that refills the first one's emptied blocks: every tree
-/// file comes out sorted by id and every tree is found by id with its own rays.
+/// per segment, and a second segment that refills the first one's emptied blocks, its ids
+/// interleaved with the first's: every tree file comes out sorted by id, the index merges them
+/// into one order, and every tree is found by id and by pixel with its own rays.
 #[test]
 fn many_trees_out_of_order_seal_sorted_across_segments() {
     let dir = tempfile::tempdir().unwrap();
@@ -402,7 +403,8 @@ fn many_trees_out_of_order_seal_sorted_across_segments() {
         for c in 0..(per_segment / 1000) {
             let mut cols = RayColumns::new(&schema);
             for k in (0..1000u64).rev() {
-                let id = s * per_segment + k * (per_segment / 1000) + c;
+                // Even ids in the first segment, odd in the second: the index merges them.
+                let id = (k * (per_segment / 1000) + c) * 2 + s;
                 chain(&mut cols, &schema, id, (id % 3 + 1) as u32, [(id % 640) as u32, (id / 640) as u32]);
             }
             seg.write(cols, &schema, &kinds).unwrap();
@@ -417,6 +419,11 @@ fn many_trees_out_of_order_seal_sorted_across_segments() {
         assert_eq!(ids.len() as u64, per_segment);
         assert!(ids.windows(2).all(|w| w[0] < w[1]), "segment {i}'s tree file is sorted by id");
     }
+    let all = ds.tree_entries().unwrap();
+    assert_eq!(all.len() as u64, 2 * per_segment);
+    assert!(all.iter().enumerate().all(|(k, e)| e.info.id.0 == k as u64), "the index holds every id once, in order");
+    let at = ds.trees_at_pixel(5, 3, None).unwrap();
+    assert_eq!(at.iter().map(|t| t.info.id.0).collect::<Vec<_>>(), vec![3 * 640 + 5]);
     for id in [0u64, 1, 39, 40, 12_345, 39_999, 40_000, 55_555, 79_999] {
         let t = ds.tree(TreeId(id)).unwrap();
         assert_eq!(t.rays.len() as u64, id % 3 + 1, "tree {id}");
