@@ -85,29 +85,27 @@ fn all_finite(v: [f32; 3]) -> bool {
 /// registers (a single running minimum of floats is not vectorized: it would reorder NaNs).
 #[inline(always)]
 fn lane_min(c: &[f32], init: f32) -> f32 {
-    let mut acc = [init; 8];
-    let chunks = c.chunks_exact(8);
-    let rest = chunks.remainder();
-    for ch in chunks {
-        for (a, &v) in acc.iter_mut().zip(ch) {
-            *a = if v < *a { v } else { *a };
-        }
-    }
-    acc.iter().chain(rest).fold(init, |m, &v| if v < m { v } else { m })
+    lane_pick(c, init, |v, m| v < m)
 }
 
 /// The greatest of `init` and `c`, as [`lane_min`].
 #[inline(always)]
 fn lane_max(c: &[f32], init: f32) -> f32 {
+    lane_pick(c, init, |v, m| v > m)
+}
+
+/// The value of `c` (or `init`) that `better` prefers to every other, in eight lanes.
+#[inline(always)]
+fn lane_pick(c: &[f32], init: f32, better: impl Fn(f32, f32) -> bool + Copy) -> f32 {
     let mut acc = [init; 8];
     let chunks = c.chunks_exact(8);
     let rest = chunks.remainder();
     for ch in chunks {
         for (a, &v) in acc.iter_mut().zip(ch) {
-            *a = if v > *a { v } else { *a };
+            *a = if better(v, *a) { v } else { *a };
         }
     }
-    acc.iter().chain(rest).fold(init, |m, &v| if v > m { v } else { m })
+    acc.iter().chain(rest).fold(init, |m, &v| if better(v, m) { v } else { m })
 }
 
 fn bump(v: &mut Vec<u64>, i: usize, by: u64) {
