@@ -78,8 +78,8 @@ impl WriteSink {
         // A few chunks queued per writer keep it busy; more would only be memory the tracing
         // threads fault in fresh while they run ahead of the writers (in `bench store`, whose
         // replay outruns them, a full 256 MB queue cost ~0.25 s of page zeroing per 10M rays).
-        let budget = Arc::new(Budget::new(options.memory_budget, QUEUED_CHUNKS_PER_WRITER * options.workers.max(1)));
         let workers_n = options.workers.max(1);
+        let budget = Arc::new(Budget::new(options.memory_budget, QUEUED_CHUNKS_PER_WRITER * workers_n));
         let shared = Arc::new(Shared {
             spare_count: SPARE_CHUNKS_PER_WRITER * workers_n,
             spare_rays: 2 * options.chunk_rays.max(1),

@@ -418,7 +418,7 @@ impl RayColumns {
         RecordBatch::try_new(arrow_schema, columns).map_err(arrow_err("ray batch"))
     }
 
-    /// The tree table of `chunks` (each sorted by id) merged into one run sorted by id, as
+    /// The tree table of `chunks` (runs each sorted by id) merged into one run sorted by id, as
     /// batches of at most `batch_rows` trees: the columns are built a batch at a time, never
     /// gathered whole (a 4M-ray segment holds ~1M trees; building them at once faulted in ~40 MB
     /// of fresh pages per segment on the writer threads).
@@ -442,7 +442,6 @@ impl RayColumns {
     }
 }
 
-/// Merges runs of tree rows, each sorted by id, into one sorted run.
 /// A merge of runs each sorted by a `u64` key into one run sorted by it (equal keys in no
 /// particular order). Takes whole stretches of one run while they stay below every other run's head, so
 /// runs that barely interleave cost about a comparison per element.

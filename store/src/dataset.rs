@@ -219,38 +219,30 @@ impl Dataset {
         Ok(m)
     }
 
-    /// Reads the tree table of segment `i`.
+    /// Reads the tree table of segment `i`, sorted by id.
     fn read_tree_table(&self, i: usize) -> Result<Vec<TreeEntry>> {
-        let mut out = Vec::with_capacity(self.segment(i).trees.rows as usize);
-        self.read_tree_table_into(i, &mut out)?;
-        if !out.is_sorted_by_key(|e| e.info.id) {
-            out.sort_unstable_by_key(|e| e.info.id);
-        }
-        Ok(out)
-    }
-
-    /// Appends the tree table of segment `i` to `out`.
-    fn read_tree_table_into(&self, i: usize, out: &mut Vec<TreeEntry>) -> Result<()> {
-        let start = out.len();
         let seg = self.segment(i);
         let path = self.dir.join(&seg.trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
         let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path))?;
         check_schema(builder.schema(), &tree_schema(), &path)?;
         let reader = builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?;
+        let mut out = Vec::with_capacity(seg.trees.rows as usize);
         for batch in reader {
             let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
-            push_tree_entries(&b, i, out);
+            push_tree_entries(&b, i, &mut out);
         }
-        let found = out.len() - start;
-        if found as u64 != seg.trees.rows {
+        if out.len() as u64 != seg.trees.rows {
             return Err(Error::Corrupt {
                 path,
                 what: "tree file".into(),
-                message: format!("manifest lists {} trees, file holds {found}", seg.trees.rows),
+                message: format!("manifest lists {} trees, file holds {}", seg.trees.rows, out.len()),
             });
         }
-        Ok(())
+        if !out.is_sorted_by_key(|e| e.info.id) {
+            out.sort_unstable_by_key(|e| e.info.id);
+        }
+        Ok(out)
     }
 
     /// The trees of segment `i` whose ids fall in `ranges` (inclusive bounds), sorted by id. Reads
@@ -297,7 +289,7 @@ impl Dataset {
         // Tree tables are read on up to 4 threads; each is sorted by id already (sorted here if
         // not), and the runs are merged (a sort of the whole index took ~1 s at 24M trees).
         let n = self.manifest.segments.len();
-        let threads = std::thread::available_parallelism().map_or(1, |p| p.get()).clamp(1, 4).min(n.max(1));
+        let threads = cores().clamp(1, 4).min(n.max(1));
         let parts: Vec<Result<Vec<Vec<TreeEntry>>>> = std::thread::scope(|s| {
             let handles: Vec<_> = (0..threads)
                 .map(|t| s.spawn(move || (t..n).step_by(threads).map(|i| self.read_tree_table(i)).collect()))
@@ -488,10 +480,9 @@ impl Dataset {
         let split = roots >= 4 && count <= PARALLEL_READ_ROWS && cores() > 1;
         let batch = if split {
             let half = roots / 2;
+            let second = || self.read_rows_of(i, Some((half..roots).collect()), &one, count);
             let (a, b) = std::thread::scope(|s| {
-                let other = std::thread::Builder::new()
-                    .name("rtvtk-fetch".into())
-                    .spawn_scoped(s, || self.read_rows_of(i, Some((half..roots).collect()), &one, count));
+                let other = std::thread::Builder::new().name("rtvtk-fetch".into()).spawn_scoped(s, second);
                 let a = self.read_rows_of(i, Some((0..half).collect()), &one, count);
                 let b = match other {
                     Ok(h) => h.join().unwrap_or_else(|_| {
@@ -502,7 +493,7 @@ impl Dataset {
                         })
                     }),
                     // No thread to be had: decode the other half here.
-                    Err(_) => self.read_rows_of(i, Some((half..roots).collect()), &one, count),
+                    Err(_) => second(),
                 };
                 (a, b)
             });

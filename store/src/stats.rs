@@ -73,12 +73,18 @@ pub struct Stats {
     pub hit_bounds: Bounds,
 }
 
-/// Whether every coordinate is finite: the exponent bits are not all ones (bit tests instead of
-/// classifying each float).
+/// Whether `v` is finite: its exponent bits are not all ones (a bit test instead of classifying
+/// the float, which vectorizes).
+#[inline(always)]
+fn finite(v: f32) -> bool {
+    const EXP: u32 = 0x7f80_0000;
+    v.to_bits() & EXP != EXP
+}
+
+/// Whether every coordinate is finite.
 #[inline(always)]
 fn all_finite(v: [f32; 3]) -> bool {
-    const EXP: u32 = 0x7f80_0000;
-    v.iter().fold(true, |ok, c| ok & (c.to_bits() & EXP != EXP))
+    v.iter().fold(true, |ok, &c| ok & finite(c))
 }
 
 /// The least of `init` and `c` (no NaN in them), in eight lanes the compiler keeps in vector
@@ -184,14 +190,13 @@ impl Stats {
     /// into vector min/max; a block holding a NaN or an infinity goes ray by ray.
     pub(crate) fn add_rays(&mut self, o: [&[f32]; 3], d: [&[f32]; 3], t: &[f32], hit: &[bool]) {
         const BLOCK: usize = 256;
-        const EXP: u32 = 0x7f80_0000;
         let n = t.len().min(hit.len()).min(o.iter().chain(&d).map(|c| c.len()).min().unwrap_or(0));
         let mut start = 0;
         while start < n {
             let end = (start + BLOCK).min(n);
             let r = start..end;
-            let finite = |c: &[f32]| c.iter().fold(0u32, |acc, v| acc | u32::from(v.to_bits() & EXP == EXP)) == 0;
-            if !o.iter().chain(&d).all(|c| finite(&c[r.clone()])) {
+            let all = |c: &[f32]| c.iter().fold(true, |ok, &v| ok & finite(v));
+            if !o.iter().chain(&d).all(|c| all(&c[r.clone()])) {
                 for i in r {
                     self.add_ray([o[0][i], o[1][i], o[2][i]], [d[0][i], d[1][i], d[2][i]], t[i], hit[i]);
                 }
@@ -215,7 +220,7 @@ impl Stats {
                 let (oc, dc) = (&o[k][r.clone()], &d[k][r.clone()]);
                 for (i, ((pv, (&ov, &dv)), &tv)) in p[k].iter_mut().zip(oc.iter().zip(dc)).zip(t).enumerate() {
                     *pv = ov + tv * dv;
-                    valid[i] &= pv.to_bits() & EXP != EXP;
+                    valid[i] &= finite(*pv);
                 }
             }
             for (v, &h) in valid.iter_mut().zip(hit) {
