@@ -79,6 +79,11 @@ struct NodeW {
 
 const _: () = assert!(std::mem::size_of::<NodeW>() == 32 * W);
 
+/// Traversal stack entries: a visit pushes at most `W - 1`, so this holds any path of up to 73
+/// wide nodes (a binary tree of any depth up to 73 at least); deeper trees are not built by
+/// obvhs's builders for real scenes (`rtvtk bench trace` prints the binary depth).
+const STACK: usize = 64 * W;
+
 impl NodeW {
     /// Occupied slots (boxes a visit tests).
     #[inline(always)]
@@ -464,7 +469,7 @@ impl Bvh {
         }
         let (org, inv) = (ray.origin.to_array(), inv.to_array());
         // Stack of (wide node, distance at which its box was entered).
-        let mut stack = [(0u32, 0.0f32); 32 * W];
+        let mut stack = [(0u32, 0.0f32); STACK];
         let mut sp = 0usize;
         let mut node = 0u32;
         loop {
@@ -618,7 +623,7 @@ impl Bvh {
             return found;
         }
         let (org, inv) = (ray.origin.to_array(), inv.to_array());
-        let mut stack = [0u32; 32 * W];
+        let mut stack = [0u32; STACK];
         let mut sp = 1usize;
         while sp > 0 {
             sp -= 1;
