@@ -4,11 +4,12 @@
 //! Traversal: the binary tree is collapsed into 8-wide nodes whose child boxes are tested as eight
 //! SIMD lanes (exact float boxes, conservative slab test after Ize 2013, NaN-free for axis-parallel
 //! rays); children are visited nearest first, leaves are tested as soon as their box is hit, and
-//! stack entries carry their entry distance so nothing is re-tested on the way back. The same code is compiled twice, once for
-//! AVX2 (one 256-bit operation per step, picked at run time where the CPU has it) and once for the
-//! x86_64 baseline (two SSE operations); both give bit-identical results. Each child slot keeps
-//! its binary node id, so `nodes_visited` and the `ray_nodes` table name nodes of the `bvh_nodes`
-//! table (collapsed intermediate nodes are not entered, hence not counted).
+//! stack entries carry their entry distance so nothing is re-tested on the way back. The same code
+//! is compiled twice, once for AVX2 (one 256-bit operation per step, picked at run time where the
+//! CPU has it) and once for the target's baseline (two SSE operations on x86_64); both give
+//! bit-identical results. Each child slot keeps its binary node id, so `nodes_visited` and the
+//! `ray_nodes` table name nodes of the `bvh_nodes` table (collapsed intermediate nodes are not
+//! entered, hence not counted).
 //! `rtvtk bench trace` compares it with obvhs's stock traversals and Embree on the same rays.
 
 /// Set on a visited leaf's id in a visit list when one of its triangles was hit (in the ray's
@@ -208,11 +209,23 @@ fn hit_mask(d: &[f32; W]) -> u32 {
     d.iter().enumerate().fold(0, |m, (c, &t)| m | (u32::from(t < f32::INFINITY) << c))
 }
 
-/// Whether this CPU runs the AVX2 build of the traversal (the answer is cached by std).
-#[cfg(target_arch = "x86_64")]
+/// Runs `f` (a traversal: `#[inline(always)]` all the way down) compiled for AVX2 where this CPU
+/// has it (the check is cached by std), for the target's baseline otherwise. Its `W`-lane loops
+/// become 256-bit operations; no fused multiply-add is formed, so results are bit-identical.
 #[inline(always)]
-fn avx2() -> bool {
-    std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+fn fastest<R>(f: impl FnOnce() -> R) -> R {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has AVX2 and FMA (checked just above).
+        return unsafe { with_avx2(f) };
+    }
+    f()
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn with_avx2<R>(f: impl FnOnce() -> R) -> R {
+    f()
 }
 
 fn half_area(n: &Node) -> f32 {
@@ -325,13 +338,14 @@ impl Bvh {
         }
         // One SIMD block per leaf slot of the wide tree.
         let mut blocks = Vec::new();
-        for n4 in &mut nodes_w {
+        for n in &mut nodes_w {
             for k in 0..W {
-                // Leaves of more than four triangles keep the scalar path (child = first slot).
-                if n4.count[k] != EMPTY && n4.count[k] > 0 && n4.count[k] <= 4 {
-                    let (first, count) = (n4.child[k], n4.count[k]);
-                    let mut b = LeafBlock { v: [[Vec4::ZERO; 3]; 3], prim: [u32::MAX; 4], count: count.min(4), first };
-                    for lane in 0..count.min(4) as usize {
+                // Leaves of more than four triangles keep the scalar path (child = first slot);
+                // empty slots (count EMPTY) and inner children (0) have no block.
+                let (first, count) = (n.child[k], n.count[k]);
+                if (1..=4).contains(&count) {
+                    let mut b = LeafBlock { v: [[Vec4::ZERO; 3]; 3], prim: [u32::MAX; 4], count, first };
+                    for lane in 0..count as usize {
                         let slot = first as usize + lane;
                         for (vtx, p) in verts[slot].iter().enumerate() {
                             for (axis, c) in p.to_array().into_iter().enumerate() {
@@ -340,7 +354,7 @@ impl Bvh {
                         }
                         b.prim[lane] = prims[slot];
                     }
-                    n4.child[k] = blocks.len() as u32;
+                    n.child[k] = blocks.len() as u32;
                     blocks.push(b);
                 }
             }
@@ -419,27 +433,10 @@ impl Bvh {
         stats: &mut TraversalStats,
         visits: Option<&mut Vec<u32>>,
     ) -> Option<Hit> {
-        #[cfg(target_arch = "x86_64")]
-        if avx2() {
-            // SAFETY: the CPU has AVX2 and FMA (checked at run time).
-            return unsafe { self.intersect_avx2(ray, tmin, tmax, stats, visits) };
-        }
-        self.intersect_in(ray, tmin, tmax, stats, visits)
-    }
-
-    /// [`Bvh::intersect`] compiled for AVX2: the same code, its `W`-lane loops become 256-bit
-    /// operations (no fused multiply-add is formed, so results are bit-identical).
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    fn intersect_avx2(
-        &self,
-        ray: &Ray,
-        tmin: f32,
-        tmax: f32,
-        stats: &mut TraversalStats,
-        visits: Option<&mut Vec<u32>>,
-    ) -> Option<Hit> {
-        self.intersect_in(ray, tmin, tmax, stats, visits)
+        fastest(
+            #[inline(always)]
+            || self.intersect_in(ray, tmin, tmax, stats, visits),
+        )
     }
 
     #[inline(always)]
@@ -571,27 +568,10 @@ impl Bvh {
         stats: &mut TraversalStats,
         visits: Option<&mut Vec<u32>>,
     ) -> Option<Hit> {
-        #[cfg(target_arch = "x86_64")]
-        if avx2() {
-            // SAFETY: the CPU has AVX2 and FMA (checked at run time).
-            return unsafe { self.any_hit_avx2(ray, tmin, tmax, skip, stats, visits) };
-        }
-        self.any_hit_in(ray, tmin, tmax, skip, stats, visits)
-    }
-
-    /// [`Bvh::any_hit_except`] compiled for AVX2 (see [`Bvh::intersect_avx2`]).
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    fn any_hit_avx2(
-        &self,
-        ray: &Ray,
-        tmin: f32,
-        tmax: f32,
-        skip: u32,
-        stats: &mut TraversalStats,
-        visits: Option<&mut Vec<u32>>,
-    ) -> Option<Hit> {
-        self.any_hit_in(ray, tmin, tmax, skip, stats, visits)
+        fastest(
+            #[inline(always)]
+            || self.any_hit_in(ray, tmin, tmax, skip, stats, visits),
+        )
     }
 
     #[inline(always)]
