@@ -29,6 +29,10 @@ pub enum BenchCommand {
         width: u32,
         #[arg(long, default_value_t = 4)]
         spp: u32,
+        /// Timing rounds; each round runs every traversal once, in turn, so slow phases of a
+        /// shared machine hit all of them (best time and median per-round ratio are reported).
+        #[arg(long, default_value_t = 5)]
+        rounds: u32,
     },
     /// Write throughput and bytes per ray against plain arrow-rs Parquet, and one-tree fetch latency.
     Store {
@@ -109,7 +113,9 @@ pub enum BenchCommand {
 
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
-        BenchCommand::Trace { subdivide, rotate, width, spp } => crate::bench_trace::run(subdivide, rotate, width, spp),
+        BenchCommand::Trace { subdivide, rotate, width, spp, rounds } => {
+            crate::bench_trace::run(subdivide, rotate, width, spp, rounds.max(1))
+        }
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
         BenchCommand::Record { runs, args } => crate::bench_record::run(runs, &args),
         BenchCommand::Query { dataset, plain, runs, memory_limit, no_duckdb } => {

@@ -19,19 +19,40 @@ struct BenchRay {
     tmax: f32,
 }
 
-fn time<F: FnMut() -> u64>(mut f: F) -> (f64, u64) {
-    // Best of three runs (the machine is shared and noisy).
-    let mut best = f64::INFINITY;
-    let mut check = 0;
-    for _ in 0..3 {
-        let t = Instant::now();
-        check = f();
-        best = best.min(t.elapsed().as_secs_f64());
-    }
-    (best, check)
+/// Seconds of one call of each traversal per round, rounds interleaved (see `--rounds`).
+struct Timings {
+    secs: Vec<Vec<f64>>,
+    hits: Vec<u64>,
 }
 
-pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
+impl Timings {
+    fn run(rounds: u32, fs: &mut [Box<dyn FnMut() -> u64 + '_>]) -> Timings {
+        let mut secs = vec![Vec::new(); fs.len()];
+        let mut hits = vec![0; fs.len()];
+        for _ in 0..rounds {
+            for (i, f) in fs.iter_mut().enumerate() {
+                let t = Instant::now();
+                hits[i] = std::hint::black_box(f());
+                secs[i].push(t.elapsed().as_secs_f64());
+            }
+        }
+        Timings { secs, hits }
+    }
+
+    fn best(&self, i: usize) -> f64 {
+        self.secs[i].iter().copied().fold(f64::INFINITY, f64::min)
+    }
+
+    /// Median over rounds of time(i) / time(j): how many times faster j is than i in one round.
+    fn ratio(&self, i: usize, j: usize) -> f64 {
+        let mut r: Vec<f64> = self.secs[i].iter().zip(&self.secs[j]).map(|(a, b)| b / a).collect();
+        r.sort_by(f64::total_cmp);
+        let m = r.len() / 2;
+        if r.len() % 2 == 1 { r[m] } else { (r[m - 1] + r[m]) / 2.0 }
+    }
+}
+
+pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32, rounds: u32) -> Result<()> {
     let mut scene = BuiltinScene::Cornell.build(subdivide)?;
     if rotate {
         let q = Quat::from_euler(glam::EulerRot::XYZ, 0.3, 0.5, 0.2);
@@ -91,6 +112,17 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
         "build: ours (obvhs BVH2, slow preset with pre-splits, leaves <= 4; binary depth {}) {ours_build:.3} s, obvhs CWBVH medium {cw_build:.3} s",
         bvh.depth()
     );
+    let l = bvh.layout();
+    println!(
+        "layout: {} wide nodes, {} leaf blocks, {:.1} MB; {:.2} triangles per leaf",
+        l.wide_nodes,
+        l.leaf_blocks,
+        l.bytes as f64 / 1e6,
+        l.mean_leaf_tris
+    );
+    println!(
+        "timing: {rounds} rounds, each running every traversal once in turn; Mrays/s from the best round, ratios are medians of per-round ratios"
+    );
     println!();
     #[cfg(feature = "embree")]
     let embree = crate::embree::EmbreeScene::new(&scene.tris);
@@ -104,60 +136,71 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
             continue;
         }
         let shadow = kind == Kind::SHADOW;
+        // Work counts, from a pass of their own (the timed passes count too, and throw it away).
         let mut st = TraversalStats::default();
-        let (ours, hits_ours) = time(|| {
-            st = TraversalStats::default();
-            let mut hits = 0;
-            for r in &set {
-                let ray = Ray::new(r.o, r.d);
-                let hit = if shadow {
-                    bvh.any_hit(&ray, 0.0, r.tmax, &mut st).is_some()
-                } else {
-                    bvh.intersect(&ray, 0.0, r.tmax, &mut st, None).is_some()
-                };
-                hits += u64::from(hit);
+        for r in &set {
+            let ray = Ray::new(r.o, r.d);
+            if shadow {
+                bvh.any_hit(&ray, 0.0, r.tmax, &mut st);
+            } else {
+                bvh.intersect(&ray, 0.0, r.tmax, &mut st, None);
             }
-            hits
-        });
-        let (stock2, hits_b2) = time(|| {
-            let mut hits = 0;
-            for r in &set {
-                let ray = ORay::new(r.o, r.d, 0.0, r.tmax);
-                let hit = if shadow {
-                    let mut found = false;
-                    b2.ray_traverse_anyhit(ray, |ray, id| {
-                        found |= tris[b2.primitive_indices[id] as usize].intersect(ray) < ray.tmax;
-                    });
-                    found
-                } else {
-                    let mut h = RayHit::none();
-                    b2.ray_traverse(ray, &mut h, |ray, id| tris[b2.primitive_indices[id] as usize].intersect(ray))
-                };
-                hits += u64::from(hit);
-            }
-            hits
-        });
-        let (stock_cw, hits_cw) = time(|| {
-            let mut hits = 0;
-            for r in &set {
-                let ray = ORay::new(r.o, r.d, 0.0, r.tmax);
-                let hit = if shadow {
-                    !cw.ray_traverse_miss(ray, |ray, id| tris[cw.primitive_indices[id] as usize].intersect(ray))
-                } else {
-                    let mut h = RayHit::none();
-                    cw.ray_traverse(ray, &mut h, |ray, id| tris[cw.primitive_indices[id] as usize].intersect(ray))
-                };
-                hits += u64::from(hit);
-            }
-            hits
-        });
-        #[allow(unused_mut)]
-        let mut emb: Option<(f64, u64)> = None;
-        #[cfg(feature = "embree")]
-        if let Some(e) = &embree {
-            emb = Some(time(|| {
+        }
+        let mut fs: Vec<Box<dyn FnMut() -> u64 + '_>> = vec![
+            Box::new(|| {
+                let mut st = TraversalStats::default();
                 let mut hits = 0;
                 for r in &set {
+                    let ray = Ray::new(r.o, r.d);
+                    let hit = if shadow {
+                        bvh.any_hit(&ray, 0.0, r.tmax, &mut st).is_some()
+                    } else {
+                        bvh.intersect(&ray, 0.0, r.tmax, &mut st, None).is_some()
+                    };
+                    hits += u64::from(hit);
+                }
+                std::hint::black_box(st);
+                hits
+            }),
+            Box::new(|| {
+                let mut hits = 0;
+                for r in &set {
+                    let ray = ORay::new(r.o, r.d, 0.0, r.tmax);
+                    let hit = if shadow {
+                        let mut found = false;
+                        b2.ray_traverse_anyhit(ray, |ray, id| {
+                            found |= tris[b2.primitive_indices[id] as usize].intersect(ray) < ray.tmax;
+                        });
+                        found
+                    } else {
+                        let mut h = RayHit::none();
+                        b2.ray_traverse(ray, &mut h, |ray, id| tris[b2.primitive_indices[id] as usize].intersect(ray))
+                    };
+                    hits += u64::from(hit);
+                }
+                hits
+            }),
+            Box::new(|| {
+                let mut hits = 0;
+                for r in &set {
+                    let ray = ORay::new(r.o, r.d, 0.0, r.tmax);
+                    let hit = if shadow {
+                        !cw.ray_traverse_miss(ray, |ray, id| tris[cw.primitive_indices[id] as usize].intersect(ray))
+                    } else {
+                        let mut h = RayHit::none();
+                        cw.ray_traverse(ray, &mut h, |ray, id| tris[cw.primitive_indices[id] as usize].intersect(ray))
+                    };
+                    hits += u64::from(hit);
+                }
+                hits
+            }),
+        ];
+        #[cfg(feature = "embree")]
+        if let Some(e) = &embree {
+            let set = &set;
+            fs.push(Box::new(move || {
+                let mut hits = 0;
+                for r in set {
                     let hit =
                         if shadow { e.occluded(r.o, r.d, r.tmax) } else { e.intersect(r.o, r.d, r.tmax).is_some() };
                     hits += u64::from(hit);
@@ -165,6 +208,12 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
                 hits
             }));
         }
+        let with_embree = fs.len() == 4;
+        let tm = Timings::run(rounds, &mut fs);
+        drop(fs);
+        let (ours, stock2, stock_cw) = (tm.best(0), tm.best(1), tm.best(2));
+        let (hits_ours, hits_b2, hits_cw) = (tm.hits[0], tm.hits[1], tm.hits[2]);
+        let emb = with_embree.then(|| (tm.best(3), tm.hits[3], tm.ratio(0, 3)));
         let n = set.len() as f64;
         let name = store::KindTable::default().name(kind).unwrap_or("?").to_string();
         println!(
@@ -173,13 +222,13 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32) -> Result<()> {
             n / ours / 1e6,
             n / stock2 / 1e6,
             n / stock_cw / 1e6,
-            emb.map_or("n/a".into(), |(s, _)| format!("{:.2}", n / s / 1e6)),
-            stock_cw / ours,
-            emb.map_or("n/a".into(), |(s, _)| format!("{:.2}x", s / ours)),
+            emb.map_or("n/a".into(), |(s, _, _)| format!("{:.2}", n / s / 1e6)),
+            tm.ratio(0, 2),
+            emb.map_or("n/a".into(), |(_, _, r)| format!("{r:.2}x")),
             st.boxes as f64 / n,
             st.tris as f64 / n
         );
-        if let Some((_, h)) = emb
+        if let Some((_, h, _)) = emb
             && (h as f64 - hits_ours as f64).abs() > 0.002 * n
         {
             println!("  note: Embree found {h} hits, ours {hits_ours}");

@@ -49,6 +49,15 @@ pub struct Hit {
     pub v: f32,
 }
 
+/// See [`Bvh::layout`].
+#[derive(Clone, Copy, Debug)]
+pub struct BvhLayout {
+    pub wide_nodes: usize,
+    pub leaf_blocks: usize,
+    pub bytes: usize,
+    pub mean_leaf_tris: f64,
+}
+
 #[derive(Clone, Copy, Debug)]
 struct Node {
     min: Vec3A,
@@ -421,6 +430,18 @@ impl Bvh {
     /// Depth of the deepest leaf (the root is level 0).
     pub fn depth(&self) -> u32 {
         self.depth
+    }
+
+    /// What traversal reads, for benchmark reports: wide nodes, leaf blocks, their bytes, and
+    /// the mean number of triangles per leaf.
+    pub fn layout(&self) -> BvhLayout {
+        let leaves = self.nodes.iter().filter(|n| n.count > 0).count();
+        BvhLayout {
+            wide_nodes: self.nodes_w.len(),
+            leaf_blocks: self.blocks.len(),
+            bytes: std::mem::size_of_val(self.nodes_w.as_slice()) + std::mem::size_of_val(self.blocks.as_slice()),
+            mean_leaf_tris: self.prims.len() as f64 / leaves.max(1) as f64,
+        }
     }
 
     /// Closest hit in (tmin, tmax), counting the work; lists visited nodes when `visits` is given

@@ -11,7 +11,7 @@ pub mod sampling;
 pub mod scene;
 pub mod tracer;
 
-pub use bvh::{Bvh, Hit, TraversalStats};
+pub use bvh::{Bvh, BvhLayout, Hit, TraversalStats};
 pub use error::{Error, Result};
 pub use film::Film;
 pub use render::{RenderOptions, RenderStats, TracerKind, describe_recording, payload_schema, render};
