@@ -16,6 +16,7 @@
 /// interval at that moment): leaf visits without it are false-positive box tests.
 pub const VISIT_HIT: u32 = 1 << 31;
 
+use std::mem::MaybeUninit;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -93,6 +94,36 @@ const _: () = assert!(std::mem::size_of::<NodeW>() == 32 * W);
 /// wide nodes (a binary tree of any depth up to 73 at least); deeper trees are not built by
 /// obvhs's builders for real scenes (`rtvtk bench trace` prints the binary depth).
 const STACK: usize = 64 * W;
+
+/// The traversal stack: fixed capacity, left uninitialized until pushed (zeroing `STACK` entries
+/// would be a 2–4 KB memset per ray, more than a short ray's whole traversal). A push beyond
+/// the capacity is dropped (see `STACK` for why none happens).
+struct Stack<T: Copy> {
+    items: [MaybeUninit<T>; STACK],
+    len: usize,
+}
+
+impl<T: Copy> Stack<T> {
+    #[inline(always)]
+    fn new() -> Self {
+        Stack { items: [const { MaybeUninit::uninit() }; STACK], len: 0 }
+    }
+
+    #[inline(always)]
+    fn push(&mut self, v: T) {
+        if let Some(slot) = self.items.get_mut(self.len) {
+            slot.write(v);
+            self.len += 1;
+        }
+    }
+
+    #[inline(always)]
+    fn pop(&mut self) -> Option<T> {
+        self.len = self.len.checked_sub(1)?;
+        // SAFETY: entries below the old `len` were written by `push`.
+        Some(unsafe { self.items[self.len].assume_init() })
+    }
+}
 
 impl NodeW {
     /// Occupied slots (boxes a visit tests).
@@ -242,9 +273,9 @@ fn half_area(n: &Node) -> f32 {
     d.x * d.y + d.y * d.z + d.z * d.x
 }
 
-/// Collapses the binary subtree under inner node `root` into `W`-wide nodes; returns the index of
-/// the node made for `root`. A child slot opens the largest inner child until all slots are full.
-fn collapse(nodes: &[Node], root: u32, out: &mut Vec<NodeW>, ids: &mut Vec<[u32; W]>) -> u32 {
+/// The binary nodes that become the child slots of the wide node made for inner node `root`:
+/// the largest inner child is opened until all `W` slots are full.
+fn wide_slots(nodes: &[Node], root: u32) -> Vec<u32> {
     let mut slots: Vec<u32> = vec![nodes[root as usize].first, nodes[root as usize].first + 1];
     while slots.len() < W {
         let open = slots
@@ -259,26 +290,38 @@ fn collapse(nodes: &[Node], root: u32, out: &mut Vec<NodeW>, ids: &mut Vec<[u32;
         slots.push(f);
         slots.push(f + 1);
     }
-    let me = out.len() as u32;
+    slots
+}
+
+/// Collapses the binary tree under inner node `root` into `W`-wide nodes, the root first. The
+/// inner children of a wide node are stored next to each other (one allocation each time a node
+/// is filled), so the siblings a ray visits one after the other share pages and nearby lines.
+fn collapse(nodes: &[Node], root: u32, out: &mut Vec<NodeW>, ids: &mut Vec<[u32; W]>) {
     let inf = [f32::INFINITY; W];
-    out.push(NodeW { min: [inf; 3], max: [inf; 3], child: [0; W], count: [EMPTY; W] });
+    let empty = NodeW { min: [inf; 3], max: [inf; 3], child: [0; W], count: [EMPTY; W] };
+    out.push(empty);
     ids.push([0; W]);
-    for (k, &c) in slots.iter().enumerate() {
-        let n = nodes[c as usize];
-        let node = &mut out[me as usize];
-        for a in 0..3 {
-            node.min[a][k] = n.min[a];
-            node.max[a][k] = n.max[a];
-        }
-        ids[me as usize][k] = c;
-        node.count[k] = n.count;
-        node.child[k] = if n.count > 0 { n.first } else { 0 };
-        if n.count == 0 {
-            let idx = collapse(nodes, c, out, ids);
-            out[me as usize].child[k] = idx;
+    let mut todo = vec![(root, 0usize)];
+    while let Some((bin, me)) = todo.pop() {
+        let slots = wide_slots(nodes, bin);
+        for (k, &c) in slots.iter().enumerate() {
+            let n = nodes[c as usize];
+            for a in 0..3 {
+                out[me].min[a][k] = n.min[a];
+                out[me].max[a][k] = n.max[a];
+            }
+            ids[me][k] = c;
+            out[me].count[k] = n.count;
+            out[me].child[k] = n.first;
+            if n.count == 0 {
+                let child = out.len();
+                out.push(empty);
+                ids.push([0; W]);
+                out[me].child[k] = child as u32;
+                todo.push((c, child));
+            }
         }
     }
-    me
 }
 
 /// Entry distances of the child boxes of `n` (∞ for a miss), conservative as `slab_simd`. Plain
@@ -487,8 +530,7 @@ impl Bvh {
         }
         let (org, inv) = (ray.origin.to_array(), inv.to_array());
         // Stack of (wide node, distance at which its box was entered).
-        let mut stack = [(0u32, 0.0f32); STACK];
-        let mut sp = 0usize;
+        let mut stack = Stack::<(u32, f32)>::new();
         let mut node = 0u32;
         loop {
             let node_index = node as usize;
@@ -550,21 +592,16 @@ impl Bvh {
             }
             // Farther inner children wait on the stack, farthest deepest.
             for &e in deferred[..nd].iter().rev() {
-                if sp < stack.len() {
-                    stack[sp] = e;
-                    sp += 1;
-                }
+                stack.push(e);
             }
             if let Some((c, _)) = next {
                 node = c;
                 continue;
             }
             loop {
-                if sp == 0 {
+                let Some((c, dist)) = stack.pop() else {
                     return best.map(|(h, p)| Hit { t: h.t, prim: p, u: h.u, v: h.v });
-                }
-                sp -= 1;
-                let (c, dist) = stack[sp];
+                };
                 if dist <= tmax {
                     node = c;
                     break;
@@ -624,11 +661,10 @@ impl Bvh {
             return found;
         }
         let (org, inv) = (ray.origin.to_array(), inv.to_array());
-        let mut stack = [0u32; STACK];
-        let mut sp = 1usize;
-        while sp > 0 {
-            sp -= 1;
-            let node_index = stack[sp] as usize;
+        let mut stack = Stack::<u32>::new();
+        stack.push(0);
+        while let Some(top) = stack.pop() {
+            let node_index = top as usize;
             let n = &self.nodes_w[node_index];
             let d = slab_w(n, org, inv, tmin, tmax);
             stats.boxes += n.slots();
@@ -655,9 +691,8 @@ impl Bvh {
                         mark(visits, &found);
                         return found;
                     }
-                } else if sp < stack.len() {
-                    stack[sp] = n.child[c];
-                    sp += 1;
+                } else {
+                    stack.push(n.child[c]);
                 }
             }
         }
