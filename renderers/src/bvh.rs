@@ -129,7 +129,7 @@ impl NodeW {
     /// Occupied slots (boxes a visit tests).
     #[inline(always)]
     fn slots(&self) -> u32 {
-        self.count.iter().map(|&c| u32::from(c != EMPTY)).sum()
+        occupied_mask(&self.count).count_ones()
     }
 }
 
@@ -243,10 +243,44 @@ fn slab_simd(min: Vec3A, max: Vec3A, org: Vec3A, inv: Vec3A, tmin: f32, tmax: f3
     if near <= far * (1.0 + 2.0 * GAMMA3) { near } else { f32::INFINITY }
 }
 
-/// Bit `c` set where child box `c` was hit (a finite entry distance): one SIMD compare and mask.
+/// Bit `i` set where `a[i] <= b[i]`. On x86_64 two SSE compares and mask moves (the AVX2 build
+/// fuses them into one 256-bit compare and `vmovmskps`); the plain loop elsewhere (LLVM does not
+/// turn it into a mask move, it reduces the lanes one by one).
 #[inline(always)]
-fn hit_mask(d: &[f32; W]) -> u32 {
-    d.iter().enumerate().fold(0, |m, (c, &t)| m | (u32::from(t < f32::INFINITY) << c))
+fn le_mask(a: &[f32; W], b: &[f32; W]) -> u32 {
+    const _: () = assert!(W == 8, "le_mask and occupied_mask are written for 8 lanes");
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_cmple_ps, _mm_loadu_ps, _mm_movemask_ps};
+        // SAFETY: SSE is part of the x86_64 baseline; the loads read lanes 0..4 and 4..8 of W = 8.
+        unsafe {
+            let lo = _mm_cmple_ps(_mm_loadu_ps(a.as_ptr()), _mm_loadu_ps(b.as_ptr()));
+            let hi = _mm_cmple_ps(_mm_loadu_ps(a.as_ptr().add(4)), _mm_loadu_ps(b.as_ptr().add(4)));
+            (_mm_movemask_ps(lo) | (_mm_movemask_ps(hi) << 4)) as u32
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    a.iter().zip(b).enumerate().fold(0, |m, (i, (x, y))| m | (u32::from(x <= y) << i))
+}
+
+/// Bit `i` set where slot `i` of the node holds a child (its count is not `EMPTY`).
+#[inline(always)]
+fn occupied_mask(count: &[u32; W]) -> u32 {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{
+            __m128i, _mm_castsi128_ps, _mm_cmpeq_epi32, _mm_loadu_si128, _mm_movemask_ps, _mm_set1_epi32,
+        };
+        // SAFETY: SSE2 is part of the x86_64 baseline; the loads read lanes 0..4 and 4..8 of W = 8.
+        unsafe {
+            let e = _mm_set1_epi32(EMPTY as i32);
+            let lo = _mm_cmpeq_epi32(_mm_loadu_si128(count.as_ptr().cast::<__m128i>()), e);
+            let hi = _mm_cmpeq_epi32(_mm_loadu_si128(count.as_ptr().add(4).cast::<__m128i>()), e);
+            !(_mm_movemask_ps(_mm_castsi128_ps(lo)) | (_mm_movemask_ps(_mm_castsi128_ps(hi)) << 4)) as u32 & 0xff
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    count.iter().enumerate().fold(0, |m, (i, &c)| m | (u32::from(c != EMPTY) << i))
 }
 
 /// Runs `f` (a traversal: `#[inline(always)]` all the way down) compiled for AVX2 where this CPU
@@ -255,15 +289,19 @@ fn hit_mask(d: &[f32; W]) -> u32 {
 #[inline(always)]
 fn fastest<R>(f: impl FnOnce() -> R) -> R {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-        // SAFETY: the CPU has AVX2 and FMA (checked just above).
+    if std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
+        && std::arch::is_x86_feature_detected!("popcnt")
+        && std::arch::is_x86_feature_detected!("bmi1")
+    {
+        // SAFETY: the CPU has AVX2, FMA, POPCNT and BMI1 (checked just above).
         return unsafe { with_avx2(f) };
     }
     f()
 }
 
 #[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
+#[target_feature(enable = "avx2,fma,popcnt,bmi1")]
 fn with_avx2<R>(f: impl FnOnce() -> R) -> R {
     f()
 }
@@ -324,26 +362,27 @@ fn collapse(nodes: &[Node], root: u32, out: &mut Vec<NodeW>, ids: &mut Vec<[u32;
     }
 }
 
-/// Entry distances of the child boxes of `n` (∞ for a miss), conservative as `slab_simd`. Plain
-/// per-lane code the compiler turns into `W`-wide SIMD (inputs are finite, see `safe_inv`, so
-/// plain comparisons stand in for the NaN-aware `f32::min/max`).
+/// Entry distances of the child boxes of `n` and the mask of the boxes hit, conservative as
+/// `slab_simd`. Plain per-lane code the compiler turns into `W`-wide SIMD (inputs are finite, see
+/// `safe_inv`, so plain comparisons stand in for the NaN-aware `f32::min/max`). Empty slots
+/// (min = max = +∞) are masked out: with every plane at +∞ an infinite ray would "hit" them.
 #[inline(always)]
-fn slab_w(n: &NodeW, org: [f32; 3], inv: [f32; 3], tmin: f32, tmax: f32) -> [f32; W] {
-    let mut out = [0.0f32; W];
+fn slab_w(n: &NodeW, org: [f32; 3], inv: [f32; 3], tmin: f32, tmax: f32) -> ([f32; W], u32) {
+    let mut near = [0.0f32; W];
+    let mut far = [0.0f32; W];
     let mn = |a: f32, b: f32| if a < b { a } else { b };
     let mx = |a: f32, b: f32| if a > b { a } else { b };
-    for (i, o) in out.iter_mut().enumerate() {
+    for i in 0..W {
         let t1x = (n.min[0][i] - org[0]) * inv[0];
         let t2x = (n.max[0][i] - org[0]) * inv[0];
         let t1y = (n.min[1][i] - org[1]) * inv[1];
         let t2y = (n.max[1][i] - org[1]) * inv[1];
         let t1z = (n.min[2][i] - org[2]) * inv[2];
         let t2z = (n.max[2][i] - org[2]) * inv[2];
-        let near = mx(mx(mx(mn(t1x, t2x), mn(t1y, t2y)), mn(t1z, t2z)), tmin);
-        let far = mn(mn(mn(mx(t1x, t2x), mx(t1y, t2y)), mx(t1z, t2z)), tmax);
-        *o = if near <= far * (1.0 + 2.0 * GAMMA3) { near } else { f32::INFINITY };
+        near[i] = mx(mx(mx(mn(t1x, t2x), mn(t1y, t2y)), mn(t1z, t2z)), tmin);
+        far[i] = mn(mn(mn(mx(t1x, t2x), mx(t1y, t2y)), mx(t1z, t2z)), tmax) * (1.0 + 2.0 * GAMMA3);
     }
-    out
+    (near, le_mask(&near, &far) & occupied_mask(&n.count))
 }
 
 impl Bvh {
@@ -535,21 +574,22 @@ impl Bvh {
         loop {
             let node_index = node as usize;
             let n = &self.nodes_w[node_index];
-            let d = slab_w(n, org, inv, tmin, tmax);
+            let (d, mut hits) = slab_w(n, org, inv, tmin, tmax);
             stats.boxes += n.slots();
             // Hit children, nearest first.
             let mut order = [(0usize, 0.0f32); W];
             let mut k = 0;
-            for (c, &dc) in d.iter().enumerate() {
-                if dc < f32::INFINITY {
-                    let mut j = k;
-                    while j > 0 && order[j - 1].1 > dc {
-                        order[j] = order[j - 1];
-                        j -= 1;
-                    }
-                    order[j] = (c, dc);
-                    k += 1;
+            while hits != 0 {
+                let c = hits.trailing_zeros() as usize;
+                hits &= hits - 1;
+                let dc = d[c];
+                let mut j = k;
+                while j > 0 && order[j - 1].1 > dc {
+                    order[j] = order[j - 1];
+                    j -= 1;
                 }
+                order[j] = (c, dc);
+                k += 1;
             }
             let mut next: Option<(u32, f32)> = None;
             let mut deferred = [(0u32, 0.0f32); W];
@@ -666,9 +706,8 @@ impl Bvh {
         while let Some(top) = stack.pop() {
             let node_index = top as usize;
             let n = &self.nodes_w[node_index];
-            let d = slab_w(n, org, inv, tmin, tmax);
+            let (_, mut hits) = slab_w(n, org, inv, tmin, tmax);
             stats.boxes += n.slots();
-            let mut hits = hit_mask(&d);
             while hits != 0 {
                 let c = hits.trailing_zeros() as usize;
                 hits &= hits - 1;
