@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Subcommand;
+use arrow::array::RecordBatch;
 use parquet::arrow::ArrowWriter;
 use parquet::basic::{Compression, ZstdLevel};
 use parquet::file::properties::WriterProperties;
@@ -72,6 +73,10 @@ pub enum BenchCommand {
         /// power loss needs it, a killed process does not).
         #[arg(long)]
         no_sync: bool,
+        /// Write rounds; each writes the baseline and then every encoding, so slow phases of a
+        /// shared machine hit both (best speed and median per-round ratios are reported).
+        #[arg(long, default_value_t = 3)]
+        rounds: u32,
     },
     /// A fixed query suite (anchors' six queries, coherence, BVH cost) on a dataset, beside
     /// DuckDB on the same Parquet files: time and peak-memory ratios.
@@ -136,6 +141,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             encodings,
             no_duckdb,
             no_sync,
+            rounds,
         } => {
             let encodings = encodings.iter().map(|e| Encoding::parse(e)).collect::<Result<Vec<_>, _>>()?;
             let args = StoreArgs {
@@ -146,6 +152,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
                 fetches,
                 duckdb: !no_duckdb,
                 sync: !no_sync,
+                rounds: rounds.max(1),
             };
             store_bench(rays, &args, dir, scene.as_deref(), &encodings)
         }
@@ -267,6 +274,7 @@ pub(crate) fn dir_bytes(dir: &std::path::Path) -> u64 {
 
 struct StoreArgs {
     sync: bool,
+    rounds: u32,
     threads: usize,
     workers: usize,
     chunk_rays: usize,
@@ -475,33 +483,65 @@ fn store_bench(
     }
 
     // Baseline: arrow-rs ArrowWriter, default properties with zstd(1), one file.
-    eprintln!("writing the baseline ...");
     let base_path = root.join("baseline.parquet");
-    let cpu0 = cpu_seconds();
-    let t = Instant::now();
-    {
+    let write_baseline = |batches: &[RecordBatch]| -> Result<(f64, f64)> {
+        let cpu0 = cpu_seconds();
+        let t = Instant::now();
         let props = WriterProperties::builder().set_compression(Compression::ZSTD(ZstdLevel::try_new(1)?)).build();
         let file = File::create(&base_path)?;
         let mut w = ArrowWriter::try_new(file, batches[0].schema(), Some(props))?;
-        for b in &batches {
+        for b in batches {
             w.write(b)?;
         }
         w.close()?;
+        Ok((t.elapsed().as_secs_f64(), cpu_seconds() - cpu0))
+    };
+    // Rounds: the baseline, then every encoding; (seconds, CPU seconds) per round.
+    let mut base_runs: Vec<(f64, f64)> = Vec::new();
+    let mut runs: Vec<Vec<(f64, f64)>> = vec![Vec::new(); encodings.len()];
+    let mut last: Vec<Option<(rl::Summary, Vec<TreeId>)>> = vec![None; encodings.len()];
+    for round in 0..args.rounds {
+        eprintln!("round {}/{}: writing the baseline ...", round + 1, args.rounds);
+        base_runs.push(write_baseline(&batches)?);
+        if round + 1 == args.rounds {
+            batches.clear();
+            batches.shrink_to_fit();
+        }
+        for (k, &encoding) in encodings.iter().enumerate() {
+            let ds_path = root.join(format!("trace-{}", encoding.name()));
+            if ds_path.exists() {
+                std::fs::remove_dir_all(&ds_path).with_context(|| format!("removing {}", ds_path.display()))?;
+            }
+            eprintln!("round {}/{}: recording {} ...", round + 1, args.rounds, encoding.name());
+            let cpu0 = cpu_seconds();
+            let (secs, summary, ids) = record_trace(&trace, &ds_path, args, encoding)?;
+            runs[k].push((secs, cpu_seconds() - cpu0));
+            last[k] = Some((summary, ids));
+        }
     }
-    let base_secs = t.elapsed().as_secs_f64();
-    let base_cpu = cpu_seconds() - cpu0;
     let base_bytes = std::fs::metadata(&base_path)?.len();
-    drop(batches);
     let n = trace.rays as f64;
+    let best = |v: &[(f64, f64)]| v.iter().map(|r| r.0).fold(f64::INFINITY, f64::min);
+    let best_cpu = |v: &[(f64, f64)]| v.iter().map(|r| r.1).fold(f64::INFINITY, f64::min);
+    // Median over rounds of f(baseline round, our round).
+    let median_ratio = |ours: &[(f64, f64)], f: &dyn Fn((f64, f64), (f64, f64)) -> f64| {
+        let mut r: Vec<f64> = base_runs.iter().zip(ours).map(|(&b, &o)| f(b, o)).collect();
+        r.sort_by(f64::total_cmp);
+        let m = r.len() / 2;
+        let med = if r.len() % 2 == 1 { r[m] } else { (r[m - 1] + r[m]) / 2.0 };
+        (med, r)
+    };
 
     println!("## rtvtk bench store ({} rays, {} trees of {source})", trace.rays, trace.trees.len());
     println!();
     println!(
         "rtvtk: the rl recording API from {} tracing thread(s), encoding and writing on {} worker thread(s), \
-         segments {}; core ray columns only (no payload).",
+         segments {}; core ray columns only (no payload). {} round(s), each writing the baseline and then every \
+         encoding: Mrays/s, time and CPU from the best round, ratios are medians of per-round ratios.",
         args.threads,
         args.workers,
-        if args.sync { "fsynced when sealed" } else { "not fsynced" }
+        if args.sync { "fsynced when sealed" } else { "not fsynced" },
+        args.rounds
     );
     println!();
     println!(
@@ -510,19 +550,17 @@ fn store_bench(
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     println!(
         "| arrow-rs ArrowWriter, default properties, zstd-1 (baseline) | {:.2} | {:.2} | {:.2} | {:.2} | 1.00x | 1.00x | 1.00x | 0 | 0 | 0 | 0 |",
-        n / base_secs / 1e6,
+        n / best(&base_runs) / 1e6,
         base_bytes as f64 / n,
-        base_secs,
-        base_cpu
+        best(&base_runs),
+        best_cpu(&base_runs)
     );
     let mut fetch_ds: Option<PathBuf> = None;
     let mut peak = 0u64;
-    for &encoding in encodings {
+    let mut per_round = Vec::new();
+    for ((&encoding, runs), last) in encodings.iter().zip(&runs).zip(last) {
+        let Some((summary, ids)) = last else { continue };
         let ds_path = root.join(format!("trace-{}", encoding.name()));
-        eprintln!("recording {} ...", encoding.name());
-        let cpu0 = cpu_seconds();
-        let (secs, summary, ids) = record_trace(&trace, &ds_path, args, encoding)?;
-        let cpu = cpu_seconds() - cpu0;
         peak = peak.max(summary.peak_buffered_bytes);
         let bytes = dir_bytes(&ds_path);
         let (mut errs, mut scene_size) = (Errors::default(), f64::NAN);
@@ -548,21 +586,34 @@ fn store_bench(
         } else {
             "0 (bit-exact) | 0 | 0 | 0".to_string()
         };
+        let (speed, speeds) = median_ratio(runs, &|b, o| b.0 / o.0);
+        let (cpu_ratio, _) = median_ratio(runs, &|b, o| o.1 / b.1);
         println!(
-            "| rtvtk {} ({} segments) | {:.2} | {:.2} | {:.2} | {:.2} | {:.2}x | {:.2}x | {:.2}x | {err_cols} |",
+            "| rtvtk {} ({} segments) | {:.2} | {:.2} | {:.2} | {:.2} | {speed:.2}x | {cpu_ratio:.2}x | {:.2}x | {err_cols} |",
             encoding.name(),
             summary.segments,
-            n / secs / 1e6,
+            n / best(runs) / 1e6,
             bytes as f64 / n,
-            secs,
-            cpu,
-            base_secs / secs,
-            cpu / base_cpu,
+            best(runs),
+            best_cpu(runs),
             bytes as f64 / base_bytes as f64,
         );
+        per_round.push(format!(
+            "{}: {}",
+            encoding.name(),
+            speeds.iter().map(|r| format!("{r:.2}x")).collect::<Vec<_>>().join(" ")
+        ));
         if fetch_ds.is_none() {
             fetch_ds = Some(ds_path);
         }
+    }
+    println!();
+    println!(
+        "write speed vs baseline per round (sorted); baseline Mrays/s per round: {}",
+        base_runs.iter().map(|r| format!("{:.2}", n / r.0 / 1e6)).collect::<Vec<_>>().join(" ")
+    );
+    for line in per_round {
+        println!("  {line}");
     }
     println!();
     println!(
