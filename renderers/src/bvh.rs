@@ -90,35 +90,44 @@ struct NodeW {
 
 const _: () = assert!(std::mem::size_of::<NodeW>() == 32 * W);
 
-/// Traversal stack entries: a visit pushes at most `W - 1`, so this holds any path of up to 73
-/// wide nodes (a binary tree of any depth up to 73 at least); deeper trees are not built by
-/// obvhs's builders for real scenes (`rtvtk bench trace` prints the binary depth).
+/// Traversal stack entries kept inline: a visit pushes at most `W - 1`, so this holds any path of
+/// up to 73 wide nodes (a binary tree of depth 73 at least; `rtvtk bench trace` prints the binary
+/// depth, 28 for 608K triangles). Deeper trees spill onto the heap (`Stack::spill`).
 const STACK: usize = 64 * W;
 
-/// The traversal stack: fixed capacity, left uninitialized until pushed (zeroing `STACK` entries
-/// would be a 2–4 KB memset per ray, more than a short ray's whole traversal). A push beyond
-/// the capacity is dropped (see `STACK` for why none happens).
+/// The traversal stack: `STACK` entries inline, left uninitialized until pushed (zeroing them
+/// would be a 2–4 KB memset per ray, more than a short ray's whole traversal); pushes beyond
+/// them go to a heap vector, allocated only then, so no subtree is ever dropped.
 struct Stack<T: Copy> {
     items: [MaybeUninit<T>; STACK],
     len: usize,
+    /// Entries pushed while `items` was full (the newest on top). Non-empty only while `len ==
+    /// STACK`, so popping it first keeps last-in first-out order.
+    spill: Vec<T>,
 }
 
 impl<T: Copy> Stack<T> {
     #[inline(always)]
     fn new() -> Self {
-        Stack { items: [const { MaybeUninit::uninit() }; STACK], len: 0 }
+        Stack { items: [const { MaybeUninit::uninit() }; STACK], len: 0, spill: Vec::new() }
     }
 
     #[inline(always)]
     fn push(&mut self, v: T) {
-        if let Some(slot) = self.items.get_mut(self.len) {
-            slot.write(v);
-            self.len += 1;
+        match self.items.get_mut(self.len) {
+            Some(slot) => {
+                slot.write(v);
+                self.len += 1;
+            }
+            None => self.spill.push(v),
         }
     }
 
     #[inline(always)]
     fn pop(&mut self) -> Option<T> {
+        if !self.spill.is_empty() {
+            return self.spill.pop();
+        }
         self.len = self.len.checked_sub(1)?;
         // SAFETY: entries below the old `len` were written by `push`.
         Some(unsafe { self.items[self.len].assume_init() })
@@ -845,6 +854,27 @@ mod tests {
     use super::*;
     use crate::sampling::Rng;
     use crate::scene::BuiltinScene;
+
+    /// Past its inline entries the stack spills to the heap and still pops last in, first out.
+    #[test]
+    fn stack_spills_without_losing_entries() {
+        let mut st = Stack::<u32>::new();
+        let n = 3 * STACK as u32 + 5;
+        for i in 0..n {
+            st.push(i);
+        }
+        assert_eq!(st.spill.len(), n as usize - STACK);
+        // Interleaved pops and pushes across the boundary.
+        assert_eq!(st.pop(), Some(n - 1));
+        st.push(7);
+        assert_eq!(st.pop(), Some(7));
+        for i in (0..n - 1).rev() {
+            assert_eq!(st.pop(), Some(i));
+        }
+        assert_eq!(st.pop(), None);
+        st.push(1);
+        assert_eq!((st.pop(), st.pop()), (Some(1), None));
+    }
 
     /// The baseline build of the traversal (`*_in`, compiled without AVX2 here) and the public
     /// entry points (the AVX2 build on a CPU that has it) agree bit for bit: hits, counts and
