@@ -11,13 +11,17 @@ use anyhow::{Context, Result, bail};
 use crate::bench::dir_bytes;
 use crate::bench_query::median;
 
-/// Wall seconds of `rtvtk record ARGS --out OUT --quiet [--no-record]`.
+/// Wall seconds of `rtvtk record ARGS --out OUT --quiet [--no-record]`. Both runs write the same
+/// PNG and EXR beside OUT (a recording writes them into OUT by default, `--no-record` writes none
+/// unless asked: left to the defaults, image output would be counted as recording overhead).
 fn timed_record(exe: &Path, args: &[String], out: &Path, record: bool) -> Result<f64> {
     if out.exists() {
         std::fs::remove_dir_all(out).with_context(|| format!("removing {}", out.display()))?;
     }
     let mut cmd = Command::new(exe);
     cmd.arg("record").args(args).arg("--out").arg(out).arg("--quiet");
+    let dir = out.parent().unwrap_or(out);
+    cmd.arg("--image").arg(dir.join("image.png")).arg("--exr").arg(dir.join("image.exr"));
     if !record {
         cmd.arg("--no-record");
     }
@@ -31,7 +35,9 @@ fn timed_record(exe: &Path, args: &[String], out: &Path, record: bool) -> Result
 }
 
 pub fn run(runs: usize, args: &[String]) -> Result<()> {
-    if let Some(a) = args.iter().find(|a| matches!(a.as_str(), "--out" | "--no-record" | "--quiet")) {
+    if let Some(a) =
+        args.iter().find(|a| matches!(a.as_str(), "--out" | "--no-record" | "--quiet" | "--image" | "--exr"))
+    {
         bail!("bench record sets {a} itself; give only the scene, size, spp, threads, writers, ... of `rtvtk record`");
     }
     let exe = std::env::current_exe().context("finding the rtvtk executable")?;
