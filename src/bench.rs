@@ -521,15 +521,14 @@ fn store_bench(
     }
     let base_bytes = std::fs::metadata(&base_path)?.len();
     let n = trace.rays as f64;
-    let best = |v: &[(f64, f64)]| v.iter().map(|r| r.0).fold(f64::INFINITY, f64::min);
-    let best_cpu = |v: &[(f64, f64)]| v.iter().map(|r| r.1).fold(f64::INFINITY, f64::min);
-    // Median over rounds of f(baseline round, our round).
+    // Smallest seconds (`.0`) or CPU seconds (`.1`) over the rounds.
+    let best = |v: &[(f64, f64)], pick: fn(&(f64, f64)) -> f64| v.iter().map(pick).fold(f64::INFINITY, f64::min);
+    let best_secs = |v: &[(f64, f64)]| best(v, |r| r.0);
+    // Median over rounds of f(baseline round, our round), and the sorted per-round values.
     let median_ratio = |ours: &[(f64, f64)], f: &dyn Fn((f64, f64), (f64, f64)) -> f64| {
         let mut r: Vec<f64> = base_runs.iter().zip(ours).map(|(&b, &o)| f(b, o)).collect();
         r.sort_by(f64::total_cmp);
-        let m = r.len() / 2;
-        let med = if r.len() % 2 == 1 { r[m] } else { (r[m - 1] + r[m]) / 2.0 };
-        (med, r)
+        (crate::bench_query::median(&r), r)
     };
 
     println!("## rtvtk bench store ({} rays, {} trees of {source})", trace.rays, trace.trees.len());
@@ -550,10 +549,10 @@ fn store_bench(
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     println!(
         "| arrow-rs ArrowWriter, default properties, zstd-1 (baseline) | {:.2} | {:.2} | {:.2} | {:.2} | 1.00x | 1.00x | 1.00x | 0 | 0 | 0 | 0 |",
-        n / best(&base_runs) / 1e6,
+        n / best_secs(&base_runs) / 1e6,
         base_bytes as f64 / n,
-        best(&base_runs),
-        best_cpu(&base_runs)
+        best_secs(&base_runs),
+        best(&base_runs, |r| r.1)
     );
     let mut fetch_ds: Option<PathBuf> = None;
     let mut peak = 0u64;
@@ -592,10 +591,10 @@ fn store_bench(
             "| rtvtk {} ({} segments) | {:.2} | {:.2} | {:.2} | {:.2} | {speed:.2}x | {cpu_ratio:.2}x | {:.2}x | {err_cols} |",
             encoding.name(),
             summary.segments,
-            n / best(runs) / 1e6,
+            n / best_secs(runs) / 1e6,
             bytes as f64 / n,
-            best(runs),
-            best_cpu(runs),
+            best_secs(runs),
+            best(runs, |r| r.1),
             bytes as f64 / base_bytes as f64,
         );
         per_round.push(format!(

@@ -13,6 +13,8 @@ use renderers::tracer::{SampleRecord, TraceCtx, path_sample};
 use renderers::{BuiltinScene, Bvh, TraversalStats};
 use rl::Kind;
 
+use crate::bench_query::median;
+
 struct BenchRay {
     o: Vec3A,
     d: Vec3A,
@@ -43,13 +45,16 @@ impl Timings {
         self.secs[i].iter().copied().fold(f64::INFINITY, f64::min)
     }
 
-    /// Median over rounds of time(i) / time(j): how many times faster j is than i in one round.
+    /// Median over rounds of time(j) / time(i): how many times faster i was than j in a round.
     fn ratio(&self, i: usize, j: usize) -> f64 {
-        let mut r: Vec<f64> = self.secs[i].iter().zip(&self.secs[j]).map(|(a, b)| b / a).collect();
-        r.sort_by(f64::total_cmp);
-        let m = r.len() / 2;
-        if r.len() % 2 == 1 { r[m] } else { (r[m - 1] + r[m]) / 2.0 }
+        let r: Vec<f64> = self.secs[i].iter().zip(&self.secs[j]).map(|(a, b)| b / a).collect();
+        median(&r)
     }
+}
+
+/// Rays of `set` for which `hit` says yes (the counts are compared across traversals).
+fn count_hits(set: &[&BenchRay], mut hit: impl FnMut(&BenchRay) -> bool) -> u64 {
+    set.iter().map(|r| u64::from(hit(r))).sum()
 }
 
 pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32, rounds: u32) -> Result<()> {
@@ -136,37 +141,29 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32, rounds: u32) -> R
             continue;
         }
         let shadow = kind == Kind::SHADOW;
-        // Work counts, from a pass of their own (the timed passes count too, and throw it away).
-        let mut st = TraversalStats::default();
-        for r in &set {
+        // Ours, counting its work into `st`.
+        let ours = |r: &BenchRay, st: &mut TraversalStats| {
             let ray = Ray::new(r.o, r.d);
             if shadow {
-                bvh.any_hit(&ray, 0.0, r.tmax, &mut st);
+                bvh.any_hit(&ray, 0.0, r.tmax, st).is_some()
             } else {
-                bvh.intersect(&ray, 0.0, r.tmax, &mut st, None);
+                bvh.intersect(&ray, 0.0, r.tmax, st, None).is_some()
             }
-        }
+        };
+        // Work counts, from a pass of their own (the timed passes count too, and throw it away).
+        let mut st = TraversalStats::default();
+        count_hits(&set, |r| ours(r, &mut st));
         let mut fs: Vec<Box<dyn FnMut() -> u64 + '_>> = vec![
             Box::new(|| {
                 let mut st = TraversalStats::default();
-                let mut hits = 0;
-                for r in &set {
-                    let ray = Ray::new(r.o, r.d);
-                    let hit = if shadow {
-                        bvh.any_hit(&ray, 0.0, r.tmax, &mut st).is_some()
-                    } else {
-                        bvh.intersect(&ray, 0.0, r.tmax, &mut st, None).is_some()
-                    };
-                    hits += u64::from(hit);
-                }
+                let hits = count_hits(&set, |r| ours(r, &mut st));
                 std::hint::black_box(st);
                 hits
             }),
             Box::new(|| {
-                let mut hits = 0;
-                for r in &set {
+                count_hits(&set, |r| {
                     let ray = ORay::new(r.o, r.d, 0.0, r.tmax);
-                    let hit = if shadow {
+                    if shadow {
                         let mut found = false;
                         b2.ray_traverse_anyhit(ray, |ray, id| {
                             found |= tris[b2.primitive_indices[id] as usize].intersect(ray) < ray.tmax;
@@ -175,37 +172,28 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32, rounds: u32) -> R
                     } else {
                         let mut h = RayHit::none();
                         b2.ray_traverse(ray, &mut h, |ray, id| tris[b2.primitive_indices[id] as usize].intersect(ray))
-                    };
-                    hits += u64::from(hit);
-                }
-                hits
+                    }
+                })
             }),
             Box::new(|| {
-                let mut hits = 0;
-                for r in &set {
+                count_hits(&set, |r| {
                     let ray = ORay::new(r.o, r.d, 0.0, r.tmax);
-                    let hit = if shadow {
-                        !cw.ray_traverse_miss(ray, |ray, id| tris[cw.primitive_indices[id] as usize].intersect(ray))
+                    let intersect = |ray: &ORay, id: usize| tris[cw.primitive_indices[id] as usize].intersect(ray);
+                    if shadow {
+                        !cw.ray_traverse_miss(ray, intersect)
                     } else {
-                        let mut h = RayHit::none();
-                        cw.ray_traverse(ray, &mut h, |ray, id| tris[cw.primitive_indices[id] as usize].intersect(ray))
-                    };
-                    hits += u64::from(hit);
-                }
-                hits
+                        cw.ray_traverse(ray, &mut RayHit::none(), intersect)
+                    }
+                })
             }),
         ];
         #[cfg(feature = "embree")]
         if let Some(e) = &embree {
             let set = &set;
             fs.push(Box::new(move || {
-                let mut hits = 0;
-                for r in set {
-                    let hit =
-                        if shadow { e.occluded(r.o, r.d, r.tmax) } else { e.intersect(r.o, r.d, r.tmax).is_some() };
-                    hits += u64::from(hit);
-                }
-                hits
+                count_hits(set, |r| {
+                    if shadow { e.occluded(r.o, r.d, r.tmax) } else { e.intersect(r.o, r.d, r.tmax).is_some() }
+                })
             }));
         }
         let with_embree = fs.len() == 4;

@@ -74,8 +74,9 @@ struct Node {
 const W: usize = 8;
 
 /// A `W`-wide node collapsed from the binary tree: the child boxes as SIMD lanes, per axis.
-/// Empty slots have min = max = +∞, which no ray can hit. Exactly four cache lines: what only
-/// recording needs (the children's ids) lives beside, in `Bvh::ids_w`.
+/// Empty slots have min = max = +∞ and count `EMPTY`; `slab_w` masks them out by their counts.
+/// Exactly four cache lines: what only recording needs (the children's ids) lives beside, in
+/// `Bvh::ids_w`.
 #[derive(Clone, Copy, Debug)]
 #[repr(C, align(64))]
 struct NodeW {
