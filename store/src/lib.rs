@@ -6,6 +6,7 @@ mod columns;
 mod dataset;
 mod error;
 mod manifest;
+mod pages;
 mod planes;
 mod rows;
 mod schema;

@@ -21,6 +21,7 @@ use crate::codec::{ENC_T, ENCODED_COLUMNS, Encoding, KIND_CODE, encode, file_sch
 use crate::columns::{RayColumns, TreeRow};
 use crate::error::{io_err, pq_err};
 use crate::manifest::{FileEntry, Manifest, SegmentEntry, segment_file, sync_dir};
+use crate::pages::{Plan, RayFileWriter};
 use crate::planes::{PLANES_KEY, PlaneLearner};
 use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
 use crate::stats::Stats;
@@ -148,8 +149,16 @@ impl DatasetWriter {
         let file = File::create(&tmp).map_err(io_err("creating a segment file", &tmp))?;
         let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
         let schema = file_schema(&ray_schema(&self.payload), self.options.encoding, FORMAT_VERSION);
-        let writer = ArrowWriter::try_new(sink, schema.clone(), Some(ray_properties(&self.options, &self.dir, None)?))
-            .map_err(pq_err(&tmp))?;
+        let plans: Vec<Plan> = schema.fields().iter().map(|f| column_plan(f.name(), self.options.encoding)).collect();
+        let writer = RayFileWriter::try_new(
+            sink,
+            schema.clone(),
+            ray_properties(&self.options, &self.dir, None)?,
+            &plans,
+            self.options.zstd_level,
+            self.options.page_rows,
+        )
+        .map_err(pq_err(&tmp))?;
         Ok(SegmentWriter {
             id,
             tmp,
@@ -229,7 +238,7 @@ const TREE_BATCH_ROWS: usize = 64 * 1024;
 pub struct SegmentWriter {
     id: u32,
     tmp: PathBuf,
-    writer: Option<ArrowWriter<FileSink>>,
+    writer: Option<RayFileWriter<FileSink>>,
     /// The tree rows written, rows made file-relative, in blocks of [`TREE_BLOCK_ROWS`] (sorted
     /// and merged by id at seal) rather than one vector: growing one vector of ~24 MB copied it
     /// and faulted fresh pages in each time; blocks come from and go back to `tree_blocks`.
@@ -418,6 +427,20 @@ fn ensure_empty(dir: &Path) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// How a column of an encoded ray file is written (see [`ray_properties`] for why): plain
+/// layouts and payload columns go through arrow-rs.
+fn column_plan(name: &str, encoding: Encoding) -> Plan {
+    if encoding == Encoding::Plain {
+        return Plan::Arrow;
+    }
+    match name {
+        "tree_id" => Plan::Delta,
+        KIND_CODE | "ray" | "parent" | "depth" | "prim" => Plan::Split { stats: true },
+        n if n == ENC_T || ENCODED_COLUMNS.contains(&n) => Plan::Split { stats: false },
+        _ => Plan::Arrow,
+    }
 }
 
 /// Parquet properties of the ray files. `row_group_cap`: the writer's own row-group limit (None

@@ -194,8 +194,13 @@ fn box_trees(n: u64, scale: f32, offset: f32) -> RayColumns {
 }
 
 fn write(dir: &Path, cols: &RayColumns, encoding: Encoding, chunks: usize) {
+    write_pages(dir, cols, encoding, chunks, 100);
+}
+
+/// [`write`] with pages of `page_rows` rows.
+fn write_pages(dir: &Path, cols: &RayColumns, encoding: Encoding, chunks: usize, page_rows: usize) {
     let schema = PayloadSchema::default();
-    let opts = WriteOptions { row_group_rows: 1000, page_rows: 100, encoding, ..Default::default() };
+    let opts = WriteOptions { row_group_rows: 1000, page_rows, encoding, ..Default::default() };
     let w = DatasetWriter::create(dir, schema.clone(), opts).unwrap();
     let kinds = KindTable::default();
     let mut seg = w.open_segment().unwrap();
@@ -277,7 +282,8 @@ fn lossless_is_smaller_than_plain_on_tree_structured_rays() {
     for encoding in [Encoding::Plain, Encoding::Lossless] {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ds");
-        write(&path, &cols, encoding, 1);
+        // Pages of 1,000 rows (one per row group): 100-row pages are mostly page headers.
+        write_pages(&path, &cols, encoding, 1, 1000);
         let ds = Dataset::open(&path).unwrap();
         sizes.push(ds.manifest().segments[0].rays.bytes);
     }
