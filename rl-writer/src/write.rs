@@ -1,9 +1,10 @@
 //! Write mode: background workers encode chunks into Parquet segments and seal them.
 
+use std::collections::VecDeque;
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{self, Sender};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -19,9 +20,108 @@ const QUEUED_CHUNKS_PER_WRITER: usize = 4;
 /// Emptied chunk buffers kept for the tracing threads, per writer thread.
 const SPARE_CHUNKS_PER_WRITER: usize = 2 * QUEUED_CHUNKS_PER_WRITER;
 
-enum Msg {
+/// What a writer thread does next.
+enum Job {
     Chunk(Box<RayRows>, Arc<KindTable>, usize),
     Flush(Arc<KindTable>, Sender<()>),
+    /// The open segment is older than `seal_interval`.
+    SealDue,
+    /// The recording is over (or every writer is gone): seal and stop.
+    Closed,
+}
+
+/// A flush asked of one writer: it seals once every chunk submitted before the flush is taken.
+struct Flush {
+    upto: u64,
+    kinds: Arc<KindTable>,
+    ack: Sender<()>,
+}
+
+/// Chunks waiting for the writers, one queue for all of them: a writer free takes the next chunk,
+/// so one writer busy sealing (or preempted) does not leave the other idle while its own queue
+/// is full (as with a channel per writer served round robin).
+#[derive(Default)]
+struct QueueState {
+    chunks: VecDeque<(Box<RayRows>, Arc<KindTable>, usize)>,
+    submitted: u64,
+    taken: u64,
+    /// Per writer: the flush it owes, and whether it still runs.
+    flushes: Vec<Option<Flush>>,
+    alive: Vec<bool>,
+    closed: bool,
+}
+
+#[derive(Default)]
+struct Queue {
+    state: Mutex<QueueState>,
+    ready: Condvar,
+}
+
+impl Queue {
+    fn lock(&self) -> MutexGuard<'_, QueueState> {
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// The next job of writer `me`: its flush once the chunks before it are taken, else the next
+    /// chunk, else waiting (at most until `seal_at`).
+    fn next(&self, me: usize, seal_at: Option<Instant>) -> Job {
+        let mut st = self.lock();
+        loop {
+            let due = st.flushes.get(me).and_then(Option::as_ref).is_some_and(|f| st.taken >= f.upto);
+            if due && let Some(f) = st.flushes.get_mut(me).and_then(Option::take) {
+                return Job::Flush(f.kinds, f.ack);
+            }
+            if let Some((chunk, kinds, bytes)) = st.chunks.pop_front() {
+                st.taken += 1;
+                return Job::Chunk(chunk, kinds, bytes);
+            }
+            if st.closed {
+                return Job::Closed;
+            }
+            st = match seal_at {
+                Some(at) => {
+                    let now = Instant::now();
+                    if now >= at {
+                        return Job::SealDue;
+                    }
+                    self.ready.wait_timeout(st, at - now).unwrap_or_else(|p| p.into_inner()).0
+                }
+                None => self.ready.wait(st).unwrap_or_else(|p| p.into_inner()),
+            };
+        }
+    }
+}
+
+/// Marks its writer gone when the thread ends, even by a panic: the last one out closes the
+/// queue and drops what is left in it (releasing its budget, counting its trees as lost), so no
+/// tracing thread waits on a budget nobody frees and no flush waits on a writer that is gone.
+struct Leaving {
+    me: usize,
+    queue: Arc<Queue>,
+    budget: Arc<Budget>,
+    shared: Arc<Shared>,
+}
+
+impl Drop for Leaving {
+    fn drop(&mut self) {
+        let mut st = self.queue.lock();
+        if let Some(a) = st.alive.get_mut(self.me) {
+            *a = false;
+        }
+        if let Some(f) = st.flushes.get_mut(self.me) {
+            f.take();
+        }
+        if st.alive.iter().any(|&a| a) {
+            return;
+        }
+        st.closed = true;
+        for (chunk, _, bytes) in st.chunks.drain(..) {
+            self.shared.lost_trees.fetch_add(chunk.trees.len() as u64, Ordering::Relaxed);
+            self.budget.release(bytes);
+        }
+        drop(st);
+        self.queue.ready.notify_all();
+    }
 }
 
 #[derive(Default)]
@@ -55,19 +155,14 @@ impl Shared {
     }
 }
 
-struct Worker {
-    tx: Option<Sender<Msg>>,
-    join: Option<JoinHandle<()>>,
-}
-
 /// The write-mode sink.
 pub(crate) struct WriteSink {
     ds: Arc<DatasetWriter>,
     /// Optional tables being written in the background (`write_table` returns at once: the
     /// renderer's BVH table would otherwise hold up its first traced ray).
     tables: Mutex<Vec<JoinHandle<store::Result<()>>>>,
-    workers: Mutex<Vec<Worker>>,
-    next: AtomicUsize,
+    workers: Mutex<Vec<JoinHandle<()>>>,
+    queue: Arc<Queue>,
     budget: Arc<Budget>,
     shared: Arc<Shared>,
 }
@@ -85,9 +180,15 @@ impl WriteSink {
             spare_rays: 2 * options.chunk_rays.max(1),
             ..Default::default()
         });
+        let queue = Arc::new(Queue::default());
+        {
+            let mut st = queue.lock();
+            st.flushes = (0..workers_n).map(|_| None).collect();
+            st.alive = vec![true; workers_n];
+        }
         let mut workers = Vec::new();
         for i in 0..workers_n {
-            let (tx, rx) = mpsc::channel();
+            let leaving = Leaving { me: i, queue: queue.clone(), budget: budget.clone(), shared: shared.clone() };
             let ctx = WorkerCtx {
                 ds: ds.clone(),
                 layout: RowLayout::new(&options.payload),
@@ -98,38 +199,54 @@ impl WriteSink {
                 segment: None,
                 kinds: Arc::new(KindTable::default()),
             };
-            let join =
-                std::thread::Builder::new().name(format!("rl-writer-{i}")).spawn(move || ctx.run(rx)).map_err(|e| {
-                    Error::Store(store::Error::Io {
+            let spawned = std::thread::Builder::new().name(format!("rl-writer-{i}")).spawn(move || ctx.run(leaving));
+            match spawned {
+                Ok(join) => workers.push(join),
+                Err(e) => {
+                    // The writers started so far stop (the queue closes once they are all gone).
+                    queue.lock().closed = true;
+                    queue.ready.notify_all();
+                    for j in workers {
+                        let _ = j.join();
+                    }
+                    return Err(Error::Store(store::Error::Io {
                         action: "starting a writer thread",
                         path: dir.to_path_buf(),
                         source: e,
-                    })
-                })?;
-            workers.push(Worker { tx: Some(tx), join: Some(join) });
-        }
-        Ok(Self {
-            ds,
-            tables: Mutex::new(Vec::new()),
-            workers: Mutex::new(workers),
-            next: AtomicUsize::new(0),
-            budget,
-            shared,
-        })
-    }
-
-    fn send_all(&self, kinds: &Arc<KindTable>) -> Vec<mpsc::Receiver<()>> {
-        let workers = self.workers.lock().unwrap_or_else(|p| p.into_inner());
-        let mut acks = Vec::new();
-        for w in workers.iter() {
-            if let Some(tx) = &w.tx {
-                let (ack_tx, ack_rx) = mpsc::channel();
-                if tx.send(Msg::Flush(kinds.clone(), ack_tx)).is_ok() {
-                    acks.push(ack_rx);
+                    }));
                 }
             }
         }
+        Ok(Self { ds, tables: Mutex::new(Vec::new()), workers: Mutex::new(workers), queue, budget, shared })
+    }
+
+    /// Asks every running writer to seal once the chunks submitted so far are taken.
+    fn send_all(&self, kinds: &Arc<KindTable>) -> Vec<mpsc::Receiver<()>> {
+        let mut acks = Vec::new();
+        let mut st = self.queue.lock();
+        let upto = st.submitted;
+        for i in 0..st.flushes.len() {
+            if st.alive.get(i).copied().unwrap_or(false) {
+                let (ack, rx) = mpsc::channel();
+                st.flushes[i] = Some(Flush { upto, kinds: kinds.clone(), ack });
+                acks.push(rx);
+            }
+        }
+        drop(st);
+        self.queue.ready.notify_all();
         acks
+    }
+
+    /// Closes the queue and waits for the writers; whether one panicked.
+    fn stop_workers(&self) -> bool {
+        self.queue.lock().closed = true;
+        self.queue.ready.notify_all();
+        let joins = std::mem::take(&mut *self.workers.lock().unwrap_or_else(|p| p.into_inner()));
+        let mut panicked = false;
+        for j in joins {
+            panicked |= j.join().is_err();
+        }
+        panicked
     }
 
     /// Waits for the tables being written; the first failure comes back.
@@ -195,19 +312,17 @@ impl Sink for WriteSink {
     fn submit(&self, chunk: RayRows, kinds: &Arc<KindTable>) {
         let bytes = chunk.heap_bytes();
         self.budget.acquire(bytes);
-        let workers = self.workers.lock().unwrap_or_else(|p| p.into_inner());
-        let n = workers.len().max(1);
-        let i = self.next.fetch_add(1, Ordering::Relaxed) % n;
-        let trees = chunk.trees.len() as u64;
-        let sent = workers
-            .get(i)
-            .and_then(|w| w.tx.as_ref())
-            .map(|tx| tx.send(Msg::Chunk(Box::new(chunk), kinds.clone(), bytes)).is_ok())
-            .unwrap_or(false);
-        if !sent {
+        let mut st = self.queue.lock();
+        if st.closed {
+            drop(st);
             self.budget.release(bytes);
-            self.shared.lost_trees.fetch_add(trees, Ordering::Relaxed);
+            self.shared.lost_trees.fetch_add(chunk.trees.len() as u64, Ordering::Relaxed);
+            return;
         }
+        st.chunks.push_back((Box::new(chunk), kinds.clone(), bytes));
+        st.submitted += 1;
+        drop(st);
+        self.queue.ready.notify_one();
     }
 
     fn flush(&self, kinds: &Arc<KindTable>) -> Result<()> {
@@ -220,16 +335,7 @@ impl Sink for WriteSink {
 
     fn finish(&self, kinds: &Arc<KindTable>) -> Result<Summary> {
         self.flush(kinds)?;
-        let mut workers = self.workers.lock().unwrap_or_else(|p| p.into_inner());
-        let mut panicked = false;
-        for w in workers.iter_mut() {
-            w.tx.take();
-            if let Some(j) = w.join.take() {
-                panicked |= j.join().is_err();
-            }
-        }
-        drop(workers);
-        if panicked {
+        if self.stop_workers() {
             return Err(Error::WorkerPanicked);
         }
         self.error()?;
@@ -249,13 +355,7 @@ impl Drop for WriteSink {
     fn drop(&mut self) {
         // A recorder dropped without `finish` still seals what it has.
         let _ = self.join_tables();
-        let workers = self.workers.get_mut().unwrap_or_else(|p| p.into_inner());
-        for w in workers.iter_mut() {
-            w.tx.take();
-            if let Some(j) = w.join.take() {
-                let _ = j.join();
-            }
-        }
+        self.stop_workers();
     }
 }
 
@@ -271,14 +371,12 @@ struct WorkerCtx {
 }
 
 impl WorkerCtx {
-    fn run(mut self, rx: Receiver<Msg>) {
+    fn run(mut self, leaving: Leaving) {
+        let (me, queue) = (leaving.me, leaving.queue.clone());
         loop {
-            let timeout = match &self.segment {
-                Some((_, opened, _)) => self.seal_interval.saturating_sub(opened.elapsed()),
-                None => Duration::from_secs(3600),
-            };
-            match rx.recv_timeout(timeout) {
-                Ok(Msg::Chunk(chunk, kinds, bytes)) => {
+            let seal_at = self.segment.as_ref().map(|(_, opened, _)| *opened + self.seal_interval);
+            match queue.next(me, seal_at) {
+                Job::Chunk(chunk, kinds, bytes) => {
                     self.kinds = kinds;
                     self.write(*chunk);
                     self.budget.release(bytes);
@@ -286,14 +384,15 @@ impl WorkerCtx {
                         self.seal();
                     }
                 }
-                Ok(Msg::Flush(kinds, ack)) => {
+                Job::Flush(kinds, ack) => {
                     self.kinds = kinds;
                     self.seal();
                     let _ = ack.send(());
                 }
-                Err(RecvTimeoutError::Timeout) => self.seal(),
-                Err(RecvTimeoutError::Disconnected) => {
+                Job::SealDue => self.seal(),
+                Job::Closed => {
                     self.seal();
+                    drop(leaving);
                     return;
                 }
             }
