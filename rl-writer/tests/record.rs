@@ -445,3 +445,49 @@ fn tables_are_written_in_the_background_and_their_failures_reported() {
     assert_eq!(ds.tree(id).unwrap().rays.len(), 1);
     assert!(ds.table("lights").unwrap().is_none());
 }
+
+/// Several writers share one chunk queue: `flush` returns only once every tree ended before it
+/// is sealed and listed, while another thread keeps recording (its chunks may be taken before or
+/// after the flush; the flushed trees are never left behind in a writer's open segment).
+#[test]
+fn flush_with_many_writers_seals_every_tree_ended_before_it() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("trace");
+    let options =
+        RecorderOptions { chunk_rays: 64, workers: 3, seal_interval: Duration::from_secs(3600), ..Default::default() };
+    let rec = Recorder::create(&path, options).unwrap();
+    let (w, h) = (2000u32, 2000u32);
+    let stop = AtomicBool::new(false);
+    std::thread::scope(|s| {
+        let (rec2, stop) = (rec.clone(), &stop);
+        s.spawn(move || {
+            let mut i = 0u32;
+            while !stop.load(Ordering::Relaxed) {
+                let (x, y) = (i % w, i / w % 500);
+                let mut tree = rec2.begin_tree(x, y, 0);
+                rl::demo::trace_pixel(&mut tree, x, y, 0, w, h);
+                tree.end();
+                i += 1;
+            }
+        });
+        for round in 0..6u32 {
+            let y = 1000 + round;
+            for x in 0..150 {
+                let mut tree = rec.begin_tree(x, y, 0);
+                rl::demo::trace_pixel(&mut tree, x, y, 0, w, h);
+                tree.end();
+            }
+            rec.flush().unwrap();
+            let ds = Dataset::open(&path).unwrap();
+            for x in 0..150 {
+                assert_eq!(ds.trees_at_pixel(x, y, None).unwrap().len(), 1, "round {round} pixel {x}");
+            }
+        }
+        stop.store(true, Ordering::Relaxed);
+    });
+    let summary = rec.finish().unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    assert_eq!(ds.tree_count(), summary.trees);
+    assert!(ds.check().is_ok());
+}
