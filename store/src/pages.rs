@@ -15,6 +15,7 @@ use std::io::Write;
 use std::sync::Arc;
 
 use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
+use arrow::buffer::NullBuffer;
 use arrow::datatypes::{DataType, SchemaRef, UInt8Type, UInt16Type, UInt32Type, UInt64Type};
 use bytes::Bytes;
 use parquet::arrow::ArrowSchemaConverter;
@@ -249,20 +250,19 @@ impl PageEncoder {
             } else if a.null_count() > 0 {
                 return Err(ParquetError::General(format!("column {} is required but holds nulls", descr.name())));
             }
-            let valid = |i: usize| a.is_valid(i);
-            let has_nulls = a.null_count() > 0;
+            let nulls = a.nulls().filter(|n| n.null_count() > 0);
             match a.data_type() {
                 DataType::UInt8 => {
-                    push_valid(&mut self.values32, a.as_primitive::<UInt8Type>().values(), has_nulls, valid, u32::from)
+                    push_valid(&mut self.values32, a.as_primitive::<UInt8Type>().values(), nulls, u32::from)
                 }
                 DataType::UInt16 => {
-                    push_valid(&mut self.values32, a.as_primitive::<UInt16Type>().values(), has_nulls, valid, u32::from)
+                    push_valid(&mut self.values32, a.as_primitive::<UInt16Type>().values(), nulls, u32::from)
                 }
                 DataType::UInt32 => {
-                    push_valid(&mut self.values32, a.as_primitive::<UInt32Type>().values(), has_nulls, valid, |v| v)
+                    push_valid(&mut self.values32, a.as_primitive::<UInt32Type>().values(), nulls, |v| v)
                 }
                 DataType::UInt64 => {
-                    push_valid(&mut self.values64, a.as_primitive::<UInt64Type>().values(), has_nulls, valid, |v| v)
+                    push_valid(&mut self.values64, a.as_primitive::<UInt64Type>().values(), nulls, |v| v)
                 }
                 other => return Err(ParquetError::General(format!("column {}: cannot split {other}", descr.name()))),
             }
@@ -405,17 +405,10 @@ impl PageEncoder {
 
 /// Appends the non-null values of `values` (all of them when there are no nulls), widened.
 #[inline]
-fn push_valid<T: Copy, U>(
-    out: &mut Vec<U>,
-    values: &[T],
-    has_nulls: bool,
-    valid: impl Fn(usize) -> bool,
-    widen: impl Fn(T) -> U,
-) {
-    if has_nulls {
-        out.extend(values.iter().enumerate().filter(|&(i, _)| valid(i)).map(|(_, &v)| widen(v)));
-    } else {
-        out.extend(values.iter().map(|&v| widen(v)));
+fn push_valid<T: Copy, U>(out: &mut Vec<U>, values: &[T], nulls: Option<&NullBuffer>, widen: impl Fn(T) -> U) {
+    match nulls {
+        Some(n) => out.extend(values.iter().zip(n.iter()).filter(|&(_, ok)| ok).map(|(&v, _)| widen(v))),
+        None => out.extend(values.iter().map(|&v| widen(v))),
     }
 }
 

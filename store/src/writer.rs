@@ -430,16 +430,17 @@ fn ensure_empty(dir: &Path) -> Result<()> {
 }
 
 /// How a column of an encoded ray file is written (see [`ray_properties`] for why): plain
-/// layouts and payload columns go through arrow-rs.
+/// layouts go through arrow-rs, and so do payload columns of other types than u8/u16/u32
+/// (`RayFileWriter` checks the types); integer payload columns are byte-split with statistics
+/// like the core integer columns.
 fn column_plan(name: &str, encoding: Encoding) -> Plan {
     if encoding == Encoding::Plain {
         return Plan::Arrow;
     }
     match name {
         "tree_id" => Plan::Delta,
-        KIND_CODE | "ray" | "parent" | "depth" | "prim" => Plan::Split { stats: true },
         n if n == ENC_T || ENCODED_COLUMNS.contains(&n) => Plan::Split { stats: false },
-        _ => Plan::Arrow,
+        _ => Plan::Split { stats: true },
     }
 }
 
