@@ -29,7 +29,7 @@ use parquet::file::metadata::{ColumnChunkMetaData, ColumnIndexBuilder, KeyValue,
 use parquet::file::properties::WriterProperties;
 use parquet::file::statistics::{Statistics, ValueStatistics};
 use parquet::file::writer::{SerializedFileWriter, SerializedPageWriter, TrackedWrite};
-use parquet::schema::types::{ColumnDescPtr, SchemaDescriptor};
+use parquet::schema::types::ColumnDescPtr;
 
 /// How one top-level column of a ray file is written.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -42,20 +42,29 @@ pub(crate) enum Plan {
     Arrow,
 }
 
-/// Writes a ray file row group by row group; `write` buffers, `flush` writes a row group.
+/// Writes a ray file row group by row group, streaming: `write` encodes and compresses every
+/// full page of the core columns at once (while the batch is in cache; only compressed pages
+/// wait for the row group) and hands payload columns to arrow-rs's column writers; `flush`
+/// closes the row group.
 pub(crate) struct RayFileWriter<W: Write + Send> {
     file: SerializedFileWriter<W>,
     arrow_schema: SchemaRef,
-    parquet_schema: Arc<SchemaDescriptor>,
     /// Column writers of the payload columns (arrow-rs's).
     factory: ArrowRowGroupWriterFactory,
     row_groups: usize,
     plans: Vec<Plan>,
     /// First leaf column and number of leaves of each top-level field.
     leaves: Vec<(usize, usize)>,
-    pending: Vec<RecordBatch>,
-    pending_rows: usize,
-    pages: PageEncoder,
+    /// Per field: the paged column (None where arrow-rs writes it).
+    columns: Vec<Option<PagedColumn>>,
+    /// Per leaf: arrow-rs's writers for the row group in progress (empty before its first rows).
+    arrow_writers: Vec<Option<ArrowColumnWriter>>,
+    /// Rows of the row group in progress.
+    rows: usize,
+    page_rows: usize,
+    level: i32,
+    zstd: zstd::bulk::Compressor<'static>,
+    scratch: Scratch,
 }
 
 impl<W: Write + Send> RayFileWriter<W> {
@@ -74,7 +83,6 @@ impl<W: Write + Send> RayFileWriter<W> {
         add_encoded_arrow_schema_to_metadata(&arrow_schema, &mut props);
         let file = SerializedFileWriter::new(sink, parquet_schema.root_schema_ptr(), Arc::new(props))?;
         let factory = ArrowRowGroupWriterFactory::new(&file, arrow_schema.clone());
-        let parquet_schema = Arc::new(parquet_schema);
         let fields = arrow_schema.fields();
         let mut leaves = vec![(0usize, 0usize); fields.len()];
         for leaf in 0..parquet_schema.num_columns() {
@@ -85,7 +93,7 @@ impl<W: Write + Send> RayFileWriter<W> {
             }
             entry.1 += 1;
         }
-        let plans = fields
+        let plans: Vec<Plan> = fields
             .iter()
             .enumerate()
             .map(|(i, f)| {
@@ -100,78 +108,102 @@ impl<W: Write + Send> RayFileWriter<W> {
                 if fits && leaves[i].1 == 1 { plan } else { Plan::Arrow }
             })
             .collect();
+        let columns = plans
+            .iter()
+            .zip(&leaves)
+            .map(|(&plan, &(leaf, _))| PagedColumn::new(parquet_schema.column(leaf), plan))
+            .collect();
+        let zstd = zstd::bulk::Compressor::new(zstd_level)
+            .map_err(|e| ParquetError::General(format!("zstd level {zstd_level}: {e}")))?;
         Ok(Self {
             file,
             arrow_schema,
-            parquet_schema,
             factory,
             row_groups: 0,
             plans,
             leaves,
-            pending: Vec::new(),
-            pending_rows: 0,
-            pages: PageEncoder::new(zstd_level, page_rows)?,
+            columns,
+            arrow_writers: Vec::new(),
+            rows: 0,
+            page_rows: page_rows.max(1),
+            level: zstd_level,
+            zstd,
+            scratch: Scratch::default(),
         })
     }
 
-    /// Rows buffered for the row group in progress.
+    /// Rows written to the row group in progress.
     pub fn in_progress_rows(&self) -> usize {
-        self.pending_rows
+        self.rows
     }
 
-    /// Buffers `batch` (of the writer's schema) for the row group in progress.
+    /// Writes `batch` (of the writer's schema) into the row group in progress.
     pub fn write(&mut self, batch: &RecordBatch) -> Result<()> {
         if batch.schema().fields() != self.arrow_schema.fields() {
             return Err(general("record batch schema does not match the ray file schema"));
         }
-        if batch.num_rows() > 0 {
-            self.pending_rows += batch.num_rows();
-            self.pending.push(batch.clone());
+        if batch.num_rows() == 0 {
+            return Ok(());
         }
+        if self.arrow_writers.is_empty() && self.plans.contains(&Plan::Arrow) {
+            self.arrow_writers = self.factory.create_column_writers(self.row_groups)?.into_iter().map(Some).collect();
+        }
+        for (f, field) in self.arrow_schema.fields().iter().enumerate() {
+            let array = batch.column(f);
+            match self.columns.get_mut(f).and_then(Option::as_mut) {
+                Some(col) => {
+                    col.push(array)?;
+                    while col.pending >= self.page_rows {
+                        col.emit_page(self.page_rows, &mut self.zstd, &mut self.scratch)?;
+                    }
+                }
+                None => {
+                    let first_leaf = self.leaves[f].0;
+                    for (k, leaf) in compute_leaves(field, array)?.iter().enumerate() {
+                        let w = self
+                            .arrow_writers
+                            .get_mut(first_leaf + k)
+                            .and_then(Option::as_mut)
+                            .ok_or_else(|| general("no column writer for a payload leaf"))?;
+                        w.write(leaf)?;
+                    }
+                }
+            }
+        }
+        self.rows += batch.num_rows();
         Ok(())
     }
 
-    /// Writes the buffered rows as one row group (nothing when none are buffered).
+    /// Closes the row group in progress (nothing when it has no rows).
     pub fn flush(&mut self) -> Result<()> {
-        if self.pending_rows == 0 {
+        if self.rows == 0 {
             return Ok(());
         }
-        let pending = std::mem::take(&mut self.pending);
-        let rows = std::mem::take(&mut self.pending_rows);
-        let mut arrow_writers: Vec<Option<ArrowColumnWriter>> = if self.plans.contains(&Plan::Arrow) {
-            self.factory.create_column_writers(self.row_groups)?.into_iter().map(Some).collect()
-        } else {
-            Vec::new()
-        };
+        let rows = std::mem::take(&mut self.rows);
+        let mut chunks = Vec::with_capacity(self.columns.len());
+        for col in self.columns.iter_mut().flatten() {
+            if col.pending > 0 {
+                let n = col.pending;
+                col.emit_page(n, &mut self.zstd, &mut self.scratch)?;
+            }
+            chunks.push(col.close(rows, self.level)?);
+        }
+        let mut chunks = chunks.into_iter();
+        let mut arrow_writers = std::mem::take(&mut self.arrow_writers);
         let mut rg = self.file.next_row_group()?;
-        for (f, field) in self.arrow_schema.fields().iter().enumerate() {
-            let (first_leaf, n_leaves) = self.leaves[f];
-            let columns: Vec<&ArrayRef> = pending.iter().map(|b| b.column(f)).collect();
-            match self.plans[f] {
-                Plan::Arrow => {
-                    for batch_col in &columns {
-                        let leaves = compute_leaves(field, batch_col)?;
-                        for (k, leaf) in leaves.iter().enumerate() {
-                            let w = arrow_writers
-                                .get_mut(first_leaf + k)
-                                .and_then(Option::as_mut)
-                                .ok_or_else(|| general("no column writer for a payload leaf"))?;
-                            w.write(leaf)?;
-                        }
-                    }
-                    for k in 0..n_leaves {
-                        let w = arrow_writers
-                            .get_mut(first_leaf + k)
-                            .and_then(Option::take)
-                            .ok_or_else(|| general("no column writer for a payload leaf"))?;
-                        w.close()?.append_to_row_group(&mut rg)?;
-                    }
+        for (f, plan) in self.plans.iter().enumerate() {
+            if *plan == Plan::Arrow {
+                let (first_leaf, n_leaves) = self.leaves[f];
+                for k in 0..n_leaves {
+                    let w = arrow_writers
+                        .get_mut(first_leaf + k)
+                        .and_then(Option::take)
+                        .ok_or_else(|| general("no column writer for a payload leaf"))?;
+                    w.close()?.append_to_row_group(&mut rg)?;
                 }
-                plan => {
-                    let descr = self.parquet_schema.column(first_leaf);
-                    let (bytes, close) = self.pages.column(descr, &columns, rows, plan)?;
-                    rg.append_column(&bytes, close)?;
-                }
+            } else {
+                let (bytes, close) = chunks.next().ok_or_else(|| general("a paged column went missing"))?;
+                rg.append_column(&bytes, close)?;
             }
         }
         rg.close()?;
@@ -194,196 +226,211 @@ fn general(message: &str) -> ParquetError {
     ParquetError::General(message.to_string())
 }
 
-/// Encodes and compresses the pages of the core columns, reusing its buffers.
-struct PageEncoder {
-    zstd: zstd::bulk::Compressor<'static>,
-    level: i32,
-    page_rows: usize,
-    /// The column's non-null values, widened.
-    values32: Vec<u32>,
-    values64: Vec<u64>,
-    /// Validity of every row of a nullable column.
-    valid: Vec<bool>,
-    /// One page: definition levels and encoded values, uncompressed.
+/// Buffers shared by the paged columns: one page uncompressed and compressed, the deltas.
+#[derive(Default)]
+struct Scratch {
     page: Vec<u8>,
-    /// The compressed page.
     compressed: Vec<u8>,
     deltas: Vec<i64>,
 }
 
-impl PageEncoder {
-    fn new(level: i32, page_rows: usize) -> Result<Self> {
-        let zstd = zstd::bulk::Compressor::new(level)
-            .map_err(|e| ParquetError::General(format!("zstd level {level}: {e}")))?;
-        Ok(Self {
-            zstd,
-            level,
-            page_rows: page_rows.max(1),
-            values32: Vec::new(),
-            values64: Vec::new(),
-            valid: Vec::new(),
-            page: Vec::new(),
-            compressed: Vec::new(),
-            deltas: Vec::new(),
-        })
-    }
+/// One column written here: the values of the page in progress and the pages of the row group
+/// in progress (compressed, in memory until the row group closes).
+struct PagedColumn {
+    descr: ColumnDescPtr,
+    encoding: Encoding,
+    physical: PhysicalType,
+    stats: bool,
+    nullable: bool,
+    /// Rows, non-null values (widened) and validity of the page in progress.
+    pending: usize,
+    values32: Vec<u32>,
+    values64: Vec<u64>,
+    valid: Vec<bool>,
+    sink: TrackedWrite<Vec<u8>>,
+    offsets: OffsetIndexBuilder,
+    index: ColumnIndexBuilder,
+    uncompressed: i64,
+    nulls: u64,
+    min: u64,
+    max: u64,
+    ascending: bool,
+    descending: bool,
+    last: Option<(u64, u64)>,
+}
 
-    /// Writes one column chunk of `rows` rows (the arrays of the buffered batches) into memory;
-    /// returns its bytes and the result `append_column` takes (offsets relative to the bytes).
-    fn column(
-        &mut self,
-        descr: ColumnDescPtr,
-        arrays: &[&ArrayRef],
-        rows: usize,
-        plan: Plan,
-    ) -> Result<(Bytes, ColumnCloseResult)> {
-        let nullable = descr.max_def_level() > 0;
-        self.values32.clear();
-        self.values64.clear();
-        self.valid.clear();
-        for a in arrays {
-            if nullable {
-                match a.nulls() {
-                    Some(n) => self.valid.extend(n.iter()),
-                    None => self.valid.extend(std::iter::repeat_n(true, a.len())),
-                }
-            } else if a.null_count() > 0 {
-                return Err(ParquetError::General(format!("column {} is required but holds nulls", descr.name())));
-            }
-            let nulls = a.nulls().filter(|n| n.null_count() > 0);
-            match a.data_type() {
-                DataType::UInt8 => {
-                    push_valid(&mut self.values32, a.as_primitive::<UInt8Type>().values(), nulls, u32::from)
-                }
-                DataType::UInt16 => {
-                    push_valid(&mut self.values32, a.as_primitive::<UInt16Type>().values(), nulls, u32::from)
-                }
-                DataType::UInt32 => {
-                    push_valid(&mut self.values32, a.as_primitive::<UInt32Type>().values(), nulls, |v| v)
-                }
-                DataType::UInt64 => {
-                    push_valid(&mut self.values64, a.as_primitive::<UInt64Type>().values(), nulls, |v| v)
-                }
-                other => return Err(ParquetError::General(format!("column {}: cannot split {other}", descr.name()))),
-            }
-        }
+impl PagedColumn {
+    fn new(descr: ColumnDescPtr, plan: Plan) -> Option<Self> {
         let (encoding, physical, stats) = match plan {
             Plan::Split { stats } => (Encoding::BYTE_STREAM_SPLIT, PhysicalType::INT32, stats),
             Plan::Delta => (Encoding::DELTA_BINARY_PACKED, PhysicalType::INT64, true),
-            Plan::Arrow => return Err(general("arrow-rs columns are not paged here")),
+            Plan::Arrow => return None,
         };
-        if descr.physical_type() != physical {
-            return Err(ParquetError::General(format!("column {}: unexpected physical type", descr.name())));
+        if descr.physical_type() != physical || descr.max_rep_level() > 0 {
+            return None;
         }
+        Some(Self {
+            nullable: descr.max_def_level() > 0,
+            descr,
+            encoding,
+            physical,
+            stats,
+            pending: 0,
+            values32: Vec::new(),
+            values64: Vec::new(),
+            valid: Vec::new(),
+            sink: TrackedWrite::new(Vec::new()),
+            offsets: OffsetIndexBuilder::new(),
+            index: ColumnIndexBuilder::new(physical),
+            uncompressed: 0,
+            nulls: 0,
+            min: u64::MAX,
+            max: 0,
+            ascending: true,
+            descending: true,
+            last: None,
+        })
+    }
 
-        let mut sink = TrackedWrite::new(Vec::new());
-        let mut offsets = OffsetIndexBuilder::new();
-        let mut index = ColumnIndexBuilder::new(physical);
-        let (mut uncompressed_total, mut nulls_total) = (0i64, 0u64);
-        let (mut chunk_min, mut chunk_max) = (u64::MAX, 0u64);
-        let (mut ascending, mut descending) = (true, true);
-        let mut last: Option<(u64, u64)> = None;
-        let mut next_value = 0usize;
-        let mut start = 0usize;
-        {
-            let mut pages = SerializedPageWriter::new(&mut sink);
-            while start < rows {
-                let end = (start + self.page_rows).min(rows);
-                let n = end - start;
-                self.page.clear();
-                let present = if nullable {
-                    let valid = &self.valid[start..end];
-                    let present = valid.iter().filter(|&&v| v).count();
-                    def_levels(valid, present == n, &mut self.page);
-                    present
-                } else {
-                    n
-                };
-                let range = next_value..next_value + present;
-                next_value += present;
-                let (lo, hi) = if physical == PhysicalType::INT32 {
-                    let v = &self.values32[range];
-                    split_u32(v, &mut self.page);
-                    min_max(v.iter().map(|&x| u64::from(x)))
-                } else {
-                    let v = &self.values64[range];
-                    delta_encode(v, &mut self.deltas, &mut self.page);
-                    min_max(v.iter().copied())
-                };
-                let page_nulls = (n - present) as u64;
-                nulls_total += page_nulls;
-                if stats {
-                    if present == 0 {
-                        index.append(true, Vec::new(), Vec::new(), page_nulls as i64);
-                    } else {
-                        let bytes = |x: u64| {
-                            if physical == PhysicalType::INT32 {
-                                (x as u32).to_le_bytes().to_vec()
-                            } else {
-                                x.to_le_bytes().to_vec()
-                            }
-                        };
-                        index.append(false, bytes(lo), bytes(hi), page_nulls as i64);
-                        chunk_min = chunk_min.min(lo);
-                        chunk_max = chunk_max.max(hi);
-                        if let Some((plo, phi)) = last {
-                            ascending &= plo <= lo && phi <= hi;
-                            descending &= plo >= lo && phi >= hi;
-                        }
-                        last = Some((lo, hi));
-                    }
-                }
-                self.compressed.clear();
-                self.compressed.reserve(zstd::zstd_safe::compress_bound(self.page.len()));
-                self.zstd
-                    .compress_to_buffer(&self.page, &mut self.compressed)
-                    .map_err(|e| ParquetError::General(format!("zstd: {e}")))?;
-                let page = Page::DataPage {
-                    buf: Bytes::copy_from_slice(&self.compressed),
-                    num_values: n as u32,
-                    encoding,
-                    def_level_encoding: Encoding::RLE,
-                    rep_level_encoding: Encoding::RLE,
-                    statistics: None,
-                };
-                let spec = pages.write_page(CompressedPage::new(page, self.page.len()))?;
-                uncompressed_total += spec.uncompressed_size as i64;
-                offsets.append_row_count(n as i64);
-                offsets.append_offset_and_size(spec.offset as i64, spec.compressed_size as i32);
-                start = end;
+    /// Appends an array's values to the page in progress.
+    fn push(&mut self, a: &ArrayRef) -> Result<()> {
+        if self.nullable {
+            match a.nulls() {
+                Some(n) => self.valid.extend(n.iter()),
+                None => self.valid.extend(std::iter::repeat_n(true, a.len())),
             }
-            pages.close()?;
+        } else if a.null_count() > 0 {
+            return Err(ParquetError::General(format!("column {} is required but holds nulls", self.descr.name())));
         }
+        let nulls = a.nulls().filter(|n| n.null_count() > 0);
+        match a.data_type() {
+            DataType::UInt8 => push_valid(&mut self.values32, a.as_primitive::<UInt8Type>().values(), nulls, u32::from),
+            DataType::UInt16 => {
+                push_valid(&mut self.values32, a.as_primitive::<UInt16Type>().values(), nulls, u32::from)
+            }
+            DataType::UInt32 => push_valid(&mut self.values32, a.as_primitive::<UInt32Type>().values(), nulls, |v| v),
+            DataType::UInt64 => push_valid(&mut self.values64, a.as_primitive::<UInt64Type>().values(), nulls, |v| v),
+            other => {
+                return Err(ParquetError::General(format!("column {}: cannot page {other}", self.descr.name())));
+            }
+        }
+        self.pending += a.len();
+        Ok(())
+    }
+
+    /// Encodes, compresses and writes the first `n` pending rows as one data page.
+    fn emit_page(&mut self, n: usize, zstd: &mut zstd::bulk::Compressor<'static>, s: &mut Scratch) -> Result<()> {
+        s.page.clear();
+        let present = if self.nullable {
+            let valid = &self.valid[..n];
+            let present = valid.iter().filter(|&&v| v).count();
+            def_levels(valid, present == n, &mut s.page);
+            present
+        } else {
+            n
+        };
+        let (lo, hi) = if self.physical == PhysicalType::INT32 {
+            let v = &self.values32[..present];
+            split_u32(v, &mut s.page);
+            min_max(v.iter().map(|&x| u64::from(x)))
+        } else {
+            let v = &self.values64[..present];
+            delta_encode(v, &mut s.deltas, &mut s.page);
+            min_max(v.iter().copied())
+        };
+        let page_nulls = (n - present) as u64;
+        self.nulls += page_nulls;
+        if self.stats {
+            if present == 0 {
+                self.index.append(true, Vec::new(), Vec::new(), page_nulls as i64);
+            } else {
+                let bytes = |x: u64| {
+                    if self.physical == PhysicalType::INT32 {
+                        (x as u32).to_le_bytes().to_vec()
+                    } else {
+                        x.to_le_bytes().to_vec()
+                    }
+                };
+                self.index.append(false, bytes(lo), bytes(hi), page_nulls as i64);
+                self.min = self.min.min(lo);
+                self.max = self.max.max(hi);
+                if let Some((plo, phi)) = self.last {
+                    self.ascending &= plo <= lo && phi <= hi;
+                    self.descending &= plo >= lo && phi >= hi;
+                }
+                self.last = Some((lo, hi));
+            }
+        }
+        s.compressed.clear();
+        s.compressed.reserve(zstd::zstd_safe::compress_bound(s.page.len()));
+        zstd.compress_to_buffer(&s.page, &mut s.compressed).map_err(|e| ParquetError::General(format!("zstd: {e}")))?;
+        let page = Page::DataPage {
+            buf: Bytes::copy_from_slice(&s.compressed),
+            num_values: n as u32,
+            encoding: self.encoding,
+            def_level_encoding: Encoding::RLE,
+            rep_level_encoding: Encoding::RLE,
+            statistics: None,
+        };
+        let spec = SerializedPageWriter::new(&mut self.sink).write_page(CompressedPage::new(page, s.page.len()))?;
+        self.uncompressed += spec.uncompressed_size as i64;
+        self.offsets.append_row_count(n as i64);
+        self.offsets.append_offset_and_size(spec.offset as i64, spec.compressed_size as i32);
+        // What is left starts the next page.
+        if self.nullable {
+            self.valid.drain(..n);
+        }
+        if self.physical == PhysicalType::INT32 {
+            self.values32.drain(..present);
+        } else {
+            self.values64.drain(..present);
+        }
+        self.pending -= n;
+        Ok(())
+    }
+
+    /// The row group's column chunk (`rows` rows, every page emitted): its bytes and what
+    /// `append_column` takes (offsets relative to the bytes). Starts the next chunk.
+    fn close(&mut self, rows: usize, level: i32) -> Result<(Bytes, ColumnCloseResult)> {
+        let sink = std::mem::replace(&mut self.sink, TrackedWrite::new(Vec::new()));
+        let offsets = std::mem::take(&mut self.offsets);
+        let index = std::mem::replace(&mut self.index, ColumnIndexBuilder::new(self.physical));
+        let (uncompressed, nulls) = (std::mem::take(&mut self.uncompressed), std::mem::take(&mut self.nulls));
+        let (min, max) = (std::mem::replace(&mut self.min, u64::MAX), std::mem::take(&mut self.max));
+        let (ascending, descending) =
+            (std::mem::replace(&mut self.ascending, true), std::mem::replace(&mut self.descending, true));
+        self.last = None;
         let bytes = Bytes::from(sink.into_inner()?);
-        let mut meta = ColumnChunkMetaData::builder(descr)
-            .set_compression(Compression::ZSTD(ZstdLevel::try_new(self.level)?))
-            .set_encodings_mask(EncodingMask::new_from_encodings([Encoding::RLE, encoding].iter()))
+        let mut meta = ColumnChunkMetaData::builder(self.descr.clone())
+            .set_compression(Compression::ZSTD(ZstdLevel::try_new(level)?))
+            .set_encodings_mask(EncodingMask::new_from_encodings([Encoding::RLE, self.encoding].iter()))
             .set_total_compressed_size(bytes.len() as i64)
-            .set_total_uncompressed_size(uncompressed_total)
+            .set_total_uncompressed_size(uncompressed)
             .set_num_values(rows as i64)
             .set_data_page_offset(0);
         let mut column_index = None;
-        if stats {
-            let present = (rows as u64) > nulls_total;
-            let (lo, hi) = (present.then_some(chunk_min), present.then_some(chunk_max));
-            let s = if physical == PhysicalType::INT32 {
+        if self.stats {
+            let present = (rows as u64) > nulls;
+            let (lo, hi) = (present.then_some(min), present.then_some(max));
+            let s = if self.physical == PhysicalType::INT32 {
                 Statistics::Int32(
                     ValueStatistics::new(
                         lo.map(|x| x as u32 as i32),
                         hi.map(|x| x as u32 as i32),
                         None,
-                        Some(nulls_total),
+                        Some(nulls),
                         false,
                     )
                     .with_backwards_compatible_min_max(false),
                 )
             } else {
                 Statistics::Int64(
-                    ValueStatistics::new(lo.map(|x| x as i64), hi.map(|x| x as i64), None, Some(nulls_total), false)
+                    ValueStatistics::new(lo.map(|x| x as i64), hi.map(|x| x as i64), None, Some(nulls), false)
                         .with_backwards_compatible_min_max(false),
                 )
             };
             meta = meta.set_statistics(s);
+            let mut index = index;
             index.set_boundary_order(match (ascending, descending) {
                 (true, _) => BoundaryOrder::ASCENDING,
                 (false, true) => BoundaryOrder::DESCENDING,
