@@ -20,9 +20,12 @@ const QUEUED_CHUNKS_PER_WRITER: usize = 4;
 /// Emptied chunk buffers kept for the tracing threads, per writer thread.
 const SPARE_CHUNKS_PER_WRITER: usize = 2 * QUEUED_CHUNKS_PER_WRITER;
 
+/// A chunk waiting for a writer: its rows, the kinds as of its submission, its bytes in the budget.
+type Queued = (Box<RayRows>, Arc<KindTable>, usize);
+
 /// What a writer thread does next.
 enum Job {
-    Chunk(Box<RayRows>, Arc<KindTable>, usize),
+    Chunk(Queued),
     Flush(Arc<KindTable>, Sender<()>),
     /// The open segment is older than `seal_interval`.
     SealDue,
@@ -42,7 +45,7 @@ struct Flush {
 /// is full (as with a channel per writer served round robin).
 #[derive(Default)]
 struct QueueState {
-    chunks: VecDeque<(Box<RayRows>, Arc<KindTable>, usize)>,
+    chunks: VecDeque<Queued>,
     submitted: u64,
     taken: u64,
     /// Per writer: the flush it owes, and whether it still runs.
@@ -71,9 +74,9 @@ impl Queue {
             if due && let Some(f) = st.flushes.get_mut(me).and_then(Option::take) {
                 return Job::Flush(f.kinds, f.ack);
             }
-            if let Some((chunk, kinds, bytes)) = st.chunks.pop_front() {
+            if let Some(queued) = st.chunks.pop_front() {
                 st.taken += 1;
-                return Job::Chunk(chunk, kinds, bytes);
+                return Job::Chunk(queued);
             }
             if st.closed {
                 return Job::Closed;
@@ -376,7 +379,7 @@ impl WorkerCtx {
         loop {
             let seal_at = self.segment.as_ref().map(|(_, opened, _)| *opened + self.seal_interval);
             match queue.next(me, seal_at) {
-                Job::Chunk(chunk, kinds, bytes) => {
+                Job::Chunk((chunk, kinds, bytes)) => {
                     self.kinds = kinds;
                     self.write(*chunk);
                     self.budget.release(bytes);
@@ -392,7 +395,6 @@ impl WorkerCtx {
                 Job::SealDue => self.seal(),
                 Job::Closed => {
                     self.seal();
-                    drop(leaving);
                     return;
                 }
             }

@@ -329,14 +329,15 @@ impl PagedColumn {
         } else {
             n
         };
+        // Min/max only where the column keeps statistics (not for the residual columns).
         let (lo, hi) = if self.physical == PhysicalType::INT32 {
             let v = &self.values32[..present];
             split_u32(v, &mut s.page);
-            min_max(v.iter().map(|&x| u64::from(x)))
+            if self.stats { min_max(v.iter().map(|&x| u64::from(x))) } else { (0, 0) }
         } else {
             let v = &self.values64[..present];
             delta_encode(v, &mut s.deltas, &mut s.page);
-            min_max(v.iter().copied())
+            if self.stats { min_max(v.iter().copied()) } else { (0, 0) }
         };
         let page_nulls = (n - present) as u64;
         self.nulls += page_nulls;

@@ -153,7 +153,7 @@ impl DatasetWriter {
         let writer = RayFileWriter::try_new(
             sink,
             schema.clone(),
-            ray_properties(&self.options, &self.dir, None)?,
+            ray_properties(&self.options, &self.dir)?,
             &plans,
             self.options.zstd_level,
             self.options.page_rows,
@@ -429,10 +429,14 @@ fn ensure_empty(dir: &Path) -> Result<()> {
     Ok(())
 }
 
-/// How a column of an encoded ray file is written (see [`ray_properties`] for why): plain
-/// layouts go through arrow-rs, and so do payload columns of other types than u8/u16/u32
-/// (`RayFileWriter` checks the types); integer payload columns are byte-split with statistics
-/// like the core integer columns.
+/// How a column of a ray file is written. Plain layouts, and payload columns of other types than
+/// u8/u16/u32 (`RayFileWriter` checks the types), go through arrow-rs with [`ray_properties`].
+/// In encoded layouts the integer columns are paged by `RayFileWriter`: tree ids (runs of +0/+1)
+/// delta-packed; the rest byte-split, because the high bytes of small integers and residuals and
+/// the sign/exponent bytes of raw float bits are nearly constant and compress to almost nothing
+/// apart from the low bytes (0.3-0.5 B/value less than plain on a Cornell-box trace; for
+/// `kind_code` a dictionary costs a hash per row and saves ~0.02 B/ray). Residuals have no
+/// useful min/max: the encoded columns carry no statistics.
 fn column_plan(name: &str, encoding: Encoding) -> Plan {
     if encoding == Encoding::Plain {
         return Plan::Arrow;
@@ -444,30 +448,16 @@ fn column_plan(name: &str, encoding: Encoding) -> Plan {
     }
 }
 
-/// Parquet properties of the ray files. `row_group_cap`: the writer's own row-group limit (None
-/// where the caller cuts row groups itself, at tree boundaries).
-fn ray_properties(options: &WriteOptions, dir: &Path, row_group_cap: Option<usize>) -> Result<WriterProperties> {
+/// Parquet properties of the ray files (for what arrow-rs writes of them: plain layouts and
+/// payload columns [`column_plan`] leaves to it).
+fn ray_properties(options: &WriteOptions, dir: &Path) -> Result<WriterProperties> {
     let level = ZstdLevel::try_new(options.zstd_level).map_err(pq_err(dir))?;
-    let mut b = WriterProperties::builder()
+    let b = WriterProperties::builder()
         .set_compression(Compression::ZSTD(level))
         .set_dictionary_enabled(false)
         .set_column_dictionary_enabled(ColumnPath::from("kind"), true)
         .set_statistics_enabled(EnabledStatistics::Page);
-    if options.encoding != Encoding::Plain {
-        // Residuals have no useful min/max; tree ids are runs of +0/+1.
-        for name in ENCODED_COLUMNS.into_iter().chain([ENC_T]) {
-            b = b.set_column_statistics_enabled(ColumnPath::from(name), EnabledStatistics::None);
-        }
-        b = b.set_column_encoding(ColumnPath::from("tree_id"), Encoding_::DELTA_BINARY_PACKED);
-        // Byte planes: the high bytes of small integers and residuals and the sign/exponent bytes
-        // of raw float bits are nearly constant and compress to almost nothing apart from the
-        // low bytes (0.3-0.5 B/value less than plain on a Cornell-box trace).
-        // (Also `kind_code`: a dictionary costs a hash per row and saves ~0.02 B/ray.)
-        for name in ENCODED_COLUMNS.into_iter().chain([ENC_T, KIND_CODE, "ray", "parent", "depth", "prim"]) {
-            b = b.set_column_encoding(ColumnPath::from(name), Encoding_::BYTE_STREAM_SPLIT);
-        }
-    }
-    Ok(b.set_max_row_group_row_count(row_group_cap)
+    Ok(b.set_max_row_group_row_count(Some(options.row_group_rows.max(1)))
         .set_data_page_row_count_limit(options.page_rows.max(1))
         .set_key_value_metadata(Some(vec![
             KeyValue::new("rtvtk.format_version".into(), FORMAT_VERSION.to_string()),
@@ -546,12 +536,8 @@ pub fn export_plain(ds: &crate::Dataset, out: &Path) -> Result<Manifest> {
         let tmp = out.join(format!("{}.tmp", seg.rays.path));
         let file = File::create(&tmp).map_err(io_err("creating a segment file", &tmp))?;
         let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
-        let mut w = ArrowWriter::try_new(
-            sink,
-            schema.clone(),
-            Some(ray_properties(&options, out, Some(options.row_group_rows))?),
-        )
-        .map_err(pq_err(&tmp))?;
+        let mut w =
+            ArrowWriter::try_new(sink, schema.clone(), Some(ray_properties(&options, out)?)).map_err(pq_err(&tmp))?;
         for batch in ds.segment_batches(i)? {
             w.write(&batch?).map_err(pq_err(&tmp))?;
         }
