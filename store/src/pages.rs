@@ -1,22 +1,23 @@
-//! The ray files' Parquet writer: the core integer columns are encoded and compressed here, page
-//! by page, instead of by arrow-rs's column writers.
+//! The ray files' Parquet writer: the core integer columns and the numeric payload columns are
+//! encoded and compressed here, page by page, instead of by arrow-rs's column writers.
 //!
 //! The files are the same Parquet as before (format unchanged, any reader sees the same
 //! columns, encodings, statistics and page index): `BYTE_STREAM_SPLIT` integer columns,
-//! `DELTA_BINARY_PACKED` tree ids, data pages v1 compressed with zstd, an offset index for
-//! every column and a column index (page min/max) for the columns with statistics. Writing them
-//! here costs a fraction of the generic path: arrow-rs splits byte streams one byte at a time,
-//! bit-packs deltas one value at a time and allocates every page's buffers anew; here one
-//! transposing loop per column, one bit-packing loop per miniblock and buffers reused across
-//! pages and row groups. Payload columns (any Arrow type) still go through arrow-rs's column
-//! writers, into the same row groups.
+//! `DELTA_BINARY_PACKED` tree ids, `PLAIN` float payloads (fixed-size lists with their
+//! repetition and definition levels), data pages v1 compressed with zstd, an offset index for
+//! every column and a column index (page min/max; floats ignoring NaN, zero minima as -0.0) for
+//! the columns with statistics. Writing them here costs a fraction of the generic path: arrow-rs
+//! splits byte streams one byte at a time, bit-packs deltas and levels one value at a time and
+//! allocates every page's buffers anew; here one transposing loop per column, one bit-packing
+//! loop per miniblock and buffers reused across pages and row groups. Payload columns of other
+//! types still go through arrow-rs's column writers, into the same row groups.
 
 use std::io::Write;
 use std::sync::Arc;
 
 use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
-use arrow::buffer::NullBuffer;
-use arrow::datatypes::{DataType, SchemaRef, UInt8Type, UInt16Type, UInt32Type, UInt64Type};
+use arrow::buffer::{BooleanBuffer, NullBuffer};
+use arrow::datatypes::{DataType, Float32Type, SchemaRef, UInt8Type, UInt16Type, UInt32Type, UInt64Type};
 use bytes::Bytes;
 use parquet::arrow::ArrowSchemaConverter;
 use parquet::arrow::add_encoded_arrow_schema_to_metadata;
@@ -34,8 +35,12 @@ use parquet::schema::types::ColumnDescPtr;
 /// How one top-level column of a ray file is written.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) enum Plan {
-    /// u8/u16/u32 values as INT32, `BYTE_STREAM_SPLIT`; `stats`: page min/max and chunk statistics.
+    /// u8/u16/u32 values as INT32 or f32 values as FLOAT (flat or fixed-size lists of them),
+    /// `BYTE_STREAM_SPLIT`; `stats`: page min/max and chunk statistics.
     Split { stats: bool },
+    /// The same values and lists, `PLAIN` (for floats that repeat whole: byte-splitting them
+    /// hides the repeats from zstd).
+    Plain { stats: bool },
     /// u64 values as INT64, `DELTA_BINARY_PACKED`, with statistics.
     Delta,
     /// arrow-rs's column writer (payload columns, plain layouts).
@@ -99,20 +104,24 @@ impl<W: Write + Send> RayFileWriter<W> {
             .map(|(i, f)| {
                 let plan = plans.get(i).copied().unwrap_or(Plan::Arrow);
                 let fits = match plan {
-                    Plan::Split { .. } => {
-                        matches!(f.data_type(), DataType::UInt8 | DataType::UInt16 | DataType::UInt32)
-                    }
+                    Plan::Split { .. } | Plan::Plain { .. } => match f.data_type() {
+                        DataType::FixedSizeList(item, n) => *n > 0 && splits(item.data_type()),
+                        t => splits(t),
+                    },
                     Plan::Delta => f.data_type() == &DataType::UInt64 && !f.is_nullable(),
                     Plan::Arrow => true,
                 };
                 if fits && leaves[i].1 == 1 { plan } else { Plan::Arrow }
             })
             .collect();
-        let columns = plans
+        let columns: Vec<Option<PagedColumn>> = plans
             .iter()
             .zip(&leaves)
-            .map(|(&plan, &(leaf, _))| PagedColumn::new(parquet_schema.column(leaf), plan))
+            .zip(fields.iter())
+            .map(|((&plan, &(leaf, _)), field)| PagedColumn::new(parquet_schema.column(leaf), field, plan))
             .collect();
+        // A column whose Parquet leaf does not match what it would be paged as goes to arrow-rs.
+        let plans = plans.iter().zip(&columns).map(|(&p, c)| if c.is_some() { p } else { Plan::Arrow }).collect();
         let zstd = zstd::bulk::Compressor::new(zstd_level)
             .map_err(|e| ParquetError::General(format!("zstd level {zstd_level}: {e}")))?;
         Ok(Self {
@@ -232,6 +241,27 @@ struct Scratch {
     page: Vec<u8>,
     compressed: Vec<u8>,
     deltas: Vec<i64>,
+    levels: Vec<u8>,
+}
+
+/// Rows, levels and values of a paged column: flat (`list` None; definition level 0 for a null
+/// row when nullable) or a fixed-size list of `n` values per row (repetition level 1: the first
+/// value of a row 0, the others 1; definition levels 0 for a null list, `max_def - 1` for a null
+/// value, `max_def` for a value).
+#[derive(Clone, Copy, Debug)]
+struct Shape {
+    list: Option<usize>,
+    nullable: bool,
+    item_nullable: bool,
+    max_def: i16,
+}
+
+/// How a 4-byte column's values order for statistics.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Order {
+    Unsigned,
+    /// IEEE floats: NaN ignored, -0.0 below +0.0.
+    Float,
 }
 
 /// One column written here: the values of the page in progress and the pages of the row group
@@ -240,126 +270,262 @@ struct PagedColumn {
     descr: ColumnDescPtr,
     encoding: Encoding,
     physical: PhysicalType,
+    order: Order,
     stats: bool,
-    nullable: bool,
-    /// Rows, non-null values (widened) and validity of the page in progress.
+    shape: Shape,
+    /// Rows, non-null values (widened; floats as their bits), row validity and (lists whose
+    /// values may be null) the validity of each value of the valid rows, of the page in progress.
     pending: usize,
     values32: Vec<u32>,
     values64: Vec<u64>,
     valid: Vec<bool>,
+    item_valid: Vec<bool>,
     sink: TrackedWrite<Vec<u8>>,
     offsets: OffsetIndexBuilder,
     index: ColumnIndexBuilder,
     uncompressed: i64,
+    /// Level entries (values and nulls) and nulls of the column chunk in progress.
+    levels: u64,
     nulls: u64,
-    min: u64,
-    max: u64,
+    /// Smallest and largest value of the chunk, as order keys ([`order_key`]).
+    range: Option<(u64, u64)>,
     ascending: bool,
     descending: bool,
     last: Option<(u64, u64)>,
 }
 
+/// Whether a leaf type is paged as 4-byte values with `BYTE_STREAM_SPLIT`.
+fn splits(t: &DataType) -> bool {
+    matches!(t, DataType::UInt8 | DataType::UInt16 | DataType::UInt32 | DataType::Float32)
+}
+
+/// A value's key in its column's order (floats: a total order over the non-NaN values).
+#[inline]
+fn order_key(order: Order, v: u32) -> u64 {
+    match order {
+        Order::Unsigned => u64::from(v),
+        Order::Float if v & 0x8000_0000 != 0 => u64::from(!v),
+        Order::Float => u64::from(v | 0x8000_0000),
+    }
+}
+
+/// The value of an order key, as the little-endian bytes statistics hold. Float minima of zero
+/// are written as -0.0 and maxima as +0.0, as the Parquet format asks.
+fn key_value(order: Order, key: u64, is_min: bool) -> u32 {
+    match order {
+        Order::Unsigned => key as u32,
+        Order::Float => {
+            let k = key as u32;
+            let bits = if k & 0x8000_0000 != 0 { k & 0x7FFF_FFFF } else { !k };
+            match (f32::from_bits(bits) == 0.0, is_min) {
+                (true, true) => (-0.0f32).to_bits(),
+                (true, false) => 0.0f32.to_bits(),
+                _ => bits,
+            }
+        }
+    }
+}
+
 impl PagedColumn {
-    fn new(descr: ColumnDescPtr, plan: Plan) -> Option<Self> {
-        let (encoding, physical, stats) = match plan {
-            Plan::Split { stats } => (Encoding::BYTE_STREAM_SPLIT, PhysicalType::INT32, stats),
-            Plan::Delta => (Encoding::DELTA_BINARY_PACKED, PhysicalType::INT64, true),
+    fn new(descr: ColumnDescPtr, field: &arrow::datatypes::Field, plan: Plan) -> Option<Self> {
+        let (encoding, stats) = match plan {
+            Plan::Split { stats } => (Encoding::BYTE_STREAM_SPLIT, stats),
+            Plan::Plain { stats } => (Encoding::PLAIN, stats),
+            Plan::Delta => (Encoding::DELTA_BINARY_PACKED, true),
             Plan::Arrow => return None,
         };
-        if descr.physical_type() != physical || descr.max_rep_level() > 0 {
+        let (list, leaf, item_nullable) = match field.data_type() {
+            DataType::FixedSizeList(item, n) => (Some(usize::try_from(*n).ok()?), item.data_type(), item.is_nullable()),
+            t => (None, t, false),
+        };
+        let (physical, order) = match leaf {
+            DataType::UInt64 if plan == Plan::Delta => (PhysicalType::INT64, Order::Unsigned),
+            DataType::Float32 if plan != Plan::Delta => (PhysicalType::FLOAT, Order::Float),
+            t if plan != Plan::Delta && splits(t) => (PhysicalType::INT32, Order::Unsigned),
+            _ => return None,
+        };
+        let nullable = field.is_nullable();
+        let (max_rep, max_def) = match list {
+            None => (0, i16::from(nullable)),
+            Some(_) => (1, i16::from(nullable) + 1 + i16::from(item_nullable)),
+        };
+        if descr.physical_type() != physical
+            || descr.max_rep_level() != max_rep
+            || descr.max_def_level() != max_def
+            || list == Some(0)
+        {
             return None;
         }
         Some(Self {
-            nullable: descr.max_def_level() > 0,
             descr,
             encoding,
             physical,
+            order,
             stats,
+            shape: Shape { list, nullable, item_nullable, max_def },
             pending: 0,
             values32: Vec::new(),
             values64: Vec::new(),
             valid: Vec::new(),
+            item_valid: Vec::new(),
             sink: TrackedWrite::new(Vec::new()),
             offsets: OffsetIndexBuilder::new(),
             index: ColumnIndexBuilder::new(physical),
             uncompressed: 0,
+            levels: 0,
             nulls: 0,
-            min: u64::MAX,
-            max: 0,
+            range: None,
             ascending: true,
             descending: true,
             last: None,
         })
     }
 
-    /// Appends an array's values to the page in progress.
+    /// Appends an array's rows to the page in progress.
     fn push(&mut self, a: &ArrayRef) -> Result<()> {
-        if self.nullable {
-            match a.nulls() {
+        let name = || self.descr.name().to_string();
+        let row_nulls = a.nulls().filter(|n| n.null_count() > 0);
+        if self.shape.nullable {
+            match row_nulls {
                 Some(n) => self.valid.extend(n.iter()),
                 None => self.valid.extend(std::iter::repeat_n(true, a.len())),
             }
-        } else if a.null_count() > 0 {
-            return Err(ParquetError::General(format!("column {} is required but holds nulls", self.descr.name())));
+        } else if row_nulls.is_some() {
+            return Err(ParquetError::General(format!("column {} is required but holds nulls", name())));
         }
-        let nulls = a.nulls().filter(|n| n.null_count() > 0);
-        match a.data_type() {
-            DataType::UInt8 => push_valid(&mut self.values32, a.as_primitive::<UInt8Type>().values(), nulls, u32::from),
-            DataType::UInt16 => {
-                push_valid(&mut self.values32, a.as_primitive::<UInt16Type>().values(), nulls, u32::from)
-            }
-            DataType::UInt32 => push_valid(&mut self.values32, a.as_primitive::<UInt32Type>().values(), nulls, |v| v),
-            DataType::UInt64 => push_valid(&mut self.values64, a.as_primitive::<UInt64Type>().values(), nulls, |v| v),
-            other => {
-                return Err(ParquetError::General(format!("column {}: cannot page {other}", self.descr.name())));
+        match self.shape.list {
+            None => push_leaf(&mut self.values32, &mut self.values64, a.as_ref(), row_nulls)
+                .map_err(|t| ParquetError::General(format!("column {}: cannot page {t}", name())))?,
+            Some(n) => {
+                let list = a
+                    .as_fixed_size_list_opt()
+                    .filter(|l| l.value_length() as usize == n && l.values().len() == l.len() * n)
+                    .ok_or_else(|| ParquetError::General(format!("column {}: expected lists of {n} values", name())))?;
+                let values = list.values();
+                let item_nulls = values.nulls().filter(|m| m.null_count() > 0);
+                if item_nulls.is_some() && !self.shape.item_nullable {
+                    return Err(ParquetError::General(format!("column {}: list values are required", name())));
+                }
+                if self.shape.item_nullable {
+                    for row in 0..list.len() {
+                        if row_nulls.is_none_or(|r| r.is_valid(row)) {
+                            let slots = row * n..(row + 1) * n;
+                            self.item_valid.extend(slots.map(|k| item_nulls.is_none_or(|m| m.is_valid(k))));
+                        }
+                    }
+                }
+                // The values to keep: those of valid rows that are not null themselves.
+                let keep = match (row_nulls, item_nulls) {
+                    (None, None) => None,
+                    (rows, items) => Some(NullBuffer::new(BooleanBuffer::collect_bool(values.len(), |k| {
+                        rows.is_none_or(|r| r.is_valid(k / n)) && items.is_none_or(|m| m.is_valid(k))
+                    }))),
+                };
+                push_leaf(&mut self.values32, &mut self.values64, values.as_ref(), keep.as_ref())
+                    .map_err(|t| ParquetError::General(format!("column {}: cannot page {t}", name())))?;
             }
         }
         self.pending += a.len();
         Ok(())
     }
 
+    /// Writes the repetition and definition levels of the first `n` pending rows, which hold
+    /// `rows_valid` valid rows and `slots` list slots (their values, null or not). Returns the
+    /// number of level entries.
+    fn write_levels(&self, n: usize, rows_valid: usize, slots: usize, present: usize, s: &mut Scratch) -> usize {
+        let shape = self.shape;
+        let Some(len) = shape.list else {
+            if shape.nullable {
+                def_levels(&self.valid[..n], rows_valid == n, &mut s.page);
+            }
+            return n;
+        };
+        let entries = (n - rows_valid) + slots;
+        let def_width = 16 - (shape.max_def as u16).leading_zeros();
+        // Repetition levels: 0 for each row's first entry, 1 for the others.
+        s.levels.clear();
+        for row in 0..n {
+            if shape.nullable && !self.valid[row] {
+                s.levels.push(0);
+            } else {
+                s.levels.push(0);
+                s.levels.extend(std::iter::repeat_n(1, len - 1));
+            }
+        }
+        hybrid_levels(&s.levels, 1, &mut s.page);
+        if present == entries {
+            rle_levels(entries, shape.max_def as u8, def_width, &mut s.page);
+        } else {
+            s.levels.clear();
+            let mut slot = 0;
+            for row in 0..n {
+                if shape.nullable && !self.valid[row] {
+                    s.levels.push(0);
+                    continue;
+                }
+                for _ in 0..len {
+                    let ok = !shape.item_nullable || self.item_valid[slot];
+                    s.levels.push(if ok { shape.max_def as u8 } else { shape.max_def as u8 - 1 });
+                    slot += 1;
+                }
+            }
+            hybrid_levels(&s.levels, def_width, &mut s.page);
+        }
+        entries
+    }
+
     /// Encodes, compresses and writes the first `n` pending rows as one data page.
     fn emit_page(&mut self, n: usize, zstd: &mut zstd::bulk::Compressor<'static>, s: &mut Scratch) -> Result<()> {
         s.page.clear();
-        let present = if self.nullable {
-            let valid = &self.valid[..n];
-            let present = valid.iter().filter(|&&v| v).count();
-            def_levels(valid, present == n, &mut s.page);
-            present
-        } else {
-            n
-        };
+        let rows_valid = if self.shape.nullable { self.valid[..n].iter().filter(|&&v| v).count() } else { n };
+        let slots = rows_valid * self.shape.list.unwrap_or(1);
+        let present =
+            if self.shape.item_nullable { self.item_valid[..slots].iter().filter(|&&v| v).count() } else { slots };
+        let entries = self.write_levels(n, rows_valid, slots, present, s);
         // Min/max only where the column keeps statistics (not for the residual columns).
-        let (lo, hi) = if self.physical == PhysicalType::INT32 {
-            let v = &self.values32[..present];
-            split_u32(v, &mut s.page);
-            if self.stats { min_max(v.iter().map(|&x| u64::from(x))) } else { (0, 0) }
-        } else {
+        let range = if self.physical == PhysicalType::INT64 {
             let v = &self.values64[..present];
             delta_encode(v, &mut s.deltas, &mut s.page);
-            if self.stats { min_max(v.iter().copied()) } else { (0, 0) }
-        };
-        let page_nulls = (n - present) as u64;
-        self.nulls += page_nulls;
-        if self.stats {
-            if present == 0 {
-                self.index.append(true, Vec::new(), Vec::new(), page_nulls as i64);
+            if self.stats { min_max(v.iter().copied()) } else { None }
+        } else {
+            let v = &self.values32[..present];
+            if self.encoding == Encoding::PLAIN {
+                s.page.extend(v.iter().flat_map(|x| x.to_le_bytes()));
             } else {
-                let bytes = |x: u64| {
-                    if self.physical == PhysicalType::INT32 {
-                        (x as u32).to_le_bytes().to_vec()
-                    } else {
-                        x.to_le_bytes().to_vec()
-                    }
-                };
-                self.index.append(false, bytes(lo), bytes(hi), page_nulls as i64);
-                self.min = self.min.min(lo);
-                self.max = self.max.max(hi);
-                if let Some((plo, phi)) = self.last {
-                    self.ascending &= plo <= lo && phi <= hi;
-                    self.descending &= plo >= lo && phi >= hi;
+                split_u32(v, &mut s.page);
+            }
+            match (self.stats, self.order) {
+                (false, _) => None,
+                (true, Order::Unsigned) => min_max(v.iter().map(|&x| u64::from(x))),
+                (true, Order::Float) => {
+                    min_max(v.iter().filter(|&&x| x & 0x7FFF_FFFF <= 0x7F80_0000).map(|&x| order_key(Order::Float, x)))
                 }
-                self.last = Some((lo, hi));
+            }
+        };
+        let page_nulls = (entries - present) as u64;
+        self.nulls += page_nulls;
+        self.levels += entries as u64;
+        if self.stats {
+            match range {
+                _ if present == 0 => self.index.append(true, Vec::new(), Vec::new(), page_nulls as i64),
+                // Only NaNs: no page min/max, so no column index (as arrow-rs does).
+                None => self.index.to_invalid(),
+                Some((lo, hi)) => {
+                    let bytes = |key: u64, is_min: bool| {
+                        if self.physical == PhysicalType::INT64 {
+                            key.to_le_bytes().to_vec()
+                        } else {
+                            key_value(self.order, key, is_min).to_le_bytes().to_vec()
+                        }
+                    };
+                    self.index.append(false, bytes(lo, true), bytes(hi, false), page_nulls as i64);
+                    self.range = Some(self.range.map_or((lo, hi), |(a, b)| (a.min(lo), b.max(hi))));
+                    if let Some((plo, phi)) = self.last {
+                        self.ascending &= plo <= lo && phi <= hi;
+                        self.descending &= plo >= lo && phi >= hi;
+                    }
+                    self.last = Some((lo, hi));
+                }
             }
         }
         s.compressed.clear();
@@ -367,7 +533,7 @@ impl PagedColumn {
         zstd.compress_to_buffer(&s.page, &mut s.compressed).map_err(|e| ParquetError::General(format!("zstd: {e}")))?;
         let page = Page::DataPage {
             buf: Bytes::copy_from_slice(&s.compressed),
-            num_values: n as u32,
+            num_values: entries as u32,
             encoding: self.encoding,
             def_level_encoding: Encoding::RLE,
             rep_level_encoding: Encoding::RLE,
@@ -378,13 +544,16 @@ impl PagedColumn {
         self.offsets.append_row_count(n as i64);
         self.offsets.append_offset_and_size(spec.offset as i64, spec.compressed_size as i32);
         // What is left starts the next page.
-        if self.nullable {
+        if self.shape.nullable {
             self.valid.drain(..n);
         }
-        if self.physical == PhysicalType::INT32 {
-            self.values32.drain(..present);
-        } else {
+        if self.shape.item_nullable {
+            self.item_valid.drain(..slots);
+        }
+        if self.physical == PhysicalType::INT64 {
             self.values64.drain(..present);
+        } else {
+            self.values32.drain(..present);
         }
         self.pending -= n;
         Ok(())
@@ -397,7 +566,8 @@ impl PagedColumn {
         let offsets = std::mem::take(&mut self.offsets);
         let index = std::mem::replace(&mut self.index, ColumnIndexBuilder::new(self.physical));
         let (uncompressed, nulls) = (std::mem::take(&mut self.uncompressed), std::mem::take(&mut self.nulls));
-        let (min, max) = (std::mem::replace(&mut self.min, u64::MAX), std::mem::take(&mut self.max));
+        let levels = std::mem::take(&mut self.levels);
+        let range = self.range.take();
         let (ascending, descending) =
             (std::mem::replace(&mut self.ascending, true), std::mem::replace(&mut self.descending, true));
         self.last = None;
@@ -407,37 +577,48 @@ impl PagedColumn {
             .set_encodings_mask(EncodingMask::new_from_encodings([Encoding::RLE, self.encoding].iter()))
             .set_total_compressed_size(bytes.len() as i64)
             .set_total_uncompressed_size(uncompressed)
-            .set_num_values(rows as i64)
+            .set_num_values(levels as i64)
             .set_data_page_offset(0);
         let mut column_index = None;
         if self.stats {
-            let present = (rows as u64) > nulls;
-            let (lo, hi) = (present.then_some(min), present.then_some(max));
-            let s = if self.physical == PhysicalType::INT32 {
-                Statistics::Int32(
+            let (lo, hi) = (range.map(|r| r.0), range.map(|r| r.1));
+            let value = |key: Option<u64>, is_min: bool| key.map(|k| key_value(self.order, k, is_min));
+            let s = match self.physical {
+                PhysicalType::INT64 => Statistics::Int64(
+                    ValueStatistics::new(lo.map(|x| x as i64), hi.map(|x| x as i64), None, Some(nulls), false)
+                        .with_backwards_compatible_min_max(false),
+                ),
+                PhysicalType::FLOAT => Statistics::Float(
                     ValueStatistics::new(
-                        lo.map(|x| x as u32 as i32),
-                        hi.map(|x| x as u32 as i32),
+                        value(lo, true).map(f32::from_bits),
+                        value(hi, false).map(f32::from_bits),
                         None,
                         Some(nulls),
                         false,
                     )
                     .with_backwards_compatible_min_max(false),
-                )
-            } else {
-                Statistics::Int64(
-                    ValueStatistics::new(lo.map(|x| x as i64), hi.map(|x| x as i64), None, Some(nulls), false)
-                        .with_backwards_compatible_min_max(false),
-                )
+                ),
+                _ => Statistics::Int32(
+                    ValueStatistics::new(
+                        value(lo, true).map(|x| x as i32),
+                        value(hi, false).map(|x| x as i32),
+                        None,
+                        Some(nulls),
+                        false,
+                    )
+                    .with_backwards_compatible_min_max(false),
+                ),
             };
             meta = meta.set_statistics(s);
-            let mut index = index;
-            index.set_boundary_order(match (ascending, descending) {
-                (true, _) => BoundaryOrder::ASCENDING,
-                (false, true) => BoundaryOrder::DESCENDING,
-                (false, false) => BoundaryOrder::UNORDERED,
-            });
-            column_index = Some(index.build()?);
+            if index.valid() {
+                let mut index = index;
+                index.set_boundary_order(match (ascending, descending) {
+                    (true, _) => BoundaryOrder::ASCENDING,
+                    (false, true) => BoundaryOrder::DESCENDING,
+                    (false, false) => BoundaryOrder::UNORDERED,
+                });
+                column_index = Some(index.build()?);
+            }
         }
         let close = ColumnCloseResult {
             bytes_written: bytes.len() as u64,
@@ -451,6 +632,26 @@ impl PagedColumn {
     }
 }
 
+/// Appends the values of a leaf array that `keep` keeps (all when None): 1-, 2- and 4-byte
+/// unsigned integers widened to u32, floats as their bits, u64 as they are. Returns the type of
+/// an array it cannot page.
+fn push_leaf(
+    out32: &mut Vec<u32>,
+    out64: &mut Vec<u64>,
+    a: &dyn Array,
+    keep: Option<&NullBuffer>,
+) -> std::result::Result<(), DataType> {
+    match a.data_type() {
+        DataType::UInt8 => push_valid(out32, a.as_primitive::<UInt8Type>().values(), keep, u32::from),
+        DataType::UInt16 => push_valid(out32, a.as_primitive::<UInt16Type>().values(), keep, u32::from),
+        DataType::UInt32 => push_valid(out32, a.as_primitive::<UInt32Type>().values(), keep, |v| v),
+        DataType::Float32 => push_valid(out32, a.as_primitive::<Float32Type>().values(), keep, f32::to_bits),
+        DataType::UInt64 => push_valid(out64, a.as_primitive::<UInt64Type>().values(), keep, |v| v),
+        other => return Err(other.clone()),
+    }
+    Ok(())
+}
+
 /// Appends the non-null values of `values` (all of them when there are no nulls), widened.
 #[inline]
 fn push_valid<T: Copy, U>(out: &mut Vec<U>, values: &[T], nulls: Option<&NullBuffer>, widen: impl Fn(T) -> U) {
@@ -460,8 +661,9 @@ fn push_valid<T: Copy, U>(out: &mut Vec<U>, values: &[T], nulls: Option<&NullBuf
     }
 }
 
-fn min_max(values: impl Iterator<Item = u64>) -> (u64, u64) {
-    values.fold((u64::MAX, 0), |(lo, hi), v| (lo.min(v), hi.max(v)))
+/// Smallest and largest of the values (None when there are none).
+fn min_max(values: impl Iterator<Item = u64>) -> Option<(u64, u64)> {
+    values.fold(None, |r, v| Some(r.map_or((v, v), |(lo, hi): (u64, u64)| (lo.min(v), hi.max(v)))))
 }
 
 /// `BYTE_STREAM_SPLIT` of 4-byte values: byte k of every value, for k = 0..4, one plane after
@@ -506,6 +708,41 @@ fn def_levels(valid: &[bool], all: bool, out: &mut Vec<u8>) {
             for group in run.chunks(8) {
                 out.push(group.iter().enumerate().fold(0u8, |b, (i, &v)| b | (u8::from(v) << i)));
             }
+        }
+    }
+    let len = (out.len() - at - 4) as u32;
+    out[at..at + 4].copy_from_slice(&len.to_le_bytes());
+}
+
+/// Levels of a v1 data page as one RLE run of `count` times `level`: a 4-byte length, then the run.
+fn rle_levels(count: usize, level: u8, bit_width: u32, out: &mut Vec<u8>) {
+    let at = out.len();
+    out.extend_from_slice(&[0; 4]);
+    uleb(out, (count as u64) << 1);
+    if bit_width > 0 {
+        out.push(level);
+    }
+    let len = (out.len() - at - 4) as u32;
+    out[at..at + 4].copy_from_slice(&len.to_le_bytes());
+}
+
+/// Levels of a v1 data page (each below `1 << bit_width`, at most 8 bits wide): a 4-byte length,
+/// then the RLE/bit-packed hybrid: one run when all are equal, else bit-packed runs of up to 504
+/// levels (8 levels to `bit_width` bytes, least significant bits first).
+fn hybrid_levels(levels: &[u8], bit_width: u32, out: &mut Vec<u8>) {
+    if let Some(&first) = levels.first()
+        && levels.iter().all(|&l| l == first)
+    {
+        return rle_levels(levels.len(), first, bit_width, out);
+    }
+    let at = out.len();
+    out.extend_from_slice(&[0; 4]);
+    for run in levels.chunks(504) {
+        uleb(out, ((run.len().div_ceil(8) as u64) << 1) | 1);
+        for group in run.chunks(8) {
+            let packed =
+                group.iter().enumerate().fold(0u64, |acc, (i, &l)| acc | (u64::from(l) << (i as u32 * bit_width)));
+            out.extend_from_slice(&packed.to_le_bytes()[..bit_width as usize]);
         }
     }
     let len = (out.len() - at - 4) as u32;
@@ -694,5 +931,143 @@ mod tests {
                 r.flat_map(|b| b.unwrap().column(0).as_primitive::<UInt64Type>().values().to_vec()).collect();
             assert_eq!(got, values, "{n} values");
         }
+    }
+    #[test]
+    fn float_and_fixed_size_list_columns_read_back_with_levels_nulls_and_float_statistics() {
+        use arrow::array::{FixedSizeListArray, Float32Array};
+        let tp_item = Arc::new(Field::new("item", DataType::Float32, false));
+        let tq_item = Arc::new(Field::new("item", DataType::UInt16, true));
+        let schema = Arc::new(Schema::new(vec![
+            Field::new("tp", DataType::FixedSizeList(tp_item.clone(), 3), true),
+            Field::new("tq", DataType::FixedSizeList(tq_item.clone(), 2), false),
+            Field::new("f", DataType::Float32, true),
+            Field::new("nan", DataType::Float32, false),
+            Field::new("all_valid", DataType::FixedSizeList(tp_item.clone(), 3), true),
+        ]));
+        let batch = |start: usize, n: usize| {
+            let tp_values: Vec<f32> = (0..n * 3).map(|k| (start * 3 + k) as f32 * 0.25 - 100.0).collect();
+            let tp_valid: Vec<bool> = (0..n).map(|i| (start + i) % 4 != 1).collect();
+            let tp = FixedSizeListArray::try_new(
+                tp_item.clone(),
+                3,
+                Arc::new(Float32Array::from(tp_values.clone())),
+                Some(NullBuffer::from(tp_valid)),
+            )
+            .unwrap();
+            let tq_values: Vec<Option<u16>> =
+                (0..n * 2).map(|k| (!(start * 2 + k).is_multiple_of(3)).then_some((start * 2 + k) as u16)).collect();
+            let tq =
+                FixedSizeListArray::try_new(tq_item.clone(), 2, Arc::new(UInt16Array::from(tq_values)), None).unwrap();
+            let specials = [f32::NAN, -0.0, 0.0, f32::INFINITY, f32::NEG_INFINITY, 1e-38, -3.3e38];
+            let f: Vec<Option<f32>> = (0..n)
+                .map(|i| match (start + i) % 9 {
+                    0 => None,
+                    k => Some(specials[k % specials.len()] * if (start + i).is_multiple_of(2) { 1.0 } else { -1.0 }),
+                })
+                .collect();
+            let all =
+                FixedSizeListArray::try_new(tp_item.clone(), 3, Arc::new(Float32Array::from(tp_values)), None).unwrap();
+            RecordBatch::try_new(
+                schema.clone(),
+                vec![
+                    Arc::new(tp),
+                    Arc::new(tq),
+                    Arc::new(Float32Array::from(f)),
+                    Arc::new(Float32Array::from(vec![f32::NAN; n])),
+                    Arc::new(all),
+                ],
+            )
+            .unwrap()
+        };
+        let plans = [Plan::Split { stats: true }; 5];
+        let mut w =
+            RayFileWriter::try_new(Vec::new(), schema.clone(), WriterProperties::builder().build(), &plans, 1, 500)
+                .unwrap();
+        assert_eq!(w.plans, plans, "every column is paged here");
+        let batches = [batch(0, 1234), batch(1234, 1), batch(1235, 800)];
+        w.write(&batches[0]).unwrap();
+        w.write(&batches[1].slice(0, 1)).unwrap();
+        w.flush().unwrap();
+        // A sliced batch: list values must follow the slice.
+        let big = batch(1235, 900);
+        w.write(&big.slice(100, 800)).unwrap();
+        let bytes = Bytes::from(w.into_inner().unwrap());
+
+        let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required);
+        let reader = ParquetRecordBatchReaderBuilder::try_new_with_options(bytes, options).unwrap();
+        let md = reader.metadata().clone();
+        let got: Vec<RecordBatch> = reader.build().unwrap().map(|b| b.unwrap()).collect();
+        let got = arrow::compute::concat_batches(&schema, &got).unwrap();
+        let want =
+            arrow::compute::concat_batches(&schema, &[batches[0].clone(), batches[1].clone(), big.slice(100, 800)])
+                .unwrap();
+        assert_eq!(got.num_rows(), want.num_rows());
+        for c in [0, 1, 4] {
+            assert_eq!(got.column(c).as_ref(), want.column(c).as_ref(), "column {c}");
+        }
+        // Floats compared by bits (NaN != NaN).
+        for c in [2, 3] {
+            let (g, w) = (got.column(c).as_primitive::<Float32Type>(), want.column(c).as_primitive::<Float32Type>());
+            assert_eq!(g.nulls(), w.nulls());
+            let bits = |a: &arrow::array::Float32Array| a.iter().map(|v| v.map(f32::to_bits)).collect::<Vec<_>>();
+            assert!(bits(g) == bits(w), "column {c}");
+        }
+        for rg in md.row_groups() {
+            for c in rg.columns() {
+                assert!(c.encodings().any(|e| e == Encoding::BYTE_STREAM_SPLIT), "{}", c.column_path());
+            }
+        }
+        let rg = md.row_group(0);
+        // Nulls count leaf entries: a null list is one.
+        let Some(Statistics::Float(tp)) = rg.column(0).statistics() else { panic!("tp statistics") };
+        let tp_nulls = (0..1235).filter(|i| i % 4 == 1).count() as u64;
+        assert_eq!(tp.null_count_opt(), Some(tp_nulls));
+        assert_eq!(rg.column(0).num_values(), (1235 - tp_nulls as i64) * 3 + tp_nulls as i64);
+        let valid_tp: Vec<f32> = (0..1235usize)
+            .filter(|i| i % 4 != 1)
+            .flat_map(|i| (0..3).map(move |k| (i * 3 + k) as f32 * 0.25 - 100.0))
+            .collect();
+        assert_eq!(tp.min_opt(), valid_tp.iter().copied().reduce(f32::min).as_ref());
+        assert_eq!(tp.max_opt(), valid_tp.iter().copied().reduce(f32::max).as_ref());
+        // NaN ignored, infinities kept, zero minima/maxima signed as the format asks.
+        let Some(Statistics::Float(f)) = rg.column(2).statistics() else { panic!("f statistics") };
+        assert_eq!((f.min_opt(), f.max_opt()), (Some(&f32::NEG_INFINITY), Some(&f32::INFINITY)));
+        let Some(Statistics::Float(nan)) = rg.column(3).statistics() else { panic!("nan statistics") };
+        assert_eq!((nan.min_opt(), nan.max_opt()), (None, None));
+        let index = &md.column_index().unwrap()[0];
+        assert!(matches!(index[3], ColumnIndexMetaData::NONE), "pages of only NaN: no column index");
+        let ColumnIndexMetaData::FLOAT(tpi) = &index[0] else { panic!("tp column index") };
+        assert_eq!(tpi.min_value(0), Some(&-100.0));
+        assert_eq!(tpi.null_count(0), Some(125));
+        let ColumnIndexMetaData::INT32(tqi) = &index[1] else { panic!("tq column index") };
+        assert_eq!(tqi.max_value(0).map(|&v| v as u16), Some(998), "999 is null");
+        let offsets = &md.offset_index().unwrap()[0];
+        let firsts: Vec<i64> = offsets[0].page_locations().iter().map(|l| l.first_row_index).collect();
+        assert_eq!(firsts, vec![0, 500, 1000], "pages hold rows, not values");
+    }
+
+    #[test]
+    fn zero_minima_and_maxima_are_signed() {
+        let schema = Arc::new(Schema::new(vec![Field::new("z", DataType::Float32, false)]));
+        let b = RecordBatch::try_new(
+            schema.clone(),
+            vec![Arc::new(arrow::array::Float32Array::from(vec![0.0, -0.0, 0.0]))],
+        )
+        .unwrap();
+        let mut w = RayFileWriter::try_new(
+            Vec::new(),
+            schema,
+            WriterProperties::builder().build(),
+            &[Plan::Split { stats: true }],
+            1,
+            10,
+        )
+        .unwrap();
+        w.write(&b).unwrap();
+        let bytes = Bytes::from(w.into_inner().unwrap());
+        let r = ParquetRecordBatchReaderBuilder::try_new(bytes).unwrap();
+        let Some(Statistics::Float(s)) = r.metadata().row_group(0).column(0).statistics() else { panic!("statistics") };
+        assert_eq!(s.min_opt().map(|v| v.to_bits()), Some((-0.0f32).to_bits()));
+        assert_eq!(s.max_opt().map(|v| v.to_bits()), Some(0.0f32.to_bits()));
     }
 }

@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex};
 
+use arrow::datatypes::DataType;
 use parquet::arrow::ArrowWriter;
 use parquet::basic::{Compression, Encoding as Encoding_, ZstdLevel};
 use parquet::file::metadata::KeyValue;
@@ -149,7 +150,7 @@ impl DatasetWriter {
         let file = File::create(&tmp).map_err(io_err("creating a segment file", &tmp))?;
         let sink = CrcWriter::new(BufWriter::with_capacity(1 << 20, file));
         let schema = file_schema(&ray_schema(&self.payload), self.options.encoding, FORMAT_VERSION);
-        let plans: Vec<Plan> = schema.fields().iter().map(|f| column_plan(f.name(), self.options.encoding)).collect();
+        let plans: Vec<Plan> = schema.fields().iter().map(|f| column_plan(f, self.options.encoding)).collect();
         let writer = RayFileWriter::try_new(
             sink,
             schema.clone(),
@@ -437,13 +438,18 @@ fn ensure_empty(dir: &Path) -> Result<()> {
 /// apart from the low bytes (0.3-0.5 B/value less than plain on a Cornell-box trace; for
 /// `kind_code` a dictionary costs a hash per row and saves ~0.02 B/ray). Residuals have no
 /// useful min/max: the encoded columns carry no statistics.
-fn column_plan(name: &str, encoding: Encoding) -> Plan {
+fn column_plan(field: &arrow::datatypes::Field, encoding: Encoding) -> Plan {
     if encoding == Encoding::Plain {
         return Plan::Arrow;
     }
-    match name {
+    let float = match field.data_type() {
+        DataType::FixedSizeList(item, _) => item.data_type() == &DataType::Float32,
+        t => t == &DataType::Float32,
+    };
+    match field.name().as_str() {
         "tree_id" => Plan::Delta,
         n if n == ENC_T || ENCODED_COLUMNS.contains(&n) => Plan::Split { stats: false },
+        _ if float => Plan::Plain { stats: true },
         _ => Plan::Split { stats: true },
     }
 }
@@ -476,12 +482,21 @@ fn write_small_table(
     sync: bool,
 ) -> Result<(u32, u64)> {
     let file = File::create(tmp).map_err(io_err("creating a table file", tmp))?;
-    let mut props = WriterProperties::builder();
+    // Dictionaries only for text and byte columns: for numbers (node bounds, ids, counts) they
+    // cost a hash per value and are dropped again once the dictionary page overflows (writing a
+    // 267K-node `bvh_nodes` table spent most of its time hashing).
+    let mut props = WriterProperties::builder().set_dictionary_enabled(false);
+    for f in schema.fields() {
+        if matches!(
+            f.data_type(),
+            DataType::Utf8 | DataType::LargeUtf8 | DataType::Utf8View | DataType::Binary | DataType::LargeBinary
+        ) {
+            props = props.set_column_dictionary_enabled(ColumnPath::from(f.name().as_str()), true);
+        }
+    }
     if table == "trees" {
         // Sorted ids and rows: deltas of +1 and of the tree sizes; pixels, samples and the
         // segment: runs and steps of +1. Tree sizes and depths: small values, one byte plane.
-        // No dictionaries: hashing every row cost ~2% of a writer thread.
-        props = props.set_dictionary_enabled(false);
         for name in ["tree_id", "first_row", "pixel_x", "pixel_y", "sample", "segment"] {
             props = props.set_column_encoding(ColumnPath::from(name), Encoding_::DELTA_BINARY_PACKED);
         }
