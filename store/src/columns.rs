@@ -172,6 +172,59 @@ pub(crate) fn write_value(value: Value<'_>, out: &mut [u8]) {
     }
 }
 
+/// Writes `value` into `out` (its column's row width) when it fits a column of `storage` (a
+/// list of `list_len` elements when given), in one match: what [`fits`] then [`write_value`] do,
+/// for the recording hot path. Returns whether it was written.
+#[inline]
+pub(crate) fn write_fitting(value: Value<'_>, storage: Storage, list_len: Option<usize>, out: &mut [u8]) -> bool {
+    use ListValue as L;
+    use Storage::{Bool, Float, Int, UInt};
+    macro_rules! list {
+        ($s:expr, $st:expr, $w:expr) => {{
+            if storage != $st || list_len != Some($s.len()) {
+                return false;
+            }
+            le_into!(out, $s, $w);
+        }};
+    }
+    if list_len.is_some() != matches!(value, Value::List(_)) {
+        return false;
+    }
+    match value {
+        Value::Null => return false,
+        Value::Bool(b) if storage == Bool => out[0] = u8::from(b),
+        Value::I8(v) if storage == Int(1) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::I16(v) if storage == Int(2) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::I32(v) if storage == Int(4) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::I64(v) if storage == Int(8) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::U8(v) if storage == UInt(1) => out[0] = v,
+        Value::U16(v) if storage == UInt(2) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::U32(v) if storage == UInt(4) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::U64(v) if storage == UInt(8) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::F16(v) if storage == Float(2) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::F32(v) if storage == Float(4) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::F64(v) if storage == Float(8) => out.copy_from_slice(&v.to_le_bytes()),
+        Value::List(L::I8(s)) => list!(s, Int(1), 1),
+        Value::List(L::I16(s)) => list!(s, Int(2), 2),
+        Value::List(L::I32(s)) => list!(s, Int(4), 4),
+        Value::List(L::I64(s)) => list!(s, Int(8), 8),
+        Value::List(L::U8(s)) => {
+            if storage != UInt(1) || list_len != Some(s.len()) {
+                return false;
+            }
+            out.copy_from_slice(s);
+        }
+        Value::List(L::U16(s)) => list!(s, UInt(2), 2),
+        Value::List(L::U32(s)) => list!(s, UInt(4), 4),
+        Value::List(L::U64(s)) => list!(s, UInt(8), 8),
+        Value::List(L::F16(s)) => list!(s, Float(2), 2),
+        Value::List(L::F32(s)) => list!(s, Float(4), 4),
+        Value::List(L::F64(s)) => list!(s, Float(8), 8),
+        _ => return false,
+    }
+    true
+}
+
 /// The buffer of one typed payload column.
 #[derive(Clone, Debug, Default)]
 pub struct PayloadBuf {
@@ -653,6 +706,67 @@ mod tests {
 
     fn row(tree_id: u64, first_row: u64) -> TreeRow {
         TreeRow { tree_id, pixel_x: tree_id as u32 * 2, pixel_y: 7, sample: 1, ray_count: 3, max_depth: 2, first_row }
+    }
+
+    #[test]
+    fn write_fitting_agrees_with_fits_and_write_value_for_every_value_and_column() {
+        let (i8s, i16s, i32s, i64s) = ([1i8, -2], [3i16, -4], [5i32, -6, 7], [8i64, -9, 10]);
+        let (u8s, u16s, u32s, u64s) = ([11u8, 12], [13u16, 14], [15u32, 16, 17], [18u64, 19, 20]);
+        let (f16s, f32s, f64s) = ([0x3C00u16, 0xC000], [1.5f32, f32::NAN, -0.0], [2.5f64, f64::INFINITY, 1e300]);
+        let values = [
+            Value::Null,
+            Value::Bool(true),
+            Value::I8(-1),
+            Value::I16(-300),
+            Value::I32(-70_000),
+            Value::I64(i64::MIN),
+            Value::U8(255),
+            Value::U16(65_535),
+            Value::U32(u32::MAX),
+            Value::U64(u64::MAX),
+            Value::F16(0x7C00),
+            Value::F32(f32::NAN),
+            Value::F64(-0.0),
+            Value::List(ListValue::I8(&i8s)),
+            Value::List(ListValue::I16(&i16s)),
+            Value::List(ListValue::I32(&i32s)),
+            Value::List(ListValue::I64(&i64s)),
+            Value::List(ListValue::U8(&u8s)),
+            Value::List(ListValue::U16(&u16s)),
+            Value::List(ListValue::U32(&u32s)),
+            Value::List(ListValue::U64(&u64s)),
+            Value::List(ListValue::F16(&f16s)),
+            Value::List(ListValue::F32(&f32s)),
+            Value::List(ListValue::F64(&f64s)),
+        ];
+        let storages = [1u8, 2, 4, 8]
+            .into_iter()
+            .flat_map(|w| [Storage::Int(w), Storage::UInt(w), Storage::Float(w)])
+            .chain([Storage::Bool]);
+        let mut written = 0;
+        for storage in storages {
+            for list_len in [None, Some(2), Some(3)] {
+                let width = match storage {
+                    Storage::Bool => 1,
+                    Storage::Int(w) | Storage::UInt(w) | Storage::Float(w) => usize::from(w),
+                } * list_len.unwrap_or(1);
+                for v in values {
+                    let (mut a, mut b) = (vec![0xAAu8; width], vec![0xAAu8; width]);
+                    let ok = fits(v, storage, list_len);
+                    if ok {
+                        write_value(v, &mut a);
+                        written += 1;
+                    }
+                    assert_eq!(
+                        write_fitting(v, storage, list_len, &mut b),
+                        ok,
+                        "{v:?} into {storage:?} x {list_len:?}"
+                    );
+                    assert_eq!(a, b, "{v:?} into {storage:?} x {list_len:?}");
+                }
+            }
+        }
+        assert_eq!(written, 12 + 11, "every scalar fits its own column, every list its own length");
     }
 
     #[test]

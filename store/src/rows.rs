@@ -7,7 +7,7 @@
 //! encoded anyway, off the tracing threads.
 
 use crate::columns::{
-    BytesBuf, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value, fits, write_value,
+    BytesBuf, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value, write_fitting,
 };
 use crate::schema::{PayloadSchema, Storage};
 use crate::{Error, Result};
@@ -161,8 +161,7 @@ impl RayRows {
             let row = &mut self.payload[start..];
             for (i, slot) in layout.slots.iter().enumerate() {
                 let value = values.get(i).copied().unwrap_or(Value::Null);
-                if fits(value, slot.storage, slot.list_len) {
-                    write_value(value, &mut row[slot.offset..slot.offset + slot.width]);
+                if write_fitting(value, slot.storage, slot.list_len, &mut row[slot.offset..slot.offset + slot.width]) {
                     row[layout.valid_at + i] = 1;
                 } else if value != Value::Null
                     && let Some(field) = schema.fields.get(i)
