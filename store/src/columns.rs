@@ -102,6 +102,7 @@ impl ListValue<'_> {
         }
     }
 
+    #[cfg(test)]
     fn storage(&self) -> Storage {
         match self {
             ListValue::I8(_) => Storage::Int(1),
@@ -118,13 +119,16 @@ impl ListValue<'_> {
         }
     }
 
+    #[cfg(test)]
     fn len(&self) -> usize {
         self.describe().1
     }
 }
 
-/// Whether `value` fits a column of `storage` (a list of `list_len` elements when given).
-pub(crate) fn fits(value: Value<'_>, storage: Storage, list_len: Option<usize>) -> bool {
+/// Whether `value` fits a column of `storage` (a list of `list_len` elements when given). The
+/// plain two-step reference [`write_fitting`] is tested against.
+#[cfg(test)]
+fn fits(value: Value<'_>, storage: Storage, list_len: Option<usize>) -> bool {
     match (value, list_len) {
         (Value::Null, _) => false,
         (Value::List(l), Some(n)) => l.storage() == storage && l.len() == n,
@@ -142,7 +146,8 @@ macro_rules! le_into {
 }
 
 /// Writes a value that [`fits`] its column into `out` (exactly its row width).
-pub(crate) fn write_value(value: Value<'_>, out: &mut [u8]) {
+#[cfg(test)]
+fn write_value(value: Value<'_>, out: &mut [u8]) {
     use ListValue as L;
     match value {
         Value::Bool(b) => out[0] = u8::from(b),
@@ -174,7 +179,7 @@ pub(crate) fn write_value(value: Value<'_>, out: &mut [u8]) {
 
 /// Writes `value` into `out` (its column's row width) when it fits a column of `storage` (a
 /// list of `list_len` elements when given), in one match: what [`fits`] then [`write_value`] do,
-/// for the recording hot path. Returns whether it was written.
+/// for both recording paths (rows and columns). Returns whether it was written.
 #[inline]
 pub(crate) fn write_fitting(value: Value<'_>, storage: Storage, list_len: Option<usize>, out: &mut [u8]) -> bool {
     use ListValue as L;
@@ -370,12 +375,10 @@ impl RayColumns {
         for (i, field) in schema.fields.iter().enumerate() {
             let buf = &mut self.payload[i];
             let value = values.get(i).copied().unwrap_or(Value::Null);
-            let ok = fits(value, field.storage(), field.list_len);
             let start = buf.bytes.len();
             buf.bytes.resize(start + field.row_width(), 0);
-            if ok {
-                write_value(value, &mut buf.bytes[start..]);
-            } else if value != Value::Null {
+            let ok = write_fitting(value, field.storage(), field.list_len, &mut buf.bytes[start..]);
+            if !ok && value != Value::Null {
                 mismatches.push(PayloadMismatch {
                     column: field.name.clone(),
                     expected: field.type_name(),

@@ -57,7 +57,6 @@ pub(crate) struct RayFileWriter<W: Write + Send> {
     /// Column writers of the payload columns (arrow-rs's).
     factory: ArrowRowGroupWriterFactory,
     row_groups: usize,
-    plans: Vec<Plan>,
     /// First leaf column and number of leaves of each top-level field.
     leaves: Vec<(usize, usize)>,
     /// Per field: the paged column (None where arrow-rs writes it).
@@ -98,30 +97,16 @@ impl<W: Write + Send> RayFileWriter<W> {
             }
             entry.1 += 1;
         }
-        let plans: Vec<Plan> = fields
-            .iter()
-            .enumerate()
-            .map(|(i, f)| {
-                let plan = plans.get(i).copied().unwrap_or(Plan::Arrow);
-                let fits = match plan {
-                    Plan::Split { .. } | Plan::Plain { .. } => match f.data_type() {
-                        DataType::FixedSizeList(item, n) => *n > 0 && splits(item.data_type()),
-                        t => splits(t),
-                    },
-                    Plan::Delta => f.data_type() == &DataType::UInt64 && !f.is_nullable(),
-                    Plan::Arrow => true,
-                };
-                if fits && leaves[i].1 == 1 { plan } else { Plan::Arrow }
-            })
-            .collect();
-        let columns: Vec<Option<PagedColumn>> = plans
+        // A field whose type or Parquet leaf does not fit its plan (None) goes to arrow-rs.
+        let columns: Vec<Option<PagedColumn>> = fields
             .iter()
             .zip(&leaves)
-            .zip(fields.iter())
-            .map(|((&plan, &(leaf, _)), field)| PagedColumn::new(parquet_schema.column(leaf), field, plan))
+            .enumerate()
+            .map(|(i, (field, &(leaf, _)))| {
+                let plan = plans.get(i).copied().unwrap_or(Plan::Arrow);
+                PagedColumn::new(parquet_schema.column(leaf), field, plan)
+            })
             .collect();
-        // A column whose Parquet leaf does not match what it would be paged as goes to arrow-rs.
-        let plans = plans.iter().zip(&columns).map(|(&p, c)| if c.is_some() { p } else { Plan::Arrow }).collect();
         let zstd = zstd::bulk::Compressor::new(zstd_level)
             .map_err(|e| ParquetError::General(format!("zstd level {zstd_level}: {e}")))?;
         Ok(Self {
@@ -129,7 +114,6 @@ impl<W: Write + Send> RayFileWriter<W> {
             arrow_schema,
             factory,
             row_groups: 0,
-            plans,
             leaves,
             columns,
             arrow_writers: Vec::new(),
@@ -139,6 +123,17 @@ impl<W: Write + Send> RayFileWriter<W> {
             zstd,
             scratch: Scratch::default(),
         })
+    }
+
+    /// How each field is written (`Plan::Arrow` where arrow-rs writes it).
+    #[cfg(test)]
+    fn plans(&self) -> Vec<Plan> {
+        let plan = |c: &PagedColumn| match c.encoding {
+            Encoding::DELTA_BINARY_PACKED => Plan::Delta,
+            Encoding::PLAIN => Plan::Plain { stats: c.stats },
+            _ => Plan::Split { stats: c.stats },
+        };
+        self.columns.iter().map(|c| c.as_ref().map_or(Plan::Arrow, plan)).collect()
     }
 
     /// Rows written to the row group in progress.
@@ -154,7 +149,7 @@ impl<W: Write + Send> RayFileWriter<W> {
         if batch.num_rows() == 0 {
             return Ok(());
         }
-        if self.arrow_writers.is_empty() && self.plans.contains(&Plan::Arrow) {
+        if self.arrow_writers.is_empty() && self.columns.iter().any(Option::is_none) {
             self.arrow_writers = self.factory.create_column_writers(self.row_groups)?.into_iter().map(Some).collect();
         }
         for (f, field) in self.arrow_schema.fields().iter().enumerate() {
@@ -189,30 +184,28 @@ impl<W: Write + Send> RayFileWriter<W> {
             return Ok(());
         }
         let rows = std::mem::take(&mut self.rows);
-        let mut chunks = Vec::with_capacity(self.columns.len());
-        for col in self.columns.iter_mut().flatten() {
-            if col.pending > 0 {
-                let n = col.pending;
-                col.emit_page(n, &mut self.zstd, &mut self.scratch)?;
-            }
-            chunks.push(col.close(rows, self.level)?);
-        }
-        let mut chunks = chunks.into_iter();
         let mut arrow_writers = std::mem::take(&mut self.arrow_writers);
         let mut rg = self.file.next_row_group()?;
-        for (f, plan) in self.plans.iter().enumerate() {
-            if *plan == Plan::Arrow {
-                let (first_leaf, n_leaves) = self.leaves[f];
-                for k in 0..n_leaves {
-                    let w = arrow_writers
-                        .get_mut(first_leaf + k)
-                        .and_then(Option::take)
-                        .ok_or_else(|| general("no column writer for a payload leaf"))?;
-                    w.close()?.append_to_row_group(&mut rg)?;
+        for (f, column) in self.columns.iter_mut().enumerate() {
+            match column {
+                Some(col) => {
+                    if col.pending > 0 {
+                        let n = col.pending;
+                        col.emit_page(n, &mut self.zstd, &mut self.scratch)?;
+                    }
+                    let (bytes, close) = col.close(rows, self.level)?;
+                    rg.append_column(&bytes, close)?;
                 }
-            } else {
-                let (bytes, close) = chunks.next().ok_or_else(|| general("a paged column went missing"))?;
-                rg.append_column(&bytes, close)?;
+                None => {
+                    let (first_leaf, n_leaves) = self.leaves[f];
+                    for k in 0..n_leaves {
+                        let w = arrow_writers
+                            .get_mut(first_leaf + k)
+                            .and_then(Option::take)
+                            .ok_or_else(|| general("no column writer for a payload leaf"))?;
+                        w.close()?.append_to_row_group(&mut rg)?;
+                    }
+                }
             }
         }
         rg.close()?;
@@ -339,7 +332,9 @@ impl PagedColumn {
             t => (None, t, false),
         };
         let (physical, order) = match leaf {
-            DataType::UInt64 if plan == Plan::Delta => (PhysicalType::INT64, Order::Unsigned),
+            DataType::UInt64 if plan == Plan::Delta && list.is_none() && !field.is_nullable() => {
+                (PhysicalType::INT64, Order::Unsigned)
+            }
             DataType::Float32 if plan != Plan::Delta => (PhysicalType::FLOAT, Order::Float),
             t if plan != Plan::Delta && splits(t) => (PhysicalType::INT32, Order::Unsigned),
             _ => return None,
@@ -863,7 +858,7 @@ mod tests {
         ];
         let mut w =
             RayFileWriter::try_new(Vec::new(), schema(), WriterProperties::builder().build(), &plans, 1, 1000).unwrap();
-        assert_eq!(w.plans, plans);
+        assert_eq!(w.plans(), plans);
         let batches = [batch(5, 2500), batch(90_000, 777), batch(1 << 40, 3001), batch(7, 1)];
         // Row groups of 3277 rows (two batches, pages cut across them) and 3002.
         w.write(&batches[0]).unwrap();
@@ -983,7 +978,7 @@ mod tests {
         let mut w =
             RayFileWriter::try_new(Vec::new(), schema.clone(), WriterProperties::builder().build(), &plans, 1, 500)
                 .unwrap();
-        assert_eq!(w.plans, plans, "every column is paged here");
+        assert_eq!(w.plans(), plans, "every column is paged here");
         let batches = [batch(0, 1234), batch(1234, 1), batch(1235, 800)];
         w.write(&batches[0]).unwrap();
         w.write(&batches[1].slice(0, 1)).unwrap();
