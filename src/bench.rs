@@ -106,6 +106,23 @@ pub enum BenchCommand {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true, required = true)]
         args: Vec<String>,
     },
+    /// The visualizer's ray layer: load time of N rays beside `rtvtk sql` scanning the same
+    /// columns, frame time of the layer, GPU memory per segment.
+    Viz {
+        dataset: PathBuf,
+        /// Ray counts to load (comma separated; each at most the dataset's rays).
+        #[arg(long, value_delimiter = ',', default_value = "1000000")]
+        rays: Vec<u64>,
+        /// Frame size WxH.
+        #[arg(long, default_value = "1920x1080", value_parser = crate::commands::parse_size)]
+        size: (u32, u32),
+        /// Timed frames per ray count.
+        #[arg(long, default_value_t = 20)]
+        frames: usize,
+        /// Load rounds (the baseline scan and our load alternate).
+        #[arg(long, default_value_t = 3)]
+        rounds: usize,
+    },
     /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
     Fetch {
         dataset: PathBuf,
@@ -120,6 +137,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp, rounds } => {
             crate::bench_trace::run(subdivide, rotate, width, spp, rounds.max(1))
+        }
+        BenchCommand::Viz { dataset, rays, size, frames, rounds } => {
+            crate::bench_viz::run(&dataset, &rays, size, frames.max(1), rounds.max(1))
         }
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
         BenchCommand::Record { runs, args } => crate::bench_record::run(runs, &args),

@@ -53,7 +53,37 @@ pub fn demo(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) 
         print_tree(&ds, t);
     }
     println!();
+    // The layered picture: the path-traced image, the scene's depth, and that tree's rays.
+    let picture = dir.join("demo.png");
+    let render = <crate::render::RenderArgs as clap::Parser>::try_parse_from([
+        "render".to_string(),
+        dir_arg.clone(),
+        "--layers".into(),
+        "image,composition,rays".into(),
+        "--pixel".into(),
+        format!("{x},{y}"),
+        "--sample".into(),
+        "0".into(),
+        "--line-width".into(),
+        "2".into(),
+        "--out".into(),
+        picture.to_string_lossy().to_string(),
+    ])?;
+    match crate::render::render_to_png(&render) {
+        Ok(_) => println!(
+            "picture: {} (that tree's rays over the path-traced image, hidden behind geometry)",
+            picture.display()
+        ),
+        Err(e) => eprintln!("no picture: {e:#}"),
+    }
+    println!();
     println!("try: rtvtk tree {} --pixel {},{}", dir.display(), w / 2, h / 2);
+    println!(
+        "     rtvtk render {} --layers image,composition,rays --pixel {},{} --out layers.png",
+        dir.display(),
+        w / 2,
+        h / 2
+    );
     println!("     rtvtk check {}", dir.display());
     Ok(())
 }

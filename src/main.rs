@@ -5,10 +5,12 @@ mod bench;
 mod bench_query;
 mod bench_record;
 mod bench_trace;
+mod bench_viz;
 mod commands;
 #[cfg(feature = "embree")]
 mod embree;
 mod record;
+mod render;
 mod serve;
 mod sql;
 
@@ -43,6 +45,9 @@ enum Command {
         #[arg(long, default_value_t = 2)]
         threads: usize,
     },
+    /// Draw a dataset's layers (image, geometry, composition, rays, bvh, query, heatmap) into a
+    /// PNG with the GPU visualizer, headless.
+    Render(Box<render::RenderArgs>),
     /// Image error (RMSE, relative MSE) of the path tracer against time and samples per pixel.
     Converge {
         #[arg(long, default_value = "cornell")]
@@ -155,6 +160,7 @@ fn main() {
             commands::converge(&scene, size, reference_spp, &spp, &out, threads).map(|_| 0)
         }
         Command::Record(args) => record::run(&args).map(|_| 0),
+        Command::Render(args) => render::run(&args).map(|_| 0),
         Command::Info { dataset, json } => commands::info(&dataset, json).map(|_| 0),
         Command::Tree { dataset, pixel, sample, tree, json } => {
             commands::tree(&dataset, pixel, sample, tree, json).map(|_| 0)

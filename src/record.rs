@@ -1,11 +1,11 @@
 //! `rtvtk record` and `rtvtk demo`: render a scene with a CPU tracer, recording every ray.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use renderers::{Bug, BuiltinScene, Bvh, Camera, RenderOptions, Scene, TracerKind};
+use renderers::{Bug, Bvh, Camera, RenderOptions, Scene, TracerKind};
 use rl::{Kind, Recorder, RecorderOptions};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -126,24 +126,7 @@ fn kind_by_name(name: &str) -> Option<Kind> {
 }
 
 pub fn load_scene(name: &str, camera: Option<Camera>) -> Result<Scene> {
-    load_scene_subdivided(name, camera, 1)
-}
-
-pub fn load_scene_subdivided(name: &str, camera: Option<Camera>, subdivide: u32) -> Result<Scene> {
-    let mut scene = match BuiltinScene::parse(name) {
-        Some(b) => b.build(subdivide)?,
-        None => {
-            let p = Path::new(name);
-            if p.extension().is_none_or(|e| !e.eq_ignore_ascii_case("obj")) && !p.exists() {
-                bail!("unknown scene {name:?}: expected cornell, cornell-glass, glossy or an .obj file");
-            }
-            renderers::load_obj(p, camera)?
-        }
-    };
-    if let Some(c) = camera {
-        scene.camera = c;
-    }
-    Ok(scene)
+    Ok(renderers::load_scene(name, camera, 1)?)
 }
 
 pub fn run(a: &RecordArgs) -> Result<()> {
@@ -156,7 +139,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         }),
         _ => None,
     };
-    let mut scene = load_scene_subdivided(&a.scene, camera, a.subdivide)?;
+    let mut scene = renderers::load_scene(&a.scene, camera, a.subdivide)?;
     if let (Some(f), None) = (a.fov, camera) {
         scene.camera.fov_y = f;
     }
@@ -223,6 +206,16 @@ pub fn run(a: &RecordArgs) -> Result<()> {
             options.chunk_rays = a.chunk_rays as usize;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
             renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
+            // The images beside the dataset, findable from its manifest.
+            let inside = |p: &Option<PathBuf>, name: &str| match p {
+                None => Some(name.to_string()),
+                Some(p) => p.strip_prefix(out).ok().map(|r| r.to_string_lossy().to_string()),
+            };
+            let images = [
+                (store::scene::attr::IMAGE_PNG, inside(&a.image, "image.png")),
+                (store::scene::attr::IMAGE_EXR, inside(&a.exr, "image.exr")),
+            ];
+            rec.set_attributes(images.into_iter().filter_map(|(k, v)| v.map(|v| (k.to_string(), v))))?;
             Some(rec)
         }
         _ => None,

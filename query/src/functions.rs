@@ -70,21 +70,20 @@ impl SceneContext {
         }
         let bounds = (lo[0] <= hi[0]).then_some((lo, hi));
         let mut lights = Vec::new();
-        if let Some(batch) = ds.table("lights")? {
-            let col =
-                |name: &str| batch.column_by_name(name).and_then(|c| c.as_primitive_opt::<Float32Type>().cloned());
+        // `Dataset::table` has checked the table against `store::scene::lights_schema`.
+        if let Some(batch) = ds.table(store::scene::LIGHTS_TABLE)? {
             let mut cols = Vec::with_capacity(9);
-            for v in 0..3 {
-                for axis in ["x", "y", "z"] {
-                    cols.push(col(&format!("v{v}_{axis}")));
-                }
+            for name in store::scene::col::VERTEX.iter().flatten() {
+                let c = batch.column_by_name(name).and_then(|c| c.as_primitive_opt::<Float32Type>().cloned());
+                cols.push(c.ok_or_else(|| store::Error::Table {
+                    name: store::scene::LIGHTS_TABLE.into(),
+                    path: ds.dir().to_path_buf(),
+                    message: format!("column `{name}` is missing or not Float32"),
+                })?);
             }
-            if cols.iter().all(Option::is_some) {
-                let cols: Vec<_> = cols.into_iter().flatten().collect();
-                for r in 0..batch.num_rows() {
-                    let p = |v: usize| [0, 1, 2].map(|a| f64::from(cols[v * 3 + a].value(r)));
-                    lights.push([p(0), p(1), p(2)]);
-                }
+            for r in 0..batch.num_rows() {
+                let p = |v: usize| [0, 1, 2].map(|a| f64::from(cols[v * 3 + a].value(r)));
+                lights.push([p(0), p(1), p(2)]);
             }
         }
         Ok(Self { bounds, lights })

@@ -22,7 +22,7 @@ use std::time::Duration;
 
 use arrow::array::{ArrayRef, Float32Array, ListArray, RecordBatch, UInt16Array, UInt32Array};
 use arrow::buffer::OffsetBuffer;
-use arrow::datatypes::{DataType, Field, Schema};
+use arrow::datatypes::DataType;
 use glam::{Vec3A, Vec4};
 use obvhs::BvhBuildParams;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
@@ -810,26 +810,13 @@ impl Bvh {
             }
             offsets.push(values.len() as i32);
         }
-        let item = Arc::new(Field::new("item", DataType::UInt32, false));
-        let prims = ListArray::try_new(
-            item.clone(),
-            OffsetBuffer::new(offsets.into()),
-            Arc::new(UInt32Array::from(values)),
-            None,
-        )?;
-        let schema = Arc::new(Schema::new(vec![
-            Field::new("node_id", DataType::UInt32, false),
-            Field::new("parent", DataType::UInt32, true),
-            Field::new("level", DataType::UInt16, false),
-            Field::new("min_x", DataType::Float32, false),
-            Field::new("min_y", DataType::Float32, false),
-            Field::new("min_z", DataType::Float32, false),
-            Field::new("max_x", DataType::Float32, false),
-            Field::new("max_y", DataType::Float32, false),
-            Field::new("max_z", DataType::Float32, false),
-            Field::new("is_leaf", DataType::Boolean, false),
-            Field::new("prims", DataType::List(item), false),
-        ]));
+        let schema = store::scene::bvh_nodes_schema();
+        let item = match schema.field_with_name(store::scene::col::PRIMS)?.data_type() {
+            DataType::List(item) => item.clone(),
+            other => return Err(arrow::error::ArrowError::SchemaError(format!("prims is {other}"))),
+        };
+        let prims =
+            ListArray::try_new(item, OffsetBuffer::new(offsets.into()), Arc::new(UInt32Array::from(values)), None)?;
         RecordBatch::try_new(
             schema,
             vec![

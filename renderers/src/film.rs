@@ -34,13 +34,19 @@ impl Film {
         self.pixels.iter().copied().sum::<Vec3A>() / self.pixels.len().max(1) as f32
     }
 
-    /// Tone-mapped 8-bit sRGB PNG (exposure `exposure`, then clamped).
-    pub fn write_png(&self, path: &Path, exposure: f32) -> Result<()> {
-        let mut buf = Vec::with_capacity(self.pixels.len() * 3);
+    /// Tone-mapped 8-bit sRGB pixels, `channels` (3: RGB, 4: RGBA with opaque alpha) per pixel.
+    pub fn to_srgb8(&self, exposure: f32, channels: usize) -> Vec<u8> {
+        let mut buf = Vec::with_capacity(self.pixels.len() * channels);
         for p in &self.pixels {
             let p = *p * exposure;
-            buf.extend_from_slice(&[srgb(p.x), srgb(p.y), srgb(p.z)]);
+            buf.extend_from_slice(&[srgb(p.x), srgb(p.y), srgb(p.z), 255][..channels.clamp(3, 4)]);
         }
+        buf
+    }
+
+    /// Tone-mapped 8-bit sRGB PNG (exposure `exposure`, then clamped).
+    pub fn write_png(&self, path: &Path, exposure: f32) -> Result<()> {
+        let buf = self.to_srgb8(exposure, 3);
         image::save_buffer(path, &buf, self.width, self.height, image::ColorType::Rgb8)
             .map_err(|e| Error::Image { path: path.into(), message: e.to_string() })
     }

@@ -9,6 +9,7 @@ pub mod material;
 pub mod render;
 pub mod sampling;
 pub mod scene;
+mod scene_tables;
 pub mod tracer;
 
 pub use bvh::{Bvh, BvhLayout, Hit, TraversalStats};
@@ -16,4 +17,5 @@ pub use error::{Error, Result};
 pub use film::Film;
 pub use render::{RenderOptions, RenderStats, TracerKind, describe_recording, payload_schema, render};
 pub use scene::{BuiltinScene, Camera, LoadReport, Material, MaterialKind, Scene, load_obj};
+pub use scene_tables::load_scene;
 pub use tracer::Bug;

@@ -5,7 +5,7 @@ use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Instant;
 
 use arrow::array::{BooleanArray, RecordBatch, UInt32Array, UInt64Array};
-use arrow::datatypes::{DataType, Field, Schema};
+use arrow::datatypes::DataType;
 use glam::Vec3A;
 use rl::{Kind, ListValue, Payload, PayloadField, PayloadSchema, RayFields, RayId, Recorder, Value};
 
@@ -114,16 +114,16 @@ impl RenderOptions {
 
 /// Writes what a recording of `scene` needs besides the rays: BVH nodes, lights, attributes.
 pub fn describe_recording(rec: &Recorder, scene: &Scene, bvh: &Bvh, opts: &RenderOptions) -> Result<()> {
-    rec.write_table("bvh_nodes", bvh.node_table()?)?;
+    use store::scene::{BVH_NODES_TABLE, LIGHTS_TABLE, TRIANGLES_TABLE};
+    rec.write_table(BVH_NODES_TABLE, bvh.node_table()?)?;
+    rec.write_table(TRIANGLES_TABLE, scene.triangles_table()?)?;
     if !scene.lights.is_empty() {
-        rec.write_table("lights", scene.lights_table()?)?;
+        rec.write_table(LIGHTS_TABLE, scene.lights_table()?)?;
     }
     let c = scene.camera;
     rec.set_attributes([
         ("scene", scene.name.clone()),
         ("tracer", format!("{:?}", opts.tracer).to_lowercase()),
-        ("width", opts.width.to_string()),
-        ("height", opts.height.to_string()),
         ("spp", opts.spp.to_string()),
         ("seed", opts.seed.to_string()),
         ("max_depth", opts.max_depth.to_string()),
@@ -141,6 +141,7 @@ pub fn describe_recording(rec: &Recorder, scene: &Scene, bvh: &Bvh, opts: &Rende
         ("triangles", scene.tris.len().to_string()),
         ("bvh_nodes", bvh.node_count().to_string()),
     ])?;
+    rec.set_attributes(scene.camera_attrs(opts.width, opts.height).to_attributes())?;
     Ok(())
 }
 
@@ -300,13 +301,7 @@ pub fn render(
             prev = Some((v.0, v.1));
             steps.push(step);
         }
-        let schema = Arc::new(Schema::new(vec![
-            Field::new("tree_id", DataType::UInt64, false),
-            Field::new("ray", DataType::UInt32, false),
-            Field::new("step", DataType::UInt32, false),
-            Field::new("node_id", DataType::UInt32, false),
-            Field::new("leaf_hit", DataType::Boolean, true),
-        ]));
+        let schema = store::scene::ray_nodes_schema();
         let node = |v: &(u64, u32, u32)| v.2 & !crate::bvh::VISIT_HIT;
         let batch = RecordBatch::try_new(
             schema,
@@ -320,7 +315,7 @@ pub fn render(
                 )),
             ],
         )?;
-        rec.write_table("ray_nodes", batch)?;
+        rec.write_table(store::scene::RAY_NODES_TABLE, batch)?;
     }
     stats.rays = by_kind.iter().sum();
     stats.rays_by_kind =

@@ -1,11 +1,7 @@
 //! Scenes: triangles with materials, emitters, and a camera. Built-in Cornell boxes or OBJ/MTL.
 
-use std::path::Path;
-use std::sync::Arc;
-
-use arrow::array::{ArrayRef, Float32Array, RecordBatch, UInt32Array};
-use arrow::datatypes::{DataType, Field, Schema};
 use glam::Vec3A;
+use std::path::Path;
 
 use crate::geometry::{is_degenerate, triangle_normal};
 use crate::{Error, Result};
@@ -206,32 +202,6 @@ impl Scene {
         out.camera.position = f(out.camera.position);
         out.camera.target = f(out.camera.target);
         out
-    }
-
-    /// The `lights` table: every emissive triangle with its vertices, emission and area.
-    pub fn lights_table(&self) -> std::result::Result<RecordBatch, arrow::error::ArrowError> {
-        let col = |f: &dyn Fn(u32) -> f32| -> ArrayRef {
-            Arc::new(Float32Array::from_iter_values(self.lights.iter().map(|&l| f(l))))
-        };
-        let mut fields =
-            vec![Field::new("light_id", DataType::UInt32, false), Field::new("prim", DataType::UInt32, false)];
-        let mut cols: Vec<ArrayRef> = vec![
-            Arc::new(UInt32Array::from_iter_values(0..self.lights.len() as u32)),
-            Arc::new(UInt32Array::from(self.lights.clone())),
-        ];
-        for v in 0..3 {
-            for (a, axis) in ["x", "y", "z"].iter().enumerate() {
-                fields.push(Field::new(format!("v{v}_{axis}"), DataType::Float32, false));
-                cols.push(col(&|l| self.tris[l as usize][v][a]));
-            }
-        }
-        for (a, c) in ["r", "g", "b"].iter().enumerate() {
-            fields.push(Field::new(format!("emission_{c}"), DataType::Float32, false));
-            cols.push(col(&|l| self.material_of(l).emission[a]));
-        }
-        fields.push(Field::new("area", DataType::Float32, false));
-        cols.push(Arc::new(Float32Array::from_iter_values((0..self.lights.len()).map(|i| self.emitter_area(i)))));
-        RecordBatch::try_new(Arc::new(Schema::new(fields)), cols)
     }
 }
 

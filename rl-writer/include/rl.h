@@ -71,6 +71,18 @@ int rlDescendTree(rl_recorder *rec);
 int rlAscendTree(rl_recorder *rec);
 /* Ends the current tree of this thread; returns its id, or -1. */
 int64_t rlEndTree(rl_recorder *rec);
+/* The scene, so a viewer can draw the dataset (the `triangles` table): `count` triangles of 9
+ * floats each in `vertices` (v0, v1, v2), one material index per triangle in `materials`, and
+ * `material_count` materials of 3 floats of diffuse colour (`colors`) and 3 of emission
+ * (`emission`), named by `names` (`material_count` strings, or NULL). */
+int rlSetTriangles(rl_recorder *rec, size_t count, const float *vertices, const uint32_t *materials,
+                   size_t material_count, const float *colors, const float *emission, const char *const *names);
+/* The camera the image was rendered with: position, target, up (3 floats each), vertical field
+ * of view in degrees, image size in pixels. Primary ray of film position (px, py), y down:
+ * normalize(f + r sx + u sy), f = normalize(target - position), r = normalize(f x up), u = r x f,
+ * sx = (2 px / width - 1) tan(fov_y / 2) width / height, sy = (1 - 2 py / height) tan(fov_y / 2). */
+int rlSetCamera(rl_recorder *rec, const float position[3], const float target[3], const float up[3], float fov_y,
+                uint32_t width, uint32_t height);
 /* Seals every ended tree to disk. */
 int rlFlush(rl_recorder *rec);
 /* Seals everything, frees the recorder, and reports any error of the recording. */

@@ -211,6 +211,117 @@ pub unsafe extern "C" fn rlEndTree(rec: *mut RlRecorder) -> i64 {
     })
 }
 
+/// A slice of `n` values from a C pointer (NULL only when `n` is 0).
+unsafe fn slice_arg<'a, T>(p: *const T, n: usize, what: &str) -> Result<&'a [T], String> {
+    if n == 0 {
+        return Ok(&[]);
+    }
+    if p.is_null() {
+        return Err(format!("{what} is NULL"));
+    }
+    // SAFETY: the caller passes `n` readable values at `p`.
+    Ok(unsafe { std::slice::from_raw_parts(p, n) })
+}
+
+#[unsafe(no_mangle)]
+#[allow(clippy::too_many_arguments)]
+pub unsafe extern "C" fn rlSetTriangles(
+    rec: *mut RlRecorder,
+    count: usize,
+    vertices: *const f32,
+    materials: *const u32,
+    material_count: usize,
+    colors: *const f32,
+    emission: *const f32,
+    names: *const *const c_char,
+) -> i32 {
+    guard(-1, || {
+        // SAFETY: forwarded caller contract.
+        let rec = unsafe { rec_arg(rec) }?;
+        let n9 = count.checked_mul(9).ok_or("triangle count overflows")?;
+        let nm3 = material_count.checked_mul(3).ok_or("material count overflows")?;
+        // SAFETY: forwarded caller contract (sizes as rl.h documents them).
+        let (v, m, c, e) = unsafe {
+            (
+                slice_arg(vertices, n9, "vertices")?,
+                slice_arg(materials, count, "materials")?,
+                slice_arg(colors, nm3, "colors")?,
+                slice_arg(emission, nm3, "emission")?,
+            )
+        };
+        let mut mat_names = Vec::with_capacity(material_count);
+        for i in 0..material_count {
+            let name = if names.is_null() {
+                format!("material{i}")
+            } else {
+                // SAFETY: `names` holds `material_count` NUL-terminated strings.
+                unsafe { path_arg(*names.add(i)) }.map_err(|e| format!("material name {i}: {e}"))?
+            };
+            mat_names.push(name);
+        }
+        if v.iter().chain(c).chain(e).any(|x| !x.is_finite()) {
+            return Err("rlSetTriangles: vertices, colors and emission must be finite".into());
+        }
+        let mut rows = Vec::with_capacity(count);
+        for (t, &mi) in m.iter().enumerate() {
+            let k = mi as usize;
+            if k >= material_count {
+                return Err(format!("triangle {t} uses material {mi}, but only {material_count} materials were given"));
+            }
+            let tri = |j: usize| [v[t * 9 + j * 3], v[t * 9 + j * 3 + 1], v[t * 9 + j * 3 + 2]];
+            let rgb = |a: &[f32]| [a[k * 3], a[k * 3 + 1], a[k * 3 + 2]];
+            rows.push(store::scene::TriangleRow {
+                vertices: [tri(0), tri(1), tri(2)],
+                material: mi,
+                material_name: &mat_names[k],
+                material_kind: "diffuse",
+                diffuse: rgb(c),
+                specular: [0.0; 3],
+                exponent: 0.0,
+                ior: 1.0,
+                emission: rgb(e),
+            });
+        }
+        let batch = store::scene::triangles_batch(&rows).map_err(|e| e.to_string())?;
+        rec.rec.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(|e| e.to_string())?;
+        Ok(0)
+    })
+}
+
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlSetCamera(
+    rec: *mut RlRecorder,
+    position: *const f32,
+    target: *const f32,
+    up: *const f32,
+    fov_y: f32,
+    width: u32,
+    height: u32,
+) -> i32 {
+    guard(-1, || {
+        // SAFETY: forwarded caller contract.
+        let rec = unsafe { rec_arg(rec) }?;
+        // SAFETY: three floats each, as rl.h documents.
+        let v = |p: *const f32, what: &str| -> Result<[f32; 3], String> {
+            let s = unsafe { slice_arg(p, 3, what) }?;
+            Ok([s[0], s[1], s[2]])
+        };
+        let cam = store::scene::CameraAttrs {
+            position: v(position, "position")?,
+            target: v(target, "target")?,
+            up: v(up, "up")?,
+            fov_y,
+            width,
+            height,
+        };
+        // Round trip through the reader's checks, so a bad camera is refused here, not when read.
+        let attrs: std::collections::BTreeMap<String, String> = cam.to_attributes().into_iter().collect();
+        store::scene::CameraAttrs::from_attributes(&attrs)?;
+        rec.rec.set_attributes(cam.to_attributes()).map_err(|e| e.to_string())?;
+        Ok(0)
+    })
+}
+
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn rlFlush(rec: *mut RlRecorder) -> i32 {
     guard(-1, || {

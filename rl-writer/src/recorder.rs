@@ -258,6 +258,10 @@ impl Recorder {
 
     /// Stores an optional whole-recording table, e.g. the BVH's nodes (`bvh_nodes`).
     pub fn write_table(&self, name: &str, batch: arrow::array::RecordBatch) -> Result<()> {
+        // A table the store knows (`triangles`, `lights`, ...) must match its schema: refused here,
+        // at once, rather than when the background write reaches it.
+        store::scene::check_table(name, &batch.schema())
+            .map_err(|m| crate::Error::InvalidArgument(format!("table `{name}`: {m}")))?;
         self.inner.sink.write_table(name, batch)
     }
 

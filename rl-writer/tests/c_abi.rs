@@ -69,6 +69,11 @@ fn c_tracer_records_and_reads_back() {
     assert_eq!((ds.tree_count(), ds.ray_count()), (trees, rays));
     let report = ds.check();
     assert!(report.is_ok(), "{:?}", report.errors);
+    // The scene and camera set through rlSetTriangles / rlSetCamera.
+    let tris = ds.table("triangles").unwrap().expect("a triangles table");
+    assert_eq!(tris.num_rows(), 2);
+    let cam = store::scene::CameraAttrs::from_attributes(&ds.manifest().attributes).unwrap().unwrap();
+    assert_eq!((cam.target, cam.fov_y, cam.width, cam.height), ([0.0, 0.0, -1.0], 60.0, 16, 12));
     // Some rays recurse (specular under camera, shadow rays one level down).
     let s = ds.stats();
     assert!(s.rays_by_kind()["specular"] > 0 && s.rays_by_kind()["shadow"] > 0);

@@ -420,21 +420,24 @@ fn tables_are_written_in_the_background_and_their_failures_reported() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("trace");
     let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
-    rec.write_table("bvh_nodes", batch()).unwrap();
+    // A known table must match its schema (store::scene): refused at once, naming the column.
+    let e = rec.write_table("bvh_nodes", batch()).unwrap_err().to_string();
+    assert!(e.contains("`node_id` is missing"), "{e}");
+    rec.write_table("my_table", batch()).unwrap();
     assert!(rec.write_table("bad name", batch()).is_err(), "a bad name is refused at once");
     let mut t = rec.begin_tree(0, 0, 0);
     t.add_ray(&f(Kind::CAMERA, Some(1.0)), Payload::NONE);
     let id = t.end();
     rec.finish().unwrap();
     let ds = Dataset::open(&path).unwrap();
-    assert_eq!(ds.table("bvh_nodes").unwrap().unwrap().num_rows(), 3);
+    assert_eq!(ds.table("my_table").unwrap().unwrap().num_rows(), 3);
     assert_eq!(ds.tree(id).unwrap().rays.len(), 1);
 
     // A file where the tables directory should be: the background write fails.
     let path = dir.path().join("trace2");
     let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
     std::fs::write(path.join("tables"), b"in the way").unwrap();
-    rec.write_table("lights", batch()).unwrap();
+    rec.write_table("my_other_table", batch()).unwrap();
     let mut t = rec.begin_tree(1, 1, 0);
     t.add_ray(&f(Kind::CAMERA, Some(1.0)), Payload::NONE);
     let id = t.end();
@@ -443,7 +446,7 @@ fn tables_are_written_in_the_background_and_their_failures_reported() {
     rec.finish().unwrap();
     let ds = Dataset::open(&path).unwrap();
     assert_eq!(ds.tree(id).unwrap().rays.len(), 1);
-    assert!(ds.table("lights").unwrap().is_none());
+    assert!(ds.table("my_other_table").unwrap().is_none());
 }
 
 /// Several writers share one chunk queue: `flush` returns only once every tree ended before it

@@ -163,6 +163,11 @@ impl Dataset {
         let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
         let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
         let schema = builder.schema().clone();
+        crate::scene::check_table(name, &schema).map_err(|message| Error::Table {
+            name: name.into(),
+            path: path.clone(),
+            message,
+        })?;
         let reader = builder.build().map_err(pq_err(&path))?;
         let mut batches = Vec::new();
         for b in reader {

@@ -9,6 +9,7 @@ mod manifest;
 mod pages;
 mod planes;
 mod rows;
+pub mod scene;
 mod schema;
 mod stats;
 mod tree;

@@ -197,6 +197,11 @@ impl DatasetWriter {
     pub fn write_table(&self, name: &str, batch: &arrow::array::RecordBatch) -> Result<()> {
         Self::check_table_name(name)?;
         let rel = format!("tables/{name}.parquet");
+        crate::scene::check_table(name, &batch.schema()).map_err(|message| Error::Table {
+            name: name.into(),
+            path: self.dir.join(&rel),
+            message,
+        })?;
         let dir = self.dir.join("tables");
         fs::create_dir_all(&dir).map_err(io_err("creating the tables directory", &dir))?;
         let tmp = self.dir.join(format!("{rel}.tmp"));

@@ -431,3 +431,29 @@ fn many_trees_out_of_order_seal_sorted_across_segments() {
         assert_eq!(t.info.pixel, [(id % 640) as u32, (id / 640) as u32]);
     }
 }
+
+#[test]
+fn a_known_table_that_does_not_match_its_schema_is_refused_on_write_and_on_read() {
+    use std::sync::Arc;
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("t");
+    let w = DatasetWriter::create(&dir, PayloadSchema::default(), WriteOptions::default()).unwrap();
+    // A lights table without v1_y: refused on write, naming the table and the column.
+    let full = store::scene::lights_schema();
+    let fields: Vec<_> = full.fields().iter().filter(|f| f.name() != "v1_y").cloned().collect();
+    let schema = Arc::new(arrow::datatypes::Schema::new(fields));
+    let cols: Vec<arrow::array::ArrayRef> =
+        schema.fields().iter().map(|f| arrow::array::new_empty_array(f.data_type())).collect();
+    let bad = arrow::array::RecordBatch::try_new(schema, cols).unwrap();
+    let e = w.write_table("lights", &bad).unwrap_err().to_string();
+    assert!(e.contains("`lights`") && e.contains("`v1_y` is missing"), "{e}");
+    // Written under another name and renamed in the manifest (as another tool might): refused on read.
+    w.write_table("my_lights", &bad).unwrap();
+    w.mark_complete().unwrap();
+    let mpath = dir.join("manifest.json");
+    let m = fs::read_to_string(&mpath).unwrap().replace("\"my_lights\":", "\"lights\":");
+    fs::write(&mpath, m).unwrap();
+    let ds = Dataset::open(&dir).unwrap();
+    let e = ds.table("lights").unwrap_err().to_string();
+    assert!(e.contains("`lights`") && e.contains("`v1_y` is missing"), "{e}");
+}

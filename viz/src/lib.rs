@@ -1,1 +1,20 @@
-//! Placeholder: filled by a later issue (see README.md).
+#![doc = include_str!("../README.md")]
+
+pub mod camera;
+pub mod component;
+pub mod components;
+pub mod draw;
+mod error;
+pub mod gpu;
+pub mod legend;
+pub mod pipeline;
+pub mod registry;
+pub mod sources;
+
+pub use camera::ViewCamera;
+pub use component::{Component, ComponentId, LayerRole, Legend};
+pub use error::{Error, Result};
+pub use gpu::Gpu;
+pub use pipeline::Pipeline;
+pub use registry::{ComponentInfo, make, registry};
+pub use sources::Sources;

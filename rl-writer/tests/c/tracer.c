@@ -78,6 +78,18 @@ int main(int argc, char **argv) {
     if (rlAddRay(rec, light, light, 1.0f, RL_CAMERA, 0, NULL, 0) == 0) { fprintf(stderr, "expected an error\n"); return 1; }
     if (strstr(rlLastError(), "rlBeginTree") == NULL) { fprintf(stderr, "bad message: %s\n", rlLastError()); return 1; }
     const int W = 16, H = 12;
+    /* The scene for viewers: a floor quad (two triangles) of one grey material, and the camera. */
+    const float quad[18] = {-5, -1, -1, 5, -1, -1, 5, -1, -9, -5, -1, -1, 5, -1, -9, -5, -1, -9};
+    const uint32_t mats[2] = {0, 0};
+    const float grey[3] = {0.7f, 0.7f, 0.7f}, black[3] = {0, 0, 0};
+    const char *names[1] = {"floor"};
+    const uint32_t bad_mats[2] = {0, 3};
+    if (rlSetTriangles(rec, 2, quad, bad_mats, 1, grey, black, names) == 0) { fprintf(stderr, "expected a material error\n"); return 1; }
+    if (strstr(rlLastError(), "material 3") == NULL) { fprintf(stderr, "bad message: %s\n", rlLastError()); return 1; }
+    if (rlSetTriangles(rec, 2, quad, mats, 1, grey, black, names) != 0) fail("rlSetTriangles");
+    const float eye[3] = {0, 0, 0}, at[3] = {0, 0, -1}, up[3] = {0, 1, 0};
+    if (rlSetCamera(rec, eye, eye, up, 60.0f, W, H) == 0) { fprintf(stderr, "expected a camera error\n"); return 1; }
+    if (rlSetCamera(rec, eye, at, up, 60.0f, W, H) != 0) fail("rlSetCamera");
     long trees = 0;
     for (int y = 0; y < H; y++)
         for (int x = 0; x < W; x++) {

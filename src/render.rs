@@ -1,0 +1,190 @@
+//! `rtvtk render`: the layered visualizer, headless, into a PNG.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::Parser;
+use rtvtk_viz::{Gpu, Pipeline, Sources, ViewCamera};
+use serde_json::{Value, json};
+
+#[derive(Parser, Debug)]
+pub struct RenderArgs {
+    /// The dataset directory.
+    pub dataset: PathBuf,
+    /// Layers bottom to top: image, geometry, composition, rays, bvh, query, heatmap
+    /// (default: image, composition, rays; geometry in place of the image when it has none).
+    #[arg(long, value_delimiter = ',')]
+    pub layers: Option<Vec<String>>,
+    /// The query the `query` layer draws (or the heatmap's, when there is no query layer).
+    #[arg(long)]
+    pub sql: Option<String>,
+    /// Column that colours the query layer's rows.
+    #[arg(long)]
+    pub colour_by: Option<String>,
+    /// Rays of this tree only.
+    #[arg(long, conflicts_with = "pixel")]
+    pub tree: Option<u64>,
+    /// Rays of the trees of this pixel only, X,Y.
+    #[arg(long, value_parser = crate::commands::parse_pixel)]
+    pub pixel: Option<(u32, u32)>,
+    /// Rays of this sample only.
+    #[arg(long)]
+    pub sample: Option<u32>,
+    /// Rays of these kinds only (comma separated).
+    #[arg(long, value_delimiter = ',')]
+    pub kinds: Option<Vec<String>>,
+    /// Rays of depths A..B only (inclusive).
+    #[arg(long, value_parser = parse_range)]
+    pub depth: Option<[u32; 2]>,
+    /// At most this many rays.
+    #[arg(long)]
+    pub max_rays: Option<u64>,
+    /// BVH levels A..B (inclusive).
+    #[arg(long, value_parser = parse_range)]
+    pub bvh_levels: Option<[u32; 2]>,
+    /// Only the BVH nodes that rays visited (needs a recording with --record-visits).
+    #[arg(long)]
+    pub bvh_visited: bool,
+    /// Geometry style: wireframe, transparent or opaque.
+    #[arg(long, default_value = "wireframe")]
+    pub geometry: String,
+    /// Camera POS:TARGET[:FOV], e.g. 278,273,-800:278,273,0:40 (default: the dataset's).
+    #[arg(long, value_parser = parse_camera)]
+    pub camera: Option<ViewCamera>,
+    /// Picture size WxH (default: the dataset's image size).
+    #[arg(long, value_parser = crate::commands::parse_size)]
+    pub size: Option<(u32, u32)>,
+    /// Ray line width in pixels.
+    #[arg(long, default_value_t = 1.5)]
+    pub line_width: f32,
+    /// No legends or colour bars.
+    #[arg(long)]
+    pub no_legend: bool,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+fn parse_range(s: &str) -> Result<[u32; 2], String> {
+    let (a, b) = s.split_once("..").unwrap_or((s, s));
+    let p = |v: &str| v.trim().parse::<u32>().map_err(|_| format!("bad range {s:?}: expected A..B with integers"));
+    let r = [p(a)?, p(b)?];
+    if r[0] > r[1] {
+        return Err(format!("bad range {s:?}: the start is after the end"));
+    }
+    Ok(r)
+}
+
+fn parse_camera(s: &str) -> Result<ViewCamera, String> {
+    let parts: Vec<&str> = s.split(':').collect();
+    if !(2..=3).contains(&parts.len()) {
+        return Err(format!("bad camera {s:?}: expected POS:TARGET[:FOV], e.g. 0,1,5:0,1,0:45"));
+    }
+    let v = |p: &str| -> Result<[f64; 3], String> {
+        let n: Vec<f64> = p
+            .split(',')
+            .map(|x| x.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|_| format!("bad camera {s:?}: {p:?} is not X,Y,Z"))?;
+        n.try_into().map_err(|_| format!("bad camera {s:?}: {p:?} is not three numbers"))
+    };
+    let fov = match parts.get(2) {
+        Some(f) => f.parse::<f64>().map_err(|_| format!("bad camera {s:?}: field of view {f:?} is not a number"))?,
+        None => 40.0,
+    };
+    let c = ViewCamera { position: v(parts[0])?, target: v(parts[1])?, up: [0.0, 1.0, 0.0], fov_y: fov };
+    c.validate().map_err(|e| format!("bad camera {s:?}: {e}"))?;
+    Ok(c)
+}
+
+/// The settings of a layer from the command line.
+fn layer_settings(kind: &str, a: &RenderArgs, has_query_layer: bool) -> Result<Value> {
+    Ok(match kind {
+        "rays" => json!({
+            "tree": a.tree,
+            "pixel": a.pixel.map(|(x, y)| [x, y]),
+            "sample": a.sample,
+            "kinds": a.kinds,
+            "depth": a.depth,
+            "max_rays": a.max_rays.or(Some(10_000_000)),
+            "line_width": a.line_width,
+            "opacity": 1.0,
+            "gradient": true,
+            "selected_tree": null,
+        }),
+        "geometry" => json!({"style": a.geometry, "opacity": 0.8, "line_width": 1.2}),
+        "bvh" => {
+            let mut s = json!({"only_visited": a.bvh_visited, "tree": a.tree});
+            if let Some(l) = a.bvh_levels {
+                s["levels"] = json!(l);
+            }
+            s
+        }
+        "query" => {
+            let Some(sql) = &a.sql else { bail!("the query layer needs --sql \"SELECT ...\"") };
+            json!({"sql": sql, "colour_by": a.colour_by, "line_width": a.line_width.max(2.0)})
+        }
+        "heatmap" => match (&a.sql, has_query_layer) {
+            (Some(sql), false) => json!({"sql": sql, "title": a.colour_by.clone().unwrap_or_else(|| "value".into())}),
+            _ => Value::Null,
+        },
+        _ => Value::Null,
+    })
+}
+
+/// Renders the layers of a dataset into a PNG; returns what the layers reported.
+pub fn render_to_png(a: &RenderArgs) -> Result<Vec<String>> {
+    let sources = Sources::open(&a.dataset).with_context(|| format!("opening {}", a.dataset.display()))?;
+    let layers = match &a.layers {
+        Some(l) => l.clone(),
+        None => {
+            let first = if sources.picture.is_some() { "image" } else { "geometry" };
+            let mut l = vec![first.to_string()];
+            if sources.scene.is_some() {
+                l.push("composition".into());
+            }
+            l.push("rays".into());
+            l
+        }
+    };
+    for l in &layers {
+        rtvtk_viz::registry::info(l)?;
+    }
+    let has_query = layers.iter().any(|l| l == "query");
+    let gpu = Gpu::headless()?;
+    let mut p = Pipeline::new(gpu, sources);
+    match a.size {
+        Some((w, h)) => p.resize(w, h)?,
+        None => {
+            // Small images are drawn larger (same aspect, so registration holds), with room
+            // for legends and lines of a few pixels.
+            let [w, h] = p.size();
+            let k = 640u32.div_ceil(w.max(h)).clamp(1, 8);
+            p.resize(w * k, h * k)?;
+        }
+    }
+    if let Some(c) = a.camera {
+        p.set_camera(c)?;
+    }
+    for l in &layers {
+        let s = layer_settings(l, a, has_query)?;
+        p.add(l, &s).with_context(|| format!("adding the {l} layer"))?;
+    }
+    let img = p.snapshot(!a.no_legend)?;
+    save(&img, &a.out)?;
+    Ok(p.report())
+}
+
+pub fn save(img: &image::RgbaImage, out: &Path) -> Result<()> {
+    if let Some(d) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+    }
+    img.save(out).with_context(|| format!("writing {}", out.display()))
+}
+
+pub fn run(a: &RenderArgs) -> Result<()> {
+    for line in render_to_png(a)? {
+        eprintln!("{line}");
+    }
+    println!("wrote {}", a.out.display());
+    Ok(())
+}

@@ -1,0 +1,343 @@
+//! The whole-recording tables a dataset may carry beside its rays (`triangles`, `lights`,
+//! `bvh_nodes`, `ray_nodes`) and the camera and image attributes: their names, their schemas,
+//! and the check that a table read from disk matches its schema.
+//!
+//! Renderers write these tables through `rl::Recorder::write_table`; `query` and the viewer read
+//! them by the column names defined here. Every table is optional: a dataset without one still
+//! opens, and the reader says what is missing. A table that is present but does not match its
+//! schema is an error naming the table and the column ([`check_table`]).
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
+
+/// Name of the scene's triangles table (one row per triangle the renderer traced against).
+pub const TRIANGLES_TABLE: &str = "triangles";
+/// Name of the emitters table (one row per emissive triangle).
+pub const LIGHTS_TABLE: &str = "lights";
+/// Name of the BVH nodes table (one row per node of the binary BVH).
+pub const BVH_NODES_TABLE: &str = "bvh_nodes";
+/// Name of the visited-nodes table (one row per node a ray visited, in visit order).
+pub const RAY_NODES_TABLE: &str = "ray_nodes";
+
+/// Column names shared by the tables (and the ray table).
+pub mod col {
+    pub const TREE_ID: &str = "tree_id";
+    pub const RAY: &str = "ray";
+    pub const PRIM: &str = "prim";
+    pub const LIGHT_ID: &str = "light_id";
+    pub const NODE_ID: &str = "node_id";
+    pub const PARENT: &str = "parent";
+    pub const LEVEL: &str = "level";
+    pub const IS_LEAF: &str = "is_leaf";
+    pub const PRIMS: &str = "prims";
+    pub const STEP: &str = "step";
+    pub const LEAF_HIT: &str = "leaf_hit";
+    pub const AREA: &str = "area";
+    pub const MATERIAL: &str = "material";
+    pub const MATERIAL_NAME: &str = "material_name";
+    pub const MATERIAL_KIND: &str = "material_kind";
+    pub const EXPONENT: &str = "exponent";
+    pub const IOR: &str = "ior";
+    /// Vertex `v` (0..3), axis `a` (0..3): `v0_x` ... `v2_z`.
+    pub const VERTEX: [[&str; 3]; 3] = [["v0_x", "v0_y", "v0_z"], ["v1_x", "v1_y", "v1_z"], ["v2_x", "v2_y", "v2_z"]];
+    pub const BOX_MIN: [&str; 3] = ["min_x", "min_y", "min_z"];
+    pub const BOX_MAX: [&str; 3] = ["max_x", "max_y", "max_z"];
+    pub const EMISSION: [&str; 3] = ["emission_r", "emission_g", "emission_b"];
+    pub const DIFFUSE: [&str; 3] = ["diffuse_r", "diffuse_g", "diffuse_b"];
+    pub const SPECULAR: [&str; 3] = ["specular_r", "specular_g", "specular_b"];
+}
+
+fn f32s(names: &[&str]) -> impl Iterator<Item = Field> {
+    names.iter().map(|n| Field::new(*n, DataType::Float32, false)).collect::<Vec<_>>().into_iter()
+}
+
+fn vertices() -> Vec<Field> {
+    col::VERTEX.iter().flat_map(|v| f32s(v)).collect()
+}
+
+/// Schema of the `triangles` table: prim id, three vertices, the material (index, name, kind,
+/// diffuse and specular colour, Phong exponent, index of refraction) and its emission.
+pub fn triangles_schema() -> SchemaRef {
+    let mut fields = vec![Field::new(col::PRIM, DataType::UInt32, false)];
+    fields.extend(vertices());
+    fields.push(Field::new(col::MATERIAL, DataType::UInt32, false));
+    fields.push(Field::new(col::MATERIAL_NAME, DataType::Utf8, false));
+    fields.push(Field::new(col::MATERIAL_KIND, DataType::Utf8, false));
+    fields.extend(f32s(&col::DIFFUSE));
+    fields.extend(f32s(&col::SPECULAR));
+    fields.extend(f32s(&[col::EXPONENT, col::IOR]));
+    fields.extend(f32s(&col::EMISSION));
+    Arc::new(Schema::new(fields))
+}
+
+/// One row of the `triangles` table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TriangleRow<'a> {
+    pub vertices: [[f32; 3]; 3],
+    /// Material index (rows with the same index share one material).
+    pub material: u32,
+    pub material_name: &'a str,
+    /// `diffuse`, `glossy`, `mirror` or `dielectric`.
+    pub material_kind: &'a str,
+    pub diffuse: [f32; 3],
+    pub specular: [f32; 3],
+    pub exponent: f32,
+    pub ior: f32,
+    pub emission: [f32; 3],
+}
+
+/// The `triangles` table of `rows` (prim ids are the row numbers).
+pub fn triangles_batch(rows: &[TriangleRow]) -> Result<arrow::array::RecordBatch, arrow::error::ArrowError> {
+    use arrow::array::{ArrayRef, Float32Array, StringArray, UInt32Array};
+    let f = |get: &dyn Fn(&TriangleRow) -> f32| -> ArrayRef {
+        Arc::new(Float32Array::from_iter_values(rows.iter().map(get)))
+    };
+    let mut cols: Vec<ArrayRef> = vec![Arc::new(UInt32Array::from_iter_values(0..rows.len() as u32))];
+    for v in 0..3 {
+        for a in 0..3 {
+            cols.push(f(&|r| r.vertices[v][a]));
+        }
+    }
+    cols.push(Arc::new(UInt32Array::from_iter_values(rows.iter().map(|r| r.material))));
+    cols.push(Arc::new(StringArray::from_iter_values(rows.iter().map(|r| r.material_name))));
+    cols.push(Arc::new(StringArray::from_iter_values(rows.iter().map(|r| r.material_kind))));
+    for a in 0..3 {
+        cols.push(f(&|r| r.diffuse[a]));
+    }
+    for a in 0..3 {
+        cols.push(f(&|r| r.specular[a]));
+    }
+    cols.push(f(&|r| r.exponent));
+    cols.push(f(&|r| r.ior));
+    for a in 0..3 {
+        cols.push(f(&|r| r.emission[a]));
+    }
+    arrow::array::RecordBatch::try_new(triangles_schema(), cols)
+}
+
+/// Schema of the `lights` table: every emissive triangle with its vertices, emission and area.
+pub fn lights_schema() -> SchemaRef {
+    let mut fields =
+        vec![Field::new(col::LIGHT_ID, DataType::UInt32, false), Field::new(col::PRIM, DataType::UInt32, false)];
+    fields.extend(vertices());
+    fields.extend(f32s(&col::EMISSION));
+    fields.extend(f32s(&[col::AREA]));
+    Arc::new(Schema::new(fields))
+}
+
+/// Schema of the `bvh_nodes` table: id, parent (null at the root), level, bounds, leaf flag and
+/// the triangles of a leaf.
+pub fn bvh_nodes_schema() -> SchemaRef {
+    let item = Arc::new(Field::new("item", DataType::UInt32, false));
+    let mut fields = vec![
+        Field::new(col::NODE_ID, DataType::UInt32, false),
+        Field::new(col::PARENT, DataType::UInt32, true),
+        Field::new(col::LEVEL, DataType::UInt16, false),
+    ];
+    fields.extend(f32s(&col::BOX_MIN));
+    fields.extend(f32s(&col::BOX_MAX));
+    fields.push(Field::new(col::IS_LEAF, DataType::Boolean, false));
+    fields.push(Field::new(col::PRIMS, DataType::List(item), false));
+    Arc::new(Schema::new(fields))
+}
+
+/// Schema of the `ray_nodes` table: the nodes each ray visited, in order; `leaf_hit` is null for
+/// inner nodes and says whether a visited leaf held the ray's hit.
+pub fn ray_nodes_schema() -> SchemaRef {
+    Arc::new(Schema::new(vec![
+        Field::new(col::TREE_ID, DataType::UInt64, false),
+        Field::new(col::RAY, DataType::UInt32, false),
+        Field::new(col::STEP, DataType::UInt32, false),
+        Field::new(col::NODE_ID, DataType::UInt32, false),
+        Field::new(col::LEAF_HIT, DataType::Boolean, true),
+    ]))
+}
+
+/// The schema a known optional table must match, or `None` for a table this build does not know.
+pub fn known_table_schema(name: &str) -> Option<SchemaRef> {
+    match name {
+        TRIANGLES_TABLE => Some(triangles_schema()),
+        LIGHTS_TABLE => Some(lights_schema()),
+        BVH_NODES_TABLE => Some(bvh_nodes_schema()),
+        RAY_NODES_TABLE => Some(ray_nodes_schema()),
+        _ => None,
+    }
+}
+
+/// Checks that `schema` (a table as read or about to be written) has every column its known
+/// schema declares, with the same type. Extra columns are allowed (a renderer may add its own).
+/// Returns a message naming the first missing or mistyped column.
+pub fn check_table(name: &str, schema: &Schema) -> Result<(), String> {
+    let Some(expected) = known_table_schema(name) else { return Ok(()) };
+    for f in expected.fields() {
+        match schema.field_with_name(f.name()) {
+            Err(_) => return Err(format!("column `{}` is missing: expected {}", f.name(), f.data_type())),
+            Ok(found) if !types_match(f.data_type(), found.data_type()) => {
+                return Err(format!(
+                    "column `{}` has type {}: expected {}",
+                    f.name(),
+                    found.data_type(),
+                    f.data_type()
+                ));
+            }
+            Ok(_) => {}
+        }
+    }
+    Ok(())
+}
+
+/// Types match ignoring list item names and nullability (Parquet round trips may rename them).
+fn types_match(a: &DataType, b: &DataType) -> bool {
+    match (a, b) {
+        (DataType::List(x), DataType::List(y)) => x.data_type() == y.data_type(),
+        (DataType::Utf8, DataType::Utf8 | DataType::LargeUtf8 | DataType::Utf8View) => true,
+        _ => a == b,
+    }
+}
+
+/// Attribute keys of the camera and the image, in the manifest's `attributes`.
+pub mod attr {
+    /// `x,y,z` of the eye.
+    pub const CAMERA_POSITION: &str = "camera.position";
+    /// `x,y,z` the camera looks at.
+    pub const CAMERA_TARGET: &str = "camera.target";
+    /// `x,y,z` up vector.
+    pub const CAMERA_UP: &str = "camera.up";
+    /// Vertical field of view, degrees.
+    pub const CAMERA_FOV_Y: &str = "camera.fov_y";
+    /// Image width and height in pixels.
+    pub const WIDTH: &str = "width";
+    pub const HEIGHT: &str = "height";
+    /// The rendered image (PNG, tone mapped) and its linear EXR, relative to the dataset directory.
+    pub const IMAGE_PNG: &str = "image.png";
+    pub const IMAGE_EXR: &str = "image.exr";
+}
+
+/// The pinhole camera a dataset was rendered with, as the manifest's attributes record it.
+///
+/// Primary ray of film position (px, py) in a `width` × `height` image (y down):
+/// `normalize(f + r * sx + u * sy)` with `f = normalize(target - position)`,
+/// `r = normalize(f × up)`, `u = r × f`, `sx = (2 px / width - 1) tan(fov_y / 2) width / height`,
+/// `sy = (1 - 2 py / height) tan(fov_y / 2)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CameraAttrs {
+    pub position: [f32; 3],
+    pub target: [f32; 3],
+    pub up: [f32; 3],
+    pub fov_y: f32,
+    pub width: u32,
+    pub height: u32,
+}
+
+fn vec3(s: &str) -> Option<[f32; 3]> {
+    let v: Vec<f32> = s.split(',').map(|p| p.trim().parse::<f32>().ok()).collect::<Option<_>>()?;
+    let v: [f32; 3] = v.try_into().ok()?;
+    v.iter().all(|c| c.is_finite()).then_some(v)
+}
+
+fn fmt3(v: [f32; 3]) -> String {
+    format!("{},{},{}", v[0], v[1], v[2])
+}
+
+impl CameraAttrs {
+    /// The attributes to store (`camera.*`, `width`, `height`).
+    pub fn to_attributes(&self) -> Vec<(String, String)> {
+        vec![
+            (attr::CAMERA_POSITION.into(), fmt3(self.position)),
+            (attr::CAMERA_TARGET.into(), fmt3(self.target)),
+            (attr::CAMERA_UP.into(), fmt3(self.up)),
+            (attr::CAMERA_FOV_Y.into(), self.fov_y.to_string()),
+            (attr::WIDTH.into(), self.width.to_string()),
+            (attr::HEIGHT.into(), self.height.to_string()),
+        ]
+    }
+
+    /// Reads the camera back. `Ok(None)` when the dataset has no camera attributes (recorded
+    /// before they existed); `Err` names the attribute that is present but malformed.
+    pub fn from_attributes(attrs: &BTreeMap<String, String>) -> Result<Option<CameraAttrs>, String> {
+        if !attrs.contains_key(attr::CAMERA_POSITION) {
+            return Ok(None);
+        }
+        let get = |k: &str| attrs.get(k).ok_or_else(|| format!("attribute `{k}` is missing"));
+        let v = |k: &str| -> Result<[f32; 3], String> {
+            let s = get(k)?;
+            vec3(s).ok_or_else(|| format!("attribute `{k}` is {s:?}: expected three finite numbers x,y,z"))
+        };
+        let n = |k: &str| -> Result<u32, String> {
+            let s = get(k)?;
+            s.parse::<u32>()
+                .ok()
+                .filter(|n| *n > 0)
+                .ok_or_else(|| format!("attribute `{k}` is {s:?}: expected a positive integer"))
+        };
+        let fov_s = get(attr::CAMERA_FOV_Y)?;
+        let fov_y =
+            fov_s.parse::<f32>().ok().filter(|f| f.is_finite() && *f > 0.0 && *f < 180.0).ok_or_else(|| {
+                format!("attribute `{}` is {fov_s:?}: expected degrees in (0, 180)", attr::CAMERA_FOV_Y)
+            })?;
+        let c = CameraAttrs {
+            position: v(attr::CAMERA_POSITION)?,
+            target: v(attr::CAMERA_TARGET)?,
+            up: v(attr::CAMERA_UP)?,
+            fov_y,
+            width: n(attr::WIDTH)?,
+            height: n(attr::HEIGHT)?,
+        };
+        if c.position == c.target {
+            return Err(format!("attributes `{}` and `{}` are equal", attr::CAMERA_POSITION, attr::CAMERA_TARGET));
+        }
+        Ok(Some(c))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn camera_round_trips_and_bad_values_are_named() {
+        let c = CameraAttrs {
+            position: [278.0, 273.0, -800.0],
+            target: [278.0, 273.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            fov_y: 39.3077,
+            width: 640,
+            height: 480,
+        };
+        let mut m: BTreeMap<String, String> = c.to_attributes().into_iter().collect();
+        assert_eq!(CameraAttrs::from_attributes(&m), Ok(Some(c)));
+        assert_eq!(CameraAttrs::from_attributes(&BTreeMap::new()), Ok(None));
+        m.insert(attr::CAMERA_UP.into(), "0,nan,0".into());
+        let e = CameraAttrs::from_attributes(&m).unwrap_err();
+        assert!(e.contains("camera.up"), "{e}");
+        m.insert(attr::CAMERA_UP.into(), "0,1,0".into());
+        m.insert(attr::WIDTH.into(), "0".into());
+        assert!(CameraAttrs::from_attributes(&m).unwrap_err().contains("width"));
+    }
+
+    #[test]
+    fn check_table_names_missing_and_mistyped_columns() {
+        let s = lights_schema();
+        assert_eq!(check_table(LIGHTS_TABLE, &s), Ok(()));
+        let fewer = Schema::new(s.fields().iter().filter(|f| f.name() != "v1_y").cloned().collect::<Vec<_>>());
+        let e = check_table(LIGHTS_TABLE, &fewer).unwrap_err();
+        assert!(e.contains("`v1_y` is missing"), "{e}");
+        let retyped = Schema::new(
+            s.fields()
+                .iter()
+                .map(|f| {
+                    if f.name() == "area" { Arc::new(Field::new("area", DataType::Float64, false)) } else { f.clone() }
+                })
+                .collect::<Vec<_>>(),
+        );
+        let e = check_table(LIGHTS_TABLE, &retyped).unwrap_err();
+        assert!(e.contains("`area` has type Float64"), "{e}");
+        assert_eq!(check_table("my_own_table", &fewer), Ok(()));
+        for t in [TRIANGLES_TABLE, BVH_NODES_TABLE, RAY_NODES_TABLE] {
+            let s = known_table_schema(t).unwrap();
+            assert_eq!(check_table(t, &s), Ok(()));
+        }
+    }
+}

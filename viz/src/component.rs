@@ -1,0 +1,170 @@
+//! The component trait (the paper's pipeline component, Section 3.1) and what a component is
+//! given to do its work.
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::ViewCamera;
+use crate::gpu::Gpu;
+use crate::sources::Sources;
+use crate::{Error, Result};
+
+/// A component's stable id within a pipeline (kept across reorders, saved with the layout).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+pub struct ComponentId(pub u64);
+
+/// What a component's layer holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LayerRole {
+    /// A picture in image space (path-traced image, heatmap): drawn without a depth test.
+    Flat,
+    /// Colour and depth in scene space: hidden behind the occluder below it.
+    Scene,
+    /// Depth only: the occluder of the scene-space layers above it (2D/3D composition).
+    Occluder,
+}
+
+/// The render target of one layer.
+pub struct LayerTarget {
+    pub color: wgpu::Texture,
+    pub color_view: wgpu::TextureView,
+    pub depth: wgpu::Texture,
+    pub depth_view: wgpu::TextureView,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl LayerTarget {
+    pub fn new(gpu: &Gpu, label: &str, width: u32, height: u32) -> LayerTarget {
+        let color = gpu.target(label, crate::gpu::COLOR_FORMAT, width, height);
+        let depth = gpu.target(label, crate::gpu::DEPTH_FORMAT, width, height);
+        LayerTarget {
+            color_view: color.create_view(&Default::default()),
+            depth_view: depth.create_view(&Default::default()),
+            color,
+            depth,
+            width,
+            height,
+        }
+    }
+}
+
+/// Where the scene sits: positions on the GPU are relative to `anchor`; `radius` bounds the
+/// scene around it (for the depth range).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Frame {
+    pub anchor: [f64; 3],
+    pub radius: f64,
+}
+
+impl Frame {
+    /// A scene-space point as the f32 the GPU draws (subtracted in f64).
+    pub fn local(&self, p: [f64; 3]) -> [f32; 3] {
+        [(p[0] - self.anchor[0]) as f32, (p[1] - self.anchor[1]) as f32, (p[2] - self.anchor[2]) as f32]
+    }
+}
+
+/// Arguments of [`Component::render`].
+pub struct RenderCtx<'a> {
+    pub gpu: &'a Gpu,
+    pub sources: &'a Sources,
+    pub camera: &'a ViewCamera,
+    pub frame: Frame,
+    pub target: &'a LayerTarget,
+}
+
+impl RenderCtx<'_> {
+    /// The view-projection matrix of this layer's camera and size.
+    pub fn view_proj(&self) -> glam::Mat4 {
+        self.camera.view_proj_f32(self.frame.anchor, self.frame.radius, self.target.width, self.target.height)
+    }
+
+    /// Near and far distances of the projection (for depth composition).
+    pub fn depth_range(&self) -> [f32; 2] {
+        depth_range(self.camera, self.frame)
+    }
+}
+
+/// Near and far planes `ViewCamera::view_proj` uses for this camera and frame.
+pub fn depth_range(camera: &ViewCamera, frame: Frame) -> [f32; 2] {
+    camera.planes(frame.anchor, frame.radius).map(|v| v as f32)
+}
+
+/// Arguments of [`Component::idle`].
+pub struct IdleCtx<'a> {
+    pub sources: &'a Sources,
+    pub camera: &'a ViewCamera,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// Arguments of [`Component::trace_ray`].
+pub struct TraceCtx<'a> {
+    pub sources: &'a Sources,
+    pub camera: &'a ViewCamera,
+    pub width: u32,
+    pub height: u32,
+}
+
+/// What a trace of one pixel produced (immediate mode).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct TracedPixel {
+    pub pixel: [u32; 2],
+    pub rays: usize,
+}
+
+/// An entry of a picture's legend.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Legend {
+    /// Named colours (ray kinds, materials).
+    Swatches { title: String, entries: Vec<(String, [u8; 4])> },
+    /// A colour map from `min` to `max` of a value.
+    ColourBar { title: String, map: String, min: f64, max: f64 },
+}
+
+/// One component of the pipeline: it owns its data and draws into its own layer.
+///
+/// Settings are plain serializable data ([`Component::settings`] / [`Component::set_settings`]);
+/// a component bumps its [`Component::generation`] whenever its output would change, so the
+/// compositor re-renders only layers whose generation, camera or size changed.
+pub trait Component: Send {
+    fn id(&self) -> ComponentId;
+    /// The registry name of the component's kind (`rays`, `geometry`, ...).
+    fn kind(&self) -> &'static str;
+    fn display_name(&self) -> String {
+        self.kind().to_string()
+    }
+    fn role(&self) -> LayerRole;
+    /// Whether the output depends on the camera (flat pictures of the dataset's image do not).
+    fn uses_camera(&self) -> bool {
+        self.role() != LayerRole::Flat
+    }
+    /// Counter bumped on every change of output (settings, data, progressive refinement).
+    fn generation(&self) -> u64;
+    fn settings(&self) -> serde_json::Value;
+    fn set_settings(&mut self, settings: &serde_json::Value) -> Result<()>;
+    /// Progressive work between frames; returns whether the output changed.
+    fn idle(&mut self, _ctx: &mut IdleCtx) -> Result<bool> {
+        Ok(false)
+    }
+    /// Draws into the layer (cleared by the pipeline before).
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()>;
+    /// The layer's size changed.
+    fn resize(&mut self, _width: u32, _height: u32) {}
+    /// Immediate mode: trace the ray tree of a pixel and show it. `Ok(None)` when the component
+    /// does not trace.
+    fn trace_ray(&mut self, _ctx: &mut TraceCtx, _pixel: [u32; 2]) -> Result<Option<TracedPixel>> {
+        Ok(None)
+    }
+    fn legend(&self) -> Vec<Legend> {
+        Vec::new()
+    }
+    /// Facts worth printing (segments drawn, rays skipped, what is missing).
+    fn report(&self) -> Vec<String> {
+        Vec::new()
+    }
+}
+
+/// Decodes a component's settings, naming the component on error.
+pub fn decode_settings<T: serde::de::DeserializeOwned>(kind: &str, v: &serde_json::Value) -> Result<T> {
+    serde_json::from_value(v.clone()).map_err(|e| Error::Settings(format!("{kind}: {e}")))
+}

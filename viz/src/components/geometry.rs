@@ -1,0 +1,256 @@
+//! The scene's triangles: wireframe, alpha-blended or opaque surfaces coloured by material
+//! (Figure 5), and the depth-only rasterization that hides scene-space layers behind geometry
+//! over a ray-traced image (the 2D/3D composition).
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::ViewUniform;
+use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::draw::{Blend, bind_view_storage, layer_pass, scene_pipeline, shader, uniform};
+use crate::gpu::Gpu;
+use crate::sources::Sources;
+use crate::{Error, Result};
+
+/// How the geometry layer draws surfaces.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SurfaceStyle {
+    Wireframe,
+    Transparent,
+    Opaque,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GeometrySettings {
+    pub style: SurfaceStyle,
+    /// Opacity of transparent surfaces and of wireframe lines.
+    pub opacity: f32,
+    /// Wireframe line width in pixels.
+    pub line_width: f32,
+}
+
+impl Default for GeometrySettings {
+    fn default() -> Self {
+        GeometrySettings { style: SurfaceStyle::Wireframe, opacity: 0.8, line_width: 1.2 }
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct GpuTri {
+    a: [f32; 4],
+    b: [f32; 4],
+    c: [f32; 4],
+    color: [f32; 4],
+}
+
+/// The scene's triangles on the GPU.
+struct Mesh {
+    buffer: wgpu::Buffer,
+    count: u32,
+    frame: Frame,
+}
+
+fn upload(gpu: &Gpu, sources: &Sources, frame: Frame) -> Result<Mesh> {
+    let scene = sources.scene.as_ref().ok_or_else(|| Error::Layer {
+        layer: "geometry".into(),
+        message: "the dataset has no triangles table (recorded before scenes were stored)".into(),
+    })?;
+    let mut tris = Vec::with_capacity(scene.tris.len());
+    for (i, t) in scene.tris.iter().enumerate() {
+        let m = scene.material_of(i as u32);
+        let p = |v: glam::Vec3A| {
+            let l = frame.local(v.to_array().map(f64::from));
+            [l[0], l[1], l[2], 1.0]
+        };
+        let color = if m.is_emissive() {
+            let e = m.emission / m.emission.max_element().max(1e-9);
+            [e.x, e.y, e.z, 2.0]
+        } else {
+            let c = (m.diffuse + m.specular).min(glam::Vec3A::ONE);
+            let c = if c.max_element() < 0.05 { glam::Vec3A::splat(0.7) } else { c };
+            [c.x, c.y, c.z, 1.0]
+        };
+        tris.push(GpuTri { a: p(t[0]), b: p(t[1]), c: p(t[2]), color });
+    }
+    use wgpu::util::DeviceExt;
+    let buffer = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some("triangles"),
+        contents: bytemuck::cast_slice(&tris),
+        usage: wgpu::BufferUsages::STORAGE,
+    });
+    Ok(Mesh { buffer, count: tris.len() as u32, frame })
+}
+
+struct Gpus {
+    mesh: Mesh,
+    opaque: wgpu::RenderPipeline,
+    transparent: wgpu::RenderPipeline,
+    depth_only: wgpu::RenderPipeline,
+}
+
+fn gpus(gpu: &Gpu, sources: &Sources, frame: Frame) -> Result<Gpus> {
+    let module = shader(gpu, "surface", include_str!("../shaders/surface.wgsl"));
+    Ok(Gpus {
+        mesh: upload(gpu, sources, frame)?,
+        opaque: scene_pipeline(gpu, &module, "vs", "fs", Blend::Opaque),
+        transparent: scene_pipeline(gpu, &module, "vs", "fs", Blend::Transparent),
+        depth_only: scene_pipeline(gpu, &module, "vs", "fs", Blend::DepthOnly),
+    })
+}
+
+fn draw(gpu: &Gpu, ctx: &RenderCtx, g: &Gpus, pipeline: &wgpu::RenderPipeline, view: ViewUniform, color: bool) {
+    let ubuf = uniform(gpu, "view", &view);
+    let group = bind_view_storage(gpu, pipeline, &ubuf, &g.mesh.buffer);
+    let mut enc = gpu.device.create_command_encoder(&Default::default());
+    {
+        let mut pass = layer_pass(&mut enc, ctx.target, color);
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &group, &[]);
+        pass.draw(0..g.mesh.count * 3, 0..1);
+    }
+    gpu.queue.submit([enc.finish()]);
+}
+
+/// The geometry layer.
+pub struct Geometry {
+    id: ComponentId,
+    settings: GeometrySettings,
+    generation: u64,
+    gpu: Option<Gpus>,
+    materials: Vec<(String, [u8; 4])>,
+}
+
+impl Geometry {
+    pub fn new(id: ComponentId, sources: &Sources, settings: &serde_json::Value) -> Result<Geometry> {
+        let scene = sources.scene.as_ref().ok_or_else(|| Error::Layer {
+            layer: "geometry".into(),
+            message: "the dataset has no triangles table (recorded before scenes were stored)".into(),
+        })?;
+        let to8 = |c: glam::Vec3A| [0, 1, 2].map(|k| (c[k].clamp(0.0, 1.0) * 255.0).round() as u8);
+        let materials = scene
+            .materials
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| scene.tri_material.contains(&(*i as u32)))
+            .map(|(_, m)| {
+                let c = if m.is_emissive() {
+                    m.emission / m.emission.max_element()
+                } else {
+                    (m.diffuse + m.specular).min(glam::Vec3A::ONE)
+                };
+                let [r, g, b] = to8(c);
+                (m.name.clone(), [r, g, b, 255])
+            })
+            .collect();
+        let mut g = Geometry { id, settings: GeometrySettings::default(), generation: 0, gpu: None, materials };
+        if !settings.is_null() {
+            g.set_settings(settings)?;
+        }
+        Ok(g)
+    }
+}
+
+impl Component for Geometry {
+    fn id(&self) -> ComponentId {
+        self.id
+    }
+    fn kind(&self) -> &'static str {
+        "geometry"
+    }
+    fn role(&self) -> LayerRole {
+        LayerRole::Scene
+    }
+    fn generation(&self) -> u64 {
+        self.generation
+    }
+    fn settings(&self) -> serde_json::Value {
+        serde_json::to_value(&self.settings).unwrap_or_default()
+    }
+    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
+        let s: GeometrySettings = decode_settings("geometry", v)?;
+        if !((0.0..=1.0).contains(&s.opacity) && s.line_width > 0.0 && s.line_width <= 64.0) {
+            return Err(Error::Settings("geometry: opacity must be in 0..1 and line_width in (0, 64] pixels".into()));
+        }
+        if s != self.settings {
+            self.settings = s;
+            self.generation += 1;
+        }
+        Ok(())
+    }
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
+        let gpu = ctx.gpu;
+        if self.gpu.as_ref().is_none_or(|g| g.mesh.frame != ctx.frame) {
+            self.gpu = Some(gpus(gpu, ctx.sources, ctx.frame)?);
+        }
+        let Some(g) = &self.gpu else { return Ok(()) };
+        let s = &self.settings;
+        let (pipeline, opacity, mode) = match s.style {
+            SurfaceStyle::Opaque => (&g.opaque, 1.0, 0.0),
+            SurfaceStyle::Transparent => (&g.transparent, s.opacity, 1.0),
+            SurfaceStyle::Wireframe => (&g.opaque, s.opacity, 2.0),
+        };
+        let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, opacity, mode);
+        draw(gpu, ctx, g, pipeline, view, true);
+        Ok(())
+    }
+    fn legend(&self) -> Vec<Legend> {
+        if self.settings.style == SurfaceStyle::Wireframe && self.settings.opacity < 0.05 {
+            return Vec::new();
+        }
+        vec![Legend::Swatches { title: "materials".into(), entries: self.materials.clone() }]
+    }
+}
+
+/// The 2D/3D composition layer: the scene's depth, no colour.
+pub struct Composition {
+    id: ComponentId,
+    gpu: Option<Gpus>,
+}
+
+impl Composition {
+    pub fn new(id: ComponentId, sources: &Sources) -> Result<Composition> {
+        if sources.scene.is_none() {
+            return Err(Error::Layer {
+                layer: "composition".into(),
+                message: "the dataset has no triangles table, so there is no scene depth to compose with".into(),
+            });
+        }
+        Ok(Composition { id, gpu: None })
+    }
+}
+
+impl Component for Composition {
+    fn id(&self) -> ComponentId {
+        self.id
+    }
+    fn kind(&self) -> &'static str {
+        "composition"
+    }
+    fn role(&self) -> LayerRole {
+        LayerRole::Occluder
+    }
+    fn generation(&self) -> u64 {
+        0
+    }
+    fn settings(&self) -> serde_json::Value {
+        serde_json::json!({})
+    }
+    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
+        match v.as_object() {
+            Some(o) if o.is_empty() => Ok(()),
+            None if v.is_null() => Ok(()),
+            _ => Err(Error::Settings("composition has no settings".into())),
+        }
+    }
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
+        if self.gpu.as_ref().is_none_or(|g| g.mesh.frame != ctx.frame) {
+            self.gpu = Some(gpus(ctx.gpu, ctx.sources, ctx.frame)?);
+        }
+        let Some(g) = &self.gpu else { return Ok(()) };
+        let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, 1.0, 1.0, 0.0);
+        draw(ctx.gpu, ctx, g, &g.depth_only, view, false);
+        Ok(())
+    }
+}

@@ -1,0 +1,444 @@
+//! Flat layers: the path-traced image of the dataset (or one refined progressively by the CPU
+//! path tracer in `idle`), and a per-pixel heatmap of any `GROUP BY pixel_x, pixel_y` query.
+
+use std::sync::Arc;
+
+use arrow::array::{Array, AsArray};
+use arrow::datatypes::{DataType, Float64Type, UInt32Type};
+use serde::{Deserialize, Serialize};
+
+use crate::component::{Component, ComponentId, IdleCtx, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::gpu::{COLOR_FORMAT, Gpu};
+use crate::legend::colour_map;
+use crate::sources::{Picture, Sources};
+use crate::{Error, Result};
+
+/// Draws an RGBA8 picture over the whole layer, with `opacity`.
+pub struct Blitter {
+    pipeline: wgpu::RenderPipeline,
+    sampler: wgpu::Sampler,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct BlitUniform {
+    params: [f32; 4],
+}
+
+impl Blitter {
+    pub fn new(gpu: &Gpu) -> Blitter {
+        let module = gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("blit"),
+            source: wgpu::ShaderSource::Wgsl(include_str!("../shaders/blit.wgsl").into()),
+        });
+        let targets = [Some(wgpu::ColorTargetState {
+            format: COLOR_FORMAT,
+            blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+            write_mask: wgpu::ColorWrites::ALL,
+        })];
+        let pipeline = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("blit"),
+            layout: None,
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: Default::default(),
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: crate::gpu::DEPTH_FORMAT,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::Always),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs"),
+                compilation_options: Default::default(),
+                targets: &targets,
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        let sampler = gpu.device.create_sampler(&wgpu::SamplerDescriptor {
+            mag_filter: wgpu::FilterMode::Nearest,
+            min_filter: wgpu::FilterMode::Linear,
+            ..Default::default()
+        });
+        Blitter { pipeline, sampler }
+    }
+
+    pub fn draw(&self, ctx: &RenderCtx, texture: &wgpu::Texture, opacity: f32) {
+        let gpu = ctx.gpu;
+        let ubuf = crate::draw::uniform(gpu, "blit", &BlitUniform { params: [opacity, 0.0, 0.0, 0.0] });
+        let view = texture.create_view(&Default::default());
+        let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &self.pipeline.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: ubuf.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&view) },
+                wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Sampler(&self.sampler) },
+            ],
+        });
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = crate::draw::layer_pass(&mut enc, ctx.target, true);
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.draw(0..3, 0..1);
+        }
+        gpu.queue.submit([enc.finish()]);
+    }
+}
+
+/// Where the image layer's picture comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ImageSource {
+    /// The PNG recorded with the dataset.
+    Dataset,
+    /// The CPU path tracer, one sample per pixel per idle call, at the layer's camera and size.
+    Trace,
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ImageSettings {
+    pub source: ImageSource,
+    pub opacity: f32,
+    pub exposure: f32,
+    /// Stop refining after this many samples per pixel.
+    pub max_spp: u32,
+}
+
+impl Default for ImageSettings {
+    fn default() -> Self {
+        ImageSettings { source: ImageSource::Dataset, opacity: 1.0, exposure: 1.0, max_spp: 1024 }
+    }
+}
+
+struct Progressive {
+    bvh: Arc<renderers::Bvh>,
+    sum: Vec<glam::Vec3A>,
+    spp: u32,
+    key: Option<(crate::camera::ViewCamera, u32, u32)>,
+}
+
+/// The image layer.
+pub struct Image {
+    id: ComponentId,
+    settings: ImageSettings,
+    generation: u64,
+    picture: Option<Picture>,
+    texture: Option<(u64, wgpu::Texture)>,
+    blitter: Option<Blitter>,
+    progressive: Option<Progressive>,
+    size: [u32; 2],
+}
+
+impl Image {
+    pub fn new(id: ComponentId, sources: &Sources, settings: &serde_json::Value) -> Result<Image> {
+        let mut im = Image {
+            id,
+            settings: ImageSettings::default(),
+            generation: 0,
+            picture: sources.picture.clone(),
+            texture: None,
+            blitter: None,
+            progressive: None,
+            size: sources.image_size,
+        };
+        if im.picture.is_none() {
+            im.settings.source = ImageSource::Trace;
+        }
+        if !settings.is_null() {
+            im.set_settings(settings)?;
+        }
+        im.check(sources)?;
+        Ok(im)
+    }
+
+    fn check(&self, sources: &Sources) -> Result<()> {
+        match self.settings.source {
+            ImageSource::Dataset if self.picture.is_none() => Err(Error::Layer {
+                layer: "image".into(),
+                message: "the dataset has no rendered image; use source \"trace\" to path-trace one".into(),
+            }),
+            ImageSource::Trace if sources.scene.is_none() => Err(Error::Layer {
+                layer: "image".into(),
+                message: "there is no image and no scene (triangles table) to trace one from".into(),
+            }),
+            _ => Ok(()),
+        }
+    }
+
+    /// Samples per pixel accumulated by the progressive tracer.
+    pub fn spp(&self) -> u32 {
+        self.progressive.as_ref().map_or(0, |p| p.spp)
+    }
+}
+
+impl Component for Image {
+    fn id(&self) -> ComponentId {
+        self.id
+    }
+    fn kind(&self) -> &'static str {
+        "image"
+    }
+    fn role(&self) -> LayerRole {
+        LayerRole::Flat
+    }
+    fn uses_camera(&self) -> bool {
+        self.settings.source == ImageSource::Trace
+    }
+    fn generation(&self) -> u64 {
+        self.generation
+    }
+    fn settings(&self) -> serde_json::Value {
+        serde_json::to_value(&self.settings).unwrap_or_default()
+    }
+    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
+        let s: ImageSettings = decode_settings("image", v)?;
+        if !((0.0..=1.0).contains(&s.opacity) && s.exposure.is_finite() && s.exposure > 0.0) {
+            return Err(Error::Settings("image: opacity must be in 0..1 and exposure positive".into()));
+        }
+        if s != self.settings {
+            if s.source != self.settings.source || s.exposure != self.settings.exposure {
+                self.texture = None;
+            }
+            self.settings = s;
+            self.generation += 1;
+        }
+        Ok(())
+    }
+    fn idle(&mut self, ctx: &mut IdleCtx) -> Result<bool> {
+        if self.settings.source != ImageSource::Trace {
+            return Ok(false);
+        }
+        let Some(scene) = &ctx.sources.scene else { return Ok(false) };
+        let key = (*ctx.camera, ctx.width, ctx.height);
+        let p = self.progressive.get_or_insert_with(|| Progressive {
+            bvh: Arc::new(renderers::Bvh::build(&scene.tris)),
+            sum: Vec::new(),
+            spp: 0,
+            key: None,
+        });
+        if p.key != Some(key) {
+            p.key = Some(key);
+            p.sum = vec![glam::Vec3A::ZERO; ctx.width as usize * ctx.height as usize];
+            p.spp = 0;
+        }
+        if p.spp >= self.settings.max_spp {
+            return Ok(false);
+        }
+        let mut s = (**scene).clone();
+        let c = ctx.camera;
+        let v = |a: [f64; 3]| glam::DVec3::from_array(a).as_vec3a();
+        s.camera =
+            renderers::Camera { position: v(c.position), target: v(c.target), up: v(c.up), fov_y: c.fov_y as f32 };
+        let opts = renderers::RenderOptions {
+            width: ctx.width,
+            height: ctx.height,
+            spp: 1,
+            seed: u64::from(p.spp),
+            ..Default::default()
+        };
+        let (film, _) = renderers::render(&s, &p.bvh, &opts, None, &|_| {})?;
+        for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
+            *a += *b;
+        }
+        p.spp += 1;
+        let n = p.spp as f32;
+        let avg =
+            renderers::Film { width: ctx.width, height: ctx.height, pixels: p.sum.iter().map(|v| *v / n).collect() };
+        self.picture =
+            Some(Picture { width: ctx.width, height: ctx.height, rgba: avg.to_srgb8(self.settings.exposure, 4) });
+        self.texture = None;
+        self.generation += 1;
+        Ok(true)
+    }
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
+        let Some(pic) = &self.picture else {
+            crate::draw::clear_layer(ctx.gpu, ctx.target);
+            return Ok(());
+        };
+        if self.texture.as_ref().is_none_or(|(g, _)| *g != self.generation) {
+            self.texture = Some((self.generation, ctx.gpu.rgba_texture("image", pic.width, pic.height, &pic.rgba)));
+        }
+        let b = self.blitter.get_or_insert_with(|| Blitter::new(ctx.gpu));
+        if let Some((_, t)) = &self.texture {
+            b.draw(ctx, t, self.settings.opacity);
+        }
+        Ok(())
+    }
+    fn resize(&mut self, width: u32, height: u32) {
+        self.size = [width, height];
+    }
+    fn report(&self) -> Vec<String> {
+        match self.settings.source {
+            ImageSource::Trace => vec![format!("image: path traced, {} samples per pixel", self.spp())],
+            ImageSource::Dataset => Vec::new(),
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HeatmapSettings {
+    /// A query with columns `pixel_x`, `pixel_y` and one numeric value column (the third).
+    pub sql: String,
+    /// Title of the colour bar.
+    pub title: String,
+    /// Colour map name (viridis, magma, inferno, plasma, turbo, cividis).
+    pub map: String,
+    pub opacity: f32,
+}
+
+impl Default for HeatmapSettings {
+    fn default() -> Self {
+        HeatmapSettings {
+            sql: "SELECT pixel_x, pixel_y, count(*) AS rays FROM rays GROUP BY pixel_x, pixel_y".into(),
+            title: "rays per pixel".into(),
+            map: "viridis".into(),
+            opacity: 0.85,
+        }
+    }
+}
+
+/// The heatmap layer.
+pub struct Heatmap {
+    id: ComponentId,
+    settings: HeatmapSettings,
+    generation: u64,
+    size: [u32; 2],
+    image: Option<(u64, wgpu::Texture)>,
+    range: Option<(f64, f64)>,
+    blitter: Option<Blitter>,
+}
+
+impl Heatmap {
+    pub fn new(id: ComponentId, sources: &Sources, settings: &serde_json::Value) -> Result<Heatmap> {
+        if sources.dataset.is_none() {
+            return Err(Error::Layer { layer: "heatmap".into(), message: "no dataset is loaded".into() });
+        }
+        let mut h = Heatmap {
+            id,
+            settings: HeatmapSettings::default(),
+            generation: 0,
+            size: sources.image_size,
+            image: None,
+            range: None,
+            blitter: None,
+        };
+        if !settings.is_null() {
+            h.set_settings(settings)?;
+        }
+        Ok(h)
+    }
+
+    fn compute(&mut self, sources: &Sources) -> Result<Vec<u8>> {
+        let [w, h] = self.size;
+        let mut grid = vec![f64::NAN; w as usize * h as usize];
+        let batches = sources.query(&self.settings.sql)?;
+        for b in &batches {
+            let s = b.schema();
+            let need = |n: &str| {
+                s.index_of(n).map_err(|_| {
+                    Error::Columns(format!(
+                        "the heatmap query must return pixel_x, pixel_y and a value column; `{n}` is missing (columns: {})",
+                        s.fields().iter().map(|f| f.name().as_str()).collect::<Vec<_>>().join(", ")
+                    ))
+                })
+            };
+            let (ix, iy) = (need("pixel_x")?, need("pixel_y")?);
+            let iv = (0..b.num_columns()).find(|&i| i != ix && i != iy).ok_or_else(|| {
+                Error::Columns("the heatmap query has no value column besides pixel_x, pixel_y".into())
+            })?;
+            let cast = |i: usize, t: &DataType| arrow::compute::cast(b.column(i), t);
+            let (x, y) = (cast(ix, &DataType::UInt32)?, cast(iy, &DataType::UInt32)?);
+            let v = cast(iv, &DataType::Float64)
+                .map_err(|e| Error::Columns(format!("value column `{}` is not numeric: {e}", s.field(iv).name())))?;
+            let (x, y, v) =
+                (x.as_primitive::<UInt32Type>(), y.as_primitive::<UInt32Type>(), v.as_primitive::<Float64Type>());
+            for r in 0..b.num_rows() {
+                if x.is_null(r) || y.is_null(r) || v.is_null(r) {
+                    continue;
+                }
+                let (px, py) = (x.value(r), y.value(r));
+                if px < w && py < h && v.value(r).is_finite() {
+                    grid[(py * w + px) as usize] = v.value(r);
+                }
+            }
+        }
+        let (lo, hi) = grid
+            .iter()
+            .filter(|v| v.is_finite())
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+        self.range = (lo <= hi).then_some((lo, hi));
+        let map = colour_map(&self.settings.map)?;
+        let mut rgba = vec![0u8; grid.len() * 4];
+        for (i, v) in grid.iter().enumerate() {
+            if v.is_finite() {
+                let t = if hi > lo { (v - lo) / (hi - lo) } else { 0.5 };
+                let c = map.eval_continuous(t.clamp(0.0, 1.0));
+                rgba[i * 4..i * 4 + 4].copy_from_slice(&[c.r, c.g, c.b, 255]);
+            }
+        }
+        Ok(rgba)
+    }
+}
+
+impl Component for Heatmap {
+    fn id(&self) -> ComponentId {
+        self.id
+    }
+    fn kind(&self) -> &'static str {
+        "heatmap"
+    }
+    fn role(&self) -> LayerRole {
+        LayerRole::Flat
+    }
+    fn generation(&self) -> u64 {
+        self.generation
+    }
+    fn settings(&self) -> serde_json::Value {
+        serde_json::to_value(&self.settings).unwrap_or_default()
+    }
+    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
+        let s: HeatmapSettings = decode_settings("heatmap", v)?;
+        colour_map(&s.map)?;
+        if !(0.0..=1.0).contains(&s.opacity) {
+            return Err(Error::Settings("heatmap: opacity must be in 0..1".into()));
+        }
+        if s != self.settings {
+            self.settings = s;
+            self.image = None;
+            self.generation += 1;
+        }
+        Ok(())
+    }
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
+        if self.image.as_ref().is_none_or(|(g, _)| *g != self.generation) {
+            let rgba = self.compute(ctx.sources)?;
+            let [w, h] = self.size;
+            self.image = Some((self.generation, ctx.gpu.rgba_texture("heatmap", w, h, &rgba)));
+        }
+        let b = self.blitter.get_or_insert_with(|| Blitter::new(ctx.gpu));
+        if let Some((_, t)) = &self.image {
+            b.draw(ctx, t, self.settings.opacity);
+        }
+        Ok(())
+    }
+    fn legend(&self) -> Vec<Legend> {
+        match self.range {
+            Some((min, max)) => {
+                vec![Legend::ColourBar { title: self.settings.title.clone(), map: self.settings.map.clone(), min, max }]
+            }
+            None => Vec::new(),
+        }
+    }
+}

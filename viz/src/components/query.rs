@@ -1,0 +1,255 @@
+//! The rows of any SQL query drawn in scene space: rows with origin/direction (and `t`) as
+//! segments, rows with a position (`x, y, z`) as points, coloured by a chosen column through a
+//! colour map (numbers) or a palette (names), with a legend.
+
+use std::collections::BTreeMap;
+
+use arrow::array::{Array, AsArray, RecordBatch};
+use arrow::datatypes::{DataType, Float64Type};
+use serde::{Deserialize, Serialize};
+
+use crate::camera::ViewUniform;
+use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::components::rays::{SegmentBuilder, f32_columns, kind_names};
+use crate::draw::{Blend, SegmentBuffers, scene_pipeline, shader};
+use crate::legend::colour_map;
+use crate::{Error, Result};
+
+const SEGMENT_COLUMNS: [&str; 6] = ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z"];
+const POINT_COLUMNS: [&str; 3] = ["x", "y", "z"];
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct QuerySettings {
+    pub sql: String,
+    /// Column that colours the rows (`None`: one colour).
+    pub colour_by: Option<String>,
+    pub map: String,
+    pub line_width: f32,
+    pub opacity: f32,
+}
+
+impl Default for QuerySettings {
+    fn default() -> Self {
+        QuerySettings { sql: String::new(), colour_by: None, map: "plasma".into(), line_width: 2.0, opacity: 1.0 }
+    }
+}
+
+enum Values {
+    None,
+    Numbers(Vec<f64>),
+    Names(Vec<Option<String>>),
+}
+
+/// The query layer.
+pub struct Query {
+    id: ComponentId,
+    settings: QuerySettings,
+    generation: u64,
+    loaded: Option<(Frame, QuerySettings)>,
+    segments: Option<SegmentBuffers>,
+    pipeline: Option<wgpu::RenderPipeline>,
+    legend: Vec<Legend>,
+    rows: u64,
+    skipped: u64,
+}
+
+fn palette(i: usize) -> [u8; 4] {
+    let c = colorous::TABLEAU10[i % colorous::TABLEAU10.len()];
+    [c.r, c.g, c.b, 255]
+}
+
+impl Query {
+    pub fn new(id: ComponentId, sources: &crate::sources::Sources, settings: &serde_json::Value) -> Result<Query> {
+        sources.session()?;
+        let mut q = Query {
+            id,
+            settings: QuerySettings::default(),
+            generation: 0,
+            loaded: None,
+            segments: None,
+            pipeline: None,
+            legend: Vec::new(),
+            rows: 0,
+            skipped: 0,
+        };
+        q.set_settings(settings)?;
+        Ok(q)
+    }
+
+    fn load(&mut self, ctx: &RenderCtx) -> Result<()> {
+        let gpu = ctx.gpu;
+        let batches = ctx.sources.query(&self.settings.sql)?;
+        let Some(schema) = batches.first().map(|b| b.schema()) else {
+            self.segments = Some(SegmentBuffers::new(gpu));
+            self.loaded = Some((ctx.frame, self.settings.clone()));
+            return Ok(());
+        };
+        let has = |n: &[&str]| n.iter().all(|c| schema.index_of(c).is_ok());
+        let as_segments = has(&SEGMENT_COLUMNS);
+        if !as_segments && !has(&POINT_COLUMNS) {
+            return Err(Error::Columns(format!(
+                "the query layer needs origin_x, origin_y, origin_z, dir_x, dir_y, dir_z (and t) for segments, or x, y, z for points; the query returned {}",
+                schema.fields().iter().map(|f| f.name().as_str()).collect::<Vec<_>>().join(", ")
+            )));
+        }
+        let values = |b: &RecordBatch| -> Result<Values> {
+            let Some(name) = &self.settings.colour_by else { return Ok(Values::None) };
+            let c = b
+                .column_by_name(name)
+                .ok_or_else(|| Error::Columns(format!("colour_by column `{name}` is not in the query's result")))?;
+            let numeric = c.data_type().is_numeric() || matches!(c.data_type(), DataType::Boolean);
+            Ok(if numeric {
+                let f = arrow::compute::cast(c, &DataType::Float64)?;
+                let f = f.as_primitive::<Float64Type>();
+                Values::Numbers((0..f.len()).map(|i| if f.is_null(i) { f64::NAN } else { f.value(i) }).collect())
+            } else {
+                Values::Names(kind_names(c.as_ref())?)
+            })
+        };
+        let all: Vec<Values> = batches.iter().map(values).collect::<Result<_>>()?;
+        let (lo, hi) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |acc, v| match v {
+            Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).fold(acc, |(a, b), &x| (a.min(x), b.max(x))),
+            _ => acc,
+        });
+        let map = colour_map(&self.settings.map)?;
+        let mut names: BTreeMap<String, usize> = BTreeMap::new();
+        let mut bufs = SegmentBuffers::new(gpu);
+        let mut builder = SegmentBuilder::new(ctx.sources.bounds, ctx.frame);
+        let mut rows = 0;
+        for (b, vals) in batches.iter().zip(&all) {
+            rows += b.num_rows() as u64;
+            let colour = |r: usize, names: &mut BTreeMap<String, usize>| -> [u8; 4] {
+                match vals {
+                    Values::None => [255, 120, 0, 255],
+                    Values::Numbers(n) if n[r].is_finite() => {
+                        let t = if hi > lo { (n[r] - lo) / (hi - lo) } else { 0.5 };
+                        let c = map.eval_continuous(t);
+                        [c.r, c.g, c.b, 255]
+                    }
+                    Values::Numbers(_) => [128, 128, 128, 255],
+                    Values::Names(s) => {
+                        let k = s[r].clone().unwrap_or_else(|| "null".into());
+                        let next = names.len();
+                        palette(*names.entry(k).or_insert(next))
+                    }
+                }
+            };
+            if as_segments {
+                let [ox, oy, oz, dx, dy, dz] = f32_columns(b, SEGMENT_COLUMNS)?;
+                let t = match b.column_by_name("t") {
+                    Some(_) => {
+                        let [t] = f32_columns(b, ["t"])?;
+                        Some(t)
+                    }
+                    None => None,
+                };
+                for r in 0..b.num_rows() {
+                    let tv =
+                        t.as_ref().map_or(f32::INFINITY, |t| if t.is_null(r) { f32::INFINITY } else { t.value(r) });
+                    let Some((a, e)) = builder.end(
+                        [ox.value(r), oy.value(r), oz.value(r)],
+                        [dx.value(r), dy.value(r), dz.value(r)],
+                        tv,
+                    ) else {
+                        continue;
+                    };
+                    let c = colour(r, &mut names);
+                    bufs.push(gpu, builder.segment(a, e, c, 0));
+                }
+            } else {
+                let cols: Vec<_> = POINT_COLUMNS
+                    .iter()
+                    .map(|n| arrow::compute::cast(b.column_by_name(n).expect("checked above"), &DataType::Float64))
+                    .collect::<std::result::Result<_, _>>()?;
+                let p: Vec<_> = cols.iter().map(|c| c.as_primitive::<Float64Type>()).collect();
+                for r in 0..b.num_rows() {
+                    let q = [p[0].value(r), p[1].value(r), p[2].value(r)];
+                    if q.iter().any(|v| !v.is_finite()) || p.iter().any(|c| c.is_null(r)) {
+                        builder.skipped += 1;
+                        continue;
+                    }
+                    let c = colour(r, &mut names);
+                    bufs.push(gpu, builder.segment(q, q, c, 0));
+                }
+            }
+        }
+        bufs.flush(gpu);
+        self.rows = rows;
+        self.skipped = builder.skipped;
+        self.legend = match (&self.settings.colour_by, lo <= hi, names.is_empty()) {
+            (Some(c), true, _) => {
+                vec![Legend::ColourBar { title: c.clone(), map: self.settings.map.clone(), min: lo, max: hi }]
+            }
+            (Some(c), false, false) => {
+                let mut e: Vec<(usize, String)> = names.into_iter().map(|(k, i)| (i, k)).collect();
+                e.sort();
+                vec![Legend::Swatches {
+                    title: c.clone(),
+                    entries: e.into_iter().map(|(i, k)| (k, palette(i))).collect(),
+                }]
+            }
+            _ => Vec::new(),
+        };
+        self.segments = Some(bufs);
+        self.loaded = Some((ctx.frame, self.settings.clone()));
+        Ok(())
+    }
+}
+
+impl Component for Query {
+    fn id(&self) -> ComponentId {
+        self.id
+    }
+    fn kind(&self) -> &'static str {
+        "query"
+    }
+    fn role(&self) -> LayerRole {
+        LayerRole::Scene
+    }
+    fn generation(&self) -> u64 {
+        self.generation
+    }
+    fn settings(&self) -> serde_json::Value {
+        serde_json::to_value(&self.settings).unwrap_or_default()
+    }
+    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
+        let s: QuerySettings = decode_settings("query", v)?;
+        if s.sql.trim().is_empty() {
+            return Err(Error::Settings("query: the layer needs a SQL query (--sql)".into()));
+        }
+        colour_map(&s.map)?;
+        if !(s.line_width > 0.0 && s.line_width <= 64.0 && (0.0..=1.0).contains(&s.opacity)) {
+            return Err(Error::Settings("query: line_width must be in (0, 64] pixels and opacity in 0..1".into()));
+        }
+        if s != self.settings {
+            self.settings = s;
+            self.generation += 1;
+        }
+        Ok(())
+    }
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
+        if self.loaded.as_ref() != Some(&(ctx.frame, self.settings.clone())) {
+            self.load(ctx)?;
+        }
+        if self.pipeline.is_none() {
+            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
+            self.pipeline = Some(scene_pipeline(ctx.gpu, &m, "vs_seg", "fs_line", Blend::Opaque));
+        }
+        let (Some(p), Some(segs)) = (&self.pipeline, &self.segments) else { return Ok(()) };
+        let s = &self.settings;
+        let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, 1.0);
+        segs.draw(ctx.gpu, ctx, p, &view, 6);
+        Ok(())
+    }
+    fn legend(&self) -> Vec<Legend> {
+        self.legend.clone()
+    }
+    fn report(&self) -> Vec<String> {
+        let mut r = vec![format!("query: {} rows drawn", self.segments.as_ref().map_or(0, |s| s.count))];
+        if self.skipped > 0 {
+            r.push(format!("query: skipped {} of {} rows with NaN or infinite positions", self.skipped, self.rows));
+        }
+        r
+    }
+}

@@ -1,0 +1,391 @@
+//! Ray trees as segments coloured by kind (the paper's colours: camera green, shadow white,
+//! diffuse yellow, specular red, transmission blue), direction shown as a gradient from origin to
+//! end, misses drawn to the scene bounds, filters by kind, depth, tree, pixel and sample.
+
+use std::collections::BTreeMap;
+
+use arrow::array::{Array, AsArray, RecordBatch};
+use arrow::datatypes::{Float32Type, UInt64Type};
+use serde::{Deserialize, Serialize};
+
+use crate::camera::ViewUniform;
+use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::draw::{Blend, GpuSegment, SEGMENT_BYTES, SegmentBuffers, pack_rgba, scene_pipeline, shader};
+use crate::gpu::Gpu;
+use crate::sources::Sources;
+use crate::{Error, Result};
+
+/// The colour of a ray kind (Figure 6 of the paper).
+pub fn kind_color(kind: &str) -> [u8; 4] {
+    match kind {
+        "camera" => [40, 220, 40, 255],
+        "shadow" => [245, 245, 245, 255],
+        "diffuse" => [250, 220, 30, 255],
+        "specular" => [235, 40, 40, 255],
+        "transmission" => [60, 110, 255, 255],
+        _ => [220, 80, 220, 255],
+    }
+}
+
+/// The kinds in legend order.
+pub const KIND_ORDER: [&str; 5] = ["camera", "shadow", "diffuse", "specular", "transmission"];
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RaysSettings {
+    /// Only these kinds (all when `None`).
+    pub kinds: Option<Vec<String>>,
+    /// Only depths in `[min, max]`.
+    pub depth: Option<[u32; 2]>,
+    /// Only this tree.
+    pub tree: Option<u64>,
+    /// Only the trees of this pixel.
+    pub pixel: Option<[u32; 2]>,
+    /// Only this sample (with or without `pixel`).
+    pub sample: Option<u32>,
+    /// At most this many rays (`None`: all that match).
+    pub max_rays: Option<u64>,
+    pub line_width: f32,
+    pub opacity: f32,
+    /// Direction as a gradient (dim at the origin, full colour at the end).
+    pub gradient: bool,
+    /// Highlight this tree (drawn wider).
+    pub selected_tree: Option<u64>,
+}
+
+impl Default for RaysSettings {
+    fn default() -> Self {
+        RaysSettings {
+            kinds: None,
+            depth: None,
+            tree: None,
+            pixel: None,
+            sample: None,
+            max_rays: Some(10_000_000),
+            line_width: 1.5,
+            opacity: 1.0,
+            gradient: true,
+            selected_tree: None,
+        }
+    }
+}
+
+/// What decides which rays are loaded (and highlighted).
+type DataKey =
+    (Option<Vec<String>>, Option<[u32; 2]>, Option<u64>, Option<[u32; 2]>, Option<u32>, Option<u64>, Option<u64>);
+
+impl RaysSettings {
+    /// The filters as a SQL predicate over the `rays` table.
+    pub fn predicate(&self) -> Result<String> {
+        let mut w = Vec::new();
+        if let Some(k) = &self.kinds {
+            for name in k {
+                if !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') || name.is_empty() {
+                    return Err(Error::Settings(format!("rays: kind {name:?} is not a kind name")));
+                }
+            }
+            let list: Vec<String> = k.iter().map(|n| format!("'{n}'")).collect();
+            w.push(format!("kind IN ({})", if list.is_empty() { "''".into() } else { list.join(", ") }));
+        }
+        if let Some([a, b]) = self.depth {
+            if a > b {
+                return Err(Error::Settings(format!("rays: depth range {a}..{b} is empty")));
+            }
+            w.push(format!("depth BETWEEN {a} AND {b}"));
+        }
+        if let Some(t) = self.tree {
+            w.push(format!("tree_id = {t}"));
+        }
+        if let Some([x, y]) = self.pixel {
+            w.push(format!("pixel_x = {x} AND pixel_y = {y}"));
+        }
+        if let Some(s) = self.sample {
+            w.push(format!("sample = {s}"));
+        }
+        Ok(if w.is_empty() { "TRUE".into() } else { w.join(" AND ") })
+    }
+
+    fn data_key(&self) -> DataKey {
+        (self.kinds.clone(), self.depth, self.tree, self.pixel, self.sample, self.max_rays, self.selected_tree)
+    }
+}
+
+/// Turns ray rows (origin, direction, t) into segments, clipping misses to a box.
+pub struct SegmentBuilder {
+    lo: [f64; 3],
+    hi: [f64; 3],
+    frame: Frame,
+    /// Rows skipped for NaN or infinite origins or directions (or NaN t).
+    pub skipped: u64,
+    pub misses: u64,
+}
+
+impl SegmentBuilder {
+    pub fn new(bounds: Option<([f64; 3], [f64; 3])>, frame: Frame) -> SegmentBuilder {
+        let (lo, hi) = bounds.unwrap_or(([-1.0; 3], [1.0; 3]));
+        // A little beyond the scene so misses visibly leave it.
+        let pad = (0..3).map(|k| hi[k] - lo[k]).fold(0.0f64, f64::max) * 0.05;
+        SegmentBuilder { lo: lo.map(|v| v - pad), hi: hi.map(|v| v + pad), frame, skipped: 0, misses: 0 }
+    }
+
+    /// The end point of a ray, or `None` (counted) when it cannot be drawn.
+    pub fn end(&mut self, o: [f32; 3], d: [f32; 3], t: f32) -> Option<([f64; 3], [f64; 3])> {
+        if o.iter().chain(d.iter()).any(|v| !v.is_finite()) || t.is_nan() || d == [0.0; 3] {
+            self.skipped += 1;
+            return None;
+        }
+        let o = o.map(f64::from);
+        let d = d.map(f64::from);
+        let t = if t.is_finite() {
+            f64::from(t)
+        } else {
+            self.misses += 1;
+            // Exit of the bounding box (slab test), from the origin on.
+            let mut t1 = f64::INFINITY;
+            for k in 0..3 {
+                if d[k] != 0.0 {
+                    let a = (self.lo[k] - o[k]) / d[k];
+                    let b = (self.hi[k] - o[k]) / d[k];
+                    t1 = t1.min(a.max(b));
+                }
+            }
+            let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            if t1.is_finite() && t1 > 0.0 { t1 } else { self.frame.radius * 0.25 / len }
+        };
+        Some((o, [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t]))
+    }
+
+    pub fn segment(&self, a: [f64; 3], b: [f64; 3], color: [u8; 4], flags: u32) -> GpuSegment {
+        GpuSegment { a: self.frame.local(a), color: pack_rgba(color), b: self.frame.local(b), flags }
+    }
+}
+
+/// The columns `names` of a batch as Float32 (cast from other numeric types), or an error naming
+/// the one that is missing or not numeric.
+pub fn f32_columns<const N: usize>(batch: &RecordBatch, names: [&str; N]) -> Result<[arrow::array::Float32Array; N]> {
+    let mut out = Vec::with_capacity(N);
+    for n in names {
+        let c = batch.column_by_name(n).ok_or_else(|| Error::Columns(format!("column `{n}` is missing")))?;
+        let c = match c.as_primitive_opt::<Float32Type>() {
+            Some(f) => f.clone(),
+            None if c.data_type().is_numeric() => {
+                arrow::compute::cast(c, &arrow::datatypes::DataType::Float32)?.as_primitive::<Float32Type>().clone()
+            }
+            None => return Err(Error::Columns(format!("column `{n}` is {}, expected a number", c.data_type()))),
+        };
+        out.push(c);
+    }
+    out.try_into().map_err(|_| Error::Columns("column count".into()))
+}
+
+/// Names of a kind column (plain or dictionary-encoded strings), per row.
+pub fn kind_names(col: &dyn Array) -> Result<Vec<Option<String>>> {
+    let strings = arrow::compute::cast(col, &arrow::datatypes::DataType::Utf8)?;
+    let s = strings.as_string::<i32>();
+    Ok((0..s.len()).map(|i| (!s.is_null(i)).then(|| s.value(i).to_string())).collect())
+}
+
+/// The ray layer.
+pub struct Rays {
+    id: ComponentId,
+    settings: RaysSettings,
+    generation: u64,
+    loaded: Option<(Frame, DataKey)>,
+    segments: Option<SegmentBuffers>,
+    pipeline: Option<wgpu::RenderPipeline>,
+    kinds: BTreeMap<String, u64>,
+    skipped: u64,
+    misses: u64,
+    /// Seconds the last load took.
+    pub load_secs: f64,
+}
+
+impl Rays {
+    pub fn new(id: ComponentId, sources: &Sources, settings: &serde_json::Value) -> Result<Rays> {
+        if sources.dataset.is_none() {
+            return Err(Error::Layer { layer: "rays".into(), message: "no dataset is loaded".into() });
+        }
+        let mut r = Rays {
+            id,
+            settings: RaysSettings::default(),
+            generation: 0,
+            loaded: None,
+            segments: None,
+            pipeline: None,
+            kinds: BTreeMap::new(),
+            skipped: 0,
+            misses: 0,
+            load_secs: 0.0,
+        };
+        if !settings.is_null() {
+            r.set_settings(settings)?;
+        }
+        Ok(r)
+    }
+
+    /// Number of segments on the GPU.
+    pub fn segment_count(&self) -> u64 {
+        self.segments.as_ref().map_or(0, |s| s.count)
+    }
+
+    /// GPU bytes of the segment buffers.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.segments.as_ref().map_or(0, |s| s.gpu_bytes())
+    }
+
+    /// Streams the rays that pass the filters from the dataset onto the GPU.
+    pub fn load(&mut self, gpu: &Gpu, sources: &Sources, frame: Frame) -> Result<()> {
+        let t0 = std::time::Instant::now();
+        let s = &self.settings;
+        let limit = s.max_rays.map_or(String::new(), |n| format!(" LIMIT {n}"));
+        let sql = format!(
+            "SELECT tree_id, kind, origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t FROM rays WHERE {}{limit}",
+            s.predicate()?
+        );
+        let mut bufs = SegmentBuffers::new(gpu);
+        let mut builder = SegmentBuilder::new(sources.bounds, frame);
+        let mut kinds: BTreeMap<String, u64> = BTreeMap::new();
+        let selected = s.selected_tree;
+        sources.query_batches(&sql, |b| {
+            let [ox, oy, oz, dx, dy, dz, t] =
+                f32_columns(b, ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"])?;
+            let tree = b
+                .column(0)
+                .as_primitive_opt::<UInt64Type>()
+                .ok_or_else(|| Error::Columns("tree_id is not UInt64".into()))?;
+            let kind_col = b.column(1);
+            // Colours per dictionary value where the kind column is dictionary-encoded.
+            let colors: Vec<([u8; 4], usize)> = match kind_col.as_any_dictionary_opt() {
+                Some(dict) => {
+                    let names = kind_names(dict.values().as_ref())?;
+                    let keys = dict.normalized_keys();
+                    let mut per = vec![0u64; names.len()];
+                    let out = keys
+                        .iter()
+                        .map(|&k| {
+                            per[k] += 1;
+                            (kind_color(names[k].as_deref().unwrap_or("?")), k)
+                        })
+                        .collect();
+                    for (k, n) in per.iter().enumerate() {
+                        if *n > 0 {
+                            *kinds.entry(names[k].clone().unwrap_or_default()).or_default() += n;
+                        }
+                    }
+                    out
+                }
+                None => kind_names(kind_col.as_ref())?
+                    .into_iter()
+                    .map(|n| {
+                        let n = n.unwrap_or_default();
+                        let c = kind_color(&n);
+                        *kinds.entry(n).or_default() += 1;
+                        (c, 0)
+                    })
+                    .collect(),
+            };
+            for (r, (colour, _)) in colors.iter().enumerate() {
+                // A miss has a null t.
+                let tv = if t.is_null(r) { f32::INFINITY } else { t.value(r) };
+                let Some((a, e)) =
+                    builder.end([ox.value(r), oy.value(r), oz.value(r)], [dx.value(r), dy.value(r), dz.value(r)], tv)
+                else {
+                    continue;
+                };
+                let flags = u32::from(selected == Some(tree.value(r)));
+                bufs.push(gpu, builder.segment(a, e, *colour, flags));
+            }
+            Ok(())
+        })?;
+        bufs.flush(gpu);
+        self.skipped = builder.skipped;
+        self.misses = builder.misses;
+        self.kinds = kinds;
+        self.segments = Some(bufs);
+        self.loaded = Some((frame, self.settings.data_key()));
+        self.load_secs = t0.elapsed().as_secs_f64();
+        Ok(())
+    }
+}
+
+impl Component for Rays {
+    fn id(&self) -> ComponentId {
+        self.id
+    }
+    fn kind(&self) -> &'static str {
+        "rays"
+    }
+    fn role(&self) -> LayerRole {
+        LayerRole::Scene
+    }
+    fn generation(&self) -> u64 {
+        self.generation
+    }
+    fn settings(&self) -> serde_json::Value {
+        serde_json::to_value(&self.settings).unwrap_or_default()
+    }
+    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
+        let s: RaysSettings = decode_settings("rays", v)?;
+        s.predicate()?;
+        if !(s.line_width > 0.0 && s.line_width <= 64.0 && (0.0..=1.0).contains(&s.opacity)) {
+            return Err(Error::Settings("rays: line_width must be in (0, 64] pixels and opacity in 0..1".into()));
+        }
+        if s != self.settings {
+            self.settings = s;
+            self.generation += 1;
+        }
+        Ok(())
+    }
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
+        let key = (ctx.frame, self.settings.data_key());
+        if self.loaded.as_ref() != Some(&key) {
+            self.load(ctx.gpu, ctx.sources, ctx.frame)?;
+        }
+        if self.pipeline.is_none() {
+            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
+            self.pipeline = Some(scene_pipeline(ctx.gpu, &m, "vs_seg", "fs_line", Blend::Opaque));
+        }
+        let (Some(p), Some(segs)) = (&self.pipeline, &self.segments) else { return Ok(()) };
+        let s = &self.settings;
+        let view = ViewUniform::new(
+            ctx.view_proj(),
+            ctx.target.width,
+            ctx.target.height,
+            s.line_width,
+            s.opacity,
+            if s.gradient { 1.0 } else { 0.0 },
+        );
+        segs.draw(ctx.gpu, ctx, p, &view, 6);
+        Ok(())
+    }
+    fn legend(&self) -> Vec<Legend> {
+        let mut entries: Vec<(String, [u8; 4])> = KIND_ORDER
+            .iter()
+            .filter(|k| self.kinds.contains_key(**k))
+            .map(|k| (format!("{k} ({})", self.kinds[*k]), kind_color(k)))
+            .collect();
+        for (k, n) in &self.kinds {
+            if !KIND_ORDER.contains(&k.as_str()) {
+                entries.push((format!("{k} ({n})"), kind_color(k)));
+            }
+        }
+        if entries.is_empty() {
+            return Vec::new();
+        }
+        vec![Legend::Swatches { title: "ray kinds".into(), entries }]
+    }
+    fn report(&self) -> Vec<String> {
+        let mut r = vec![format!(
+            "rays: {} segments ({} MiB of GPU memory, {} B each), {} misses clipped to the scene bounds, loaded in {:.3} s",
+            self.segment_count(),
+            self.gpu_bytes() >> 20,
+            SEGMENT_BYTES,
+            self.misses,
+            self.load_secs
+        )];
+        if self.skipped > 0 {
+            r.push(format!("rays: skipped {} rays with NaN or infinite origin/direction", self.skipped));
+        }
+        r
+    }
+}

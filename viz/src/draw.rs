@@ -1,0 +1,217 @@
+//! GPU plumbing shared by the components: shader modules, pipelines over storage buffers, and
+//! the chunked segment buffers the ray, box and query layers draw from.
+
+use wgpu::util::DeviceExt;
+
+use crate::camera::ViewUniform;
+use crate::component::{LayerTarget, RenderCtx};
+use crate::gpu::{COLOR_FORMAT, DEPTH_FORMAT, Gpu};
+
+const COMMON: &str = include_str!("shaders/common.wgsl");
+
+/// A shader module of `common.wgsl` plus `src`.
+pub fn shader(gpu: &Gpu, label: &str, src: &str) -> wgpu::ShaderModule {
+    let code = format!("{COMMON}\n{src}");
+    gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(code.into()),
+    })
+}
+
+/// How a scene-space pipeline treats depth and colour.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Blend {
+    /// Colour written with premultiplied alpha blending, depth tested and written.
+    Opaque,
+    /// Colour blended, depth tested but not written (alpha-blended surfaces).
+    Transparent,
+    /// No colour target: depth only.
+    DepthOnly,
+}
+
+/// A triangle-list pipeline with the layout deduced from the shader (bind group 0).
+pub fn scene_pipeline(
+    gpu: &Gpu,
+    module: &wgpu::ShaderModule,
+    vs: &str,
+    fs: &str,
+    blend: Blend,
+) -> wgpu::RenderPipeline {
+    let targets = [Some(wgpu::ColorTargetState {
+        format: COLOR_FORMAT,
+        blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+        write_mask: wgpu::ColorWrites::ALL,
+    })];
+    gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(vs),
+        layout: None,
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some(vs),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: wgpu::PrimitiveState { cull_mode: None, ..Default::default() },
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: DEPTH_FORMAT,
+            depth_write_enabled: Some(blend != Blend::Transparent),
+            depth_compare: Some(wgpu::CompareFunction::LessEqual),
+            stencil: Default::default(),
+            bias: Default::default(),
+        }),
+        multisample: Default::default(),
+        fragment: (blend != Blend::DepthOnly).then_some(wgpu::FragmentState {
+            module,
+            entry_point: Some(fs),
+            compilation_options: Default::default(),
+            targets: &targets,
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
+/// A uniform buffer holding `v`.
+pub fn uniform<T: bytemuck::Pod>(gpu: &Gpu, label: &str, v: &T) -> wgpu::Buffer {
+    gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        label: Some(label),
+        contents: bytemuck::bytes_of(v),
+        usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+    })
+}
+
+/// Bind group 0 of `pipeline` with a uniform at 0 and a storage buffer at 1.
+pub fn bind_view_storage(
+    gpu: &Gpu,
+    pipeline: &wgpu::RenderPipeline,
+    view: &wgpu::Buffer,
+    storage: &wgpu::Buffer,
+) -> wgpu::BindGroup {
+    gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        label: None,
+        layout: &pipeline.get_bind_group_layout(0),
+        entries: &[
+            wgpu::BindGroupEntry { binding: 0, resource: view.as_entire_binding() },
+            wgpu::BindGroupEntry { binding: 1, resource: storage.as_entire_binding() },
+        ],
+    })
+}
+
+/// Begins a pass into a layer; `clear` clears colour to transparent and depth to far.
+pub fn layer_pass<'e>(enc: &'e mut wgpu::CommandEncoder, target: &LayerTarget, color: bool) -> wgpu::RenderPass<'e> {
+    let color_att = [Some(wgpu::RenderPassColorAttachment {
+        view: &target.color_view,
+        depth_slice: None,
+        resolve_target: None,
+        ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT), store: wgpu::StoreOp::Store },
+    })];
+    enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: Some("layer"),
+        color_attachments: if color { &color_att } else { &[] },
+        depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+            view: &target.depth_view,
+            depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
+            stencil_ops: None,
+        }),
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    })
+}
+
+/// Clears a layer (colour transparent, depth far) and draws nothing.
+pub fn clear_layer(gpu: &Gpu, target: &LayerTarget) {
+    let mut enc = gpu.device.create_command_encoder(&Default::default());
+    drop(layer_pass(&mut enc, target, true));
+    gpu.queue.submit([enc.finish()]);
+}
+
+/// One segment (or box, with `a` = min and `b` = max) as the line shader reads it: 32 bytes.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct GpuSegment {
+    pub a: [f32; 3],
+    pub color: u32,
+    pub b: [f32; 3],
+    pub flags: u32,
+}
+
+/// Bytes of GPU memory per segment.
+pub const SEGMENT_BYTES: u64 = std::mem::size_of::<GpuSegment>() as u64;
+
+/// Packs RGBA8 the way WGSL's `unpack4x8unorm` reads it.
+pub fn pack_rgba(c: [u8; 4]) -> u32 {
+    u32::from_le_bytes(c)
+}
+
+/// Segments on the GPU in buffers of at most `chunk` segments each (one binding per buffer,
+/// within the device's storage binding limit), filled as rows stream in: at most one chunk
+/// (1M segments, 32 MB) is staged on the CPU, and each buffer is exactly the size of its
+/// segments, so GPU memory is 32 bytes per segment.
+pub struct SegmentBuffers {
+    chunk: usize,
+    buffers: Vec<(wgpu::Buffer, u64)>,
+    staged: Vec<GpuSegment>,
+    pub count: u64,
+}
+
+impl SegmentBuffers {
+    pub fn new(gpu: &Gpu) -> SegmentBuffers {
+        let chunk = (gpu.max_storage_binding / SEGMENT_BYTES).clamp(1024, 1 << 20) as usize;
+        SegmentBuffers { chunk, buffers: Vec::new(), staged: Vec::new(), count: 0 }
+    }
+
+    /// Queues a segment; a full chunk goes to the GPU.
+    pub fn push(&mut self, gpu: &Gpu, s: GpuSegment) {
+        if self.staged.capacity() == 0 {
+            self.staged.reserve_exact(self.chunk.min(1 << 16));
+        }
+        self.staged.push(s);
+        if self.staged.len() >= self.chunk {
+            self.flush(gpu);
+        }
+    }
+
+    /// Writes the staged segments into a new GPU buffer of their size.
+    pub fn flush(&mut self, gpu: &Gpu) {
+        if self.staged.is_empty() {
+            return;
+        }
+        use wgpu::util::DeviceExt;
+        let buf = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("segments"),
+            contents: bytemuck::cast_slice(&self.staged),
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        let n = self.staged.len() as u64;
+        self.buffers.push((buf, n));
+        self.count += n;
+        self.staged.clear();
+    }
+
+    /// GPU bytes allocated.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.buffers.iter().map(|(b, _)| b.size()).sum()
+    }
+
+    /// Draws every buffer with `pipeline` (`per` vertices per segment).
+    pub fn draw(&self, gpu: &Gpu, ctx: &RenderCtx, pipeline: &wgpu::RenderPipeline, view: &ViewUniform, per: u32) {
+        let ubuf = uniform(gpu, "view", view);
+        let groups: Vec<_> = self
+            .buffers
+            .iter()
+            .filter(|(_, n)| *n > 0)
+            .map(|(b, n)| (bind_view_storage(gpu, pipeline, &ubuf, b), *n))
+            .collect();
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = layer_pass(&mut enc, ctx.target, true);
+            pass.set_pipeline(pipeline);
+            for (g, n) in &groups {
+                pass.set_bind_group(0, g, &[]);
+                pass.draw(0..(*n as u32) * per, 0..1);
+            }
+        }
+        gpu.queue.submit([enc.finish()]);
+    }
+}

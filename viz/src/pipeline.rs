@@ -1,0 +1,353 @@
+//! The pipeline: components in the user's order, each drawing into its own layer, and the
+//! compositor that lays the layers over each other. A layer is re-rendered only when its
+//! component's generation, its camera, its size or the scene frame changed (lazy evaluation);
+//! hidden layers do no work.
+
+use crate::camera::ViewCamera;
+use crate::component::{
+    Component, ComponentId, Frame, IdleCtx, LayerRole, LayerTarget, Legend, RenderCtx, depth_range,
+};
+use crate::gpu::{COLOR_FORMAT, Gpu};
+use crate::legend::{Canvas, draw_legends};
+use crate::sources::Sources;
+use crate::{Error, Result};
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct RenderKey {
+    generation: u64,
+    camera: Option<ViewCamera>,
+    size: [u32; 2],
+    frame: Frame,
+}
+
+/// One layer: a component, whether it is shown, its own camera (when it does not follow the
+/// pipeline's), its target and how often it was rendered.
+pub struct Layer {
+    pub component: Box<dyn Component>,
+    pub enabled: bool,
+    /// A camera of this layer only (`None`: the pipeline's camera).
+    pub camera: Option<ViewCamera>,
+    target: Option<LayerTarget>,
+    key: Option<RenderKey>,
+    range: [f32; 2],
+    /// Times the component's `render` ran.
+    pub renders: u64,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct CompUniform {
+    ranges: [f32; 4],
+    params: [f32; 4],
+}
+
+struct Compositor {
+    pipeline: wgpu::RenderPipeline,
+}
+
+impl Compositor {
+    fn new(gpu: &Gpu) -> Compositor {
+        let module = gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("composite"),
+            source: wgpu::ShaderSource::Wgsl(include_str!("shaders/composite.wgsl").into()),
+        });
+        let targets = [Some(wgpu::ColorTargetState {
+            format: COLOR_FORMAT,
+            blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+            write_mask: wgpu::ColorWrites::ALL,
+        })];
+        let pipeline = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("composite"),
+            layout: None,
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: Default::default(),
+            depth_stencil: None,
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs"),
+                compilation_options: Default::default(),
+                targets: &targets,
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        Compositor { pipeline }
+    }
+}
+
+/// Relative depth bias of the composition: a segment ending on a surface stays visible.
+const DEPTH_BIAS: f32 = 2e-3;
+
+/// The layered visualizer, headless: `render` composites into an offscreen texture, `snapshot`
+/// reads it back with legends.
+pub struct Pipeline {
+    pub gpu: Gpu,
+    pub sources: Sources,
+    layers: Vec<Layer>,
+    camera: ViewCamera,
+    width: u32,
+    height: u32,
+    frame: Frame,
+    output: wgpu::Texture,
+    far: LayerTarget,
+    compositor: Compositor,
+    next_id: u64,
+    /// Background colour (display values, opaque).
+    pub background: [f64; 3],
+}
+
+impl Pipeline {
+    /// A pipeline with no layers, at the dataset's camera and image size.
+    pub fn new(gpu: Gpu, sources: Sources) -> Pipeline {
+        let [width, height] = sources.image_size;
+        let camera = sources.initial_camera();
+        let frame = sources.frame();
+        let output = gpu.target("output", COLOR_FORMAT, width, height);
+        let far = LayerTarget::new(&gpu, "far", width, height);
+        crate::draw::clear_layer(&gpu, &far);
+        let compositor = Compositor::new(&gpu);
+        Pipeline {
+            gpu,
+            sources,
+            layers: Vec::new(),
+            camera,
+            width,
+            height,
+            frame,
+            output,
+            far,
+            compositor,
+            next_id: 1,
+            background: [0.02, 0.02, 0.025],
+        }
+    }
+
+    /// Adds a component of a registered kind on top; returns its id.
+    pub fn add(&mut self, kind: &str, settings: &serde_json::Value) -> Result<ComponentId> {
+        let id = ComponentId(self.next_id);
+        let c = crate::registry::make(kind, id, &self.sources, settings)?;
+        self.next_id += 1;
+        self.push(c);
+        Ok(id)
+    }
+
+    /// Adds a component made elsewhere on top.
+    pub fn push(&mut self, component: Box<dyn Component>) {
+        self.next_id = self.next_id.max(component.id().0 + 1);
+        self.layers.push(Layer {
+            component,
+            enabled: true,
+            camera: None,
+            target: None,
+            key: None,
+            range: [1.0, 2.0],
+            renders: 0,
+        });
+    }
+
+    pub fn layers(&self) -> &[Layer] {
+        &self.layers
+    }
+
+    pub fn layer_mut(&mut self, id: ComponentId) -> Result<&mut Layer> {
+        self.layers
+            .iter_mut()
+            .find(|l| l.component.id() == id)
+            .ok_or_else(|| Error::Settings(format!("no component with id {}", id.0)))
+    }
+
+    /// Removes a component.
+    pub fn remove(&mut self, id: ComponentId) -> Result<Box<dyn Component>> {
+        let i = self.index(id)?;
+        Ok(self.layers.remove(i).component)
+    }
+
+    /// Moves a component to position `to` (0 = bottom).
+    pub fn reorder(&mut self, id: ComponentId, to: usize) -> Result<()> {
+        let i = self.index(id)?;
+        let l = self.layers.remove(i);
+        self.layers.insert(to.min(self.layers.len()), l);
+        Ok(())
+    }
+
+    fn index(&self, id: ComponentId) -> Result<usize> {
+        self.layers
+            .iter()
+            .position(|l| l.component.id() == id)
+            .ok_or_else(|| Error::Settings(format!("no component with id {}", id.0)))
+    }
+
+    pub fn camera(&self) -> ViewCamera {
+        self.camera
+    }
+
+    pub fn set_camera(&mut self, c: ViewCamera) -> Result<()> {
+        c.validate().map_err(Error::Settings)?;
+        self.camera = c;
+        Ok(())
+    }
+
+    pub fn size(&self) -> [u32; 2] {
+        [self.width, self.height]
+    }
+
+    /// Resizes every layer and the output.
+    pub fn resize(&mut self, width: u32, height: u32) -> Result<()> {
+        let max = self.gpu.device.limits().max_texture_dimension_2d;
+        if width == 0 || height == 0 || width > max || height > max {
+            return Err(Error::Settings(format!("size {width}x{height} must be between 1x1 and {max}x{max}")));
+        }
+        if [width, height] != [self.width, self.height] {
+            self.width = width;
+            self.height = height;
+            self.output = self.gpu.target("output", COLOR_FORMAT, width, height);
+            self.far = LayerTarget::new(&self.gpu, "far", width, height);
+            crate::draw::clear_layer(&self.gpu, &self.far);
+            for l in &mut self.layers {
+                l.component.resize(width, height);
+            }
+        }
+        Ok(())
+    }
+
+    /// Progressive work of every shown component; returns whether any output changed.
+    pub fn idle(&mut self) -> Result<bool> {
+        let mut changed = false;
+        for l in self.layers.iter_mut().filter(|l| l.enabled) {
+            let camera = l.camera.unwrap_or(self.camera);
+            let mut ctx = IdleCtx { sources: &self.sources, camera: &camera, width: self.width, height: self.height };
+            changed |= l.component.idle(&mut ctx)?;
+        }
+        Ok(changed)
+    }
+
+    /// Renders the layers that changed and composites all shown layers into the output.
+    pub fn render(&mut self) -> Result<&wgpu::Texture> {
+        let size = [self.width, self.height];
+        for l in self.layers.iter_mut().filter(|l| l.enabled) {
+            let camera = l.camera.unwrap_or(self.camera);
+            let key = RenderKey {
+                generation: l.component.generation(),
+                camera: l.component.uses_camera().then_some(camera),
+                size,
+                frame: self.frame,
+            };
+            if l.key == Some(key) {
+                continue;
+            }
+            if l.target.as_ref().is_none_or(|t| [t.width, t.height] != size) {
+                l.target = Some(LayerTarget::new(&self.gpu, l.component.kind(), size[0], size[1]));
+            }
+            let Some(target) = &l.target else { continue };
+            crate::draw::clear_layer(&self.gpu, target);
+            let mut ctx =
+                RenderCtx { gpu: &self.gpu, sources: &self.sources, camera: &camera, frame: self.frame, target };
+            l.component.render(&mut ctx)?;
+            self.gpu.check().map_err(|e| Error::Layer { layer: l.component.kind().into(), message: e.to_string() })?;
+            l.range = depth_range(&camera, self.frame);
+            l.renders += 1;
+            l.key = Some(key);
+        }
+        self.composite();
+        self.gpu.check()?;
+        Ok(&self.output)
+    }
+
+    fn composite(&self) {
+        let gpu = &self.gpu;
+        let out_view = self.output.create_view(&Default::default());
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        let [r, g, b] = self.background;
+        drop(enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("background"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: &out_view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: wgpu::LoadOp::Clear(wgpu::Color { r, g, b, a: 1.0 }),
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
+            ..Default::default()
+        }));
+        let mut occluder: Option<(&LayerTarget, [f32; 2])> = None;
+        let mut groups = Vec::new();
+        for l in self.layers.iter().filter(|l| l.enabled) {
+            let Some(t) = &l.target else { continue };
+            let role = l.component.role();
+            if role == LayerRole::Occluder {
+                occluder = Some((t, l.range));
+                continue;
+            }
+            let (occ, orange, test) = match (role, occluder) {
+                (LayerRole::Scene, Some((o, r))) => (o, r, 1.0),
+                _ => (&self.far, [1.0, 2.0], 0.0),
+            };
+            let u = CompUniform {
+                ranges: [l.range[0], l.range[1], orange[0], orange[1]],
+                params: [test, DEPTH_BIAS, 0.0, 0.0],
+            };
+            let ubuf = crate::draw::uniform(gpu, "composite", &u);
+            let occ_view = occ.depth.create_view(&Default::default());
+            groups.push(gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &self.compositor.pipeline.get_bind_group_layout(0),
+                entries: &[
+                    wgpu::BindGroupEntry { binding: 0, resource: ubuf.as_entire_binding() },
+                    wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&t.color_view) },
+                    wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::TextureView(&t.depth_view) },
+                    wgpu::BindGroupEntry { binding: 3, resource: wgpu::BindingResource::TextureView(&occ_view) },
+                ],
+            }));
+        }
+        {
+            let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("composite"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &out_view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations { load: wgpu::LoadOp::Load, store: wgpu::StoreOp::Store },
+                })],
+                ..Default::default()
+            });
+            pass.set_pipeline(&self.compositor.pipeline);
+            for g in &groups {
+                pass.set_bind_group(0, g, &[]);
+                pass.draw(0..3, 0..1);
+            }
+        }
+        gpu.queue.submit([enc.finish()]);
+    }
+
+    /// The legends of the shown layers, bottom to top.
+    pub fn legends(&self) -> Vec<Legend> {
+        self.layers.iter().filter(|l| l.enabled).flat_map(|l| l.component.legend()).collect()
+    }
+
+    /// What the shown layers report, and what the sources lack.
+    pub fn report(&self) -> Vec<String> {
+        let mut r: Vec<String> = self.layers.iter().filter(|l| l.enabled).flat_map(|l| l.component.report()).collect();
+        r.extend(self.sources.missing.iter().map(|m| format!("note: {m}")));
+        r
+    }
+
+    /// Renders and reads the picture back (RGBA8, rows top to bottom), with legends when asked.
+    pub fn snapshot(&mut self, legends: bool) -> Result<image::RgbaImage> {
+        self.render()?;
+        let mut px = self.gpu.read_rgba(&self.output)?;
+        if legends {
+            let l = self.legends();
+            draw_legends(&mut Canvas { rgba: &mut px, width: self.width, height: self.height }, &l);
+        }
+        image::RgbaImage::from_raw(self.width, self.height, px)
+            .ok_or_else(|| Error::Gpu("read back a picture of the wrong size".into()))
+    }
+}

@@ -1,0 +1,319 @@
+#![allow(clippy::unwrap_used)]
+//! The layered visualizer on a small recorded Cornell box: registration, depth composition,
+//! lazy re-rendering, bad input, and each layer's picture against a stored PNG.
+//!
+//! Needs a GPU adapter: on a machine without a GPU, Mesa's lavapipe
+//! (`apt-get install mesa-vulkan-drivers`); `.ci/run` installs it. `UPDATE_SNAPSHOTS=1` rewrites
+//! the stored pictures (look at them before committing).
+
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use rl::{Recorder, RecorderOptions};
+use rtvtk_viz::{ComponentId, Gpu, Pipeline, Sources, ViewCamera};
+use serde_json::{Value, json};
+
+const W: u32 = 96;
+const H: u32 = 72;
+
+/// A 96x72, 2-spp path-traced Cornell box with every ray, the BVH visits and the image.
+fn dataset() -> &'static Path {
+    static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
+    &DIR.get_or_init(|| {
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path().join("trace");
+        let scene = renderers::BuiltinScene::Cornell.build(1).unwrap();
+        let bvh = renderers::Bvh::build(&scene.tris);
+        let opts = renderers::RenderOptions {
+            width: W,
+            height: H,
+            spp: 2,
+            threads: 2,
+            record_visits: true,
+            ..Default::default()
+        };
+        let rec =
+            Recorder::create(&dir, RecorderOptions { payload: renderers::payload_schema(), ..Default::default() })
+                .unwrap();
+        renderers::describe_recording(&rec, &scene, &bvh, &opts).unwrap();
+        rec.set_attributes([("image.png", "image.png")]).unwrap();
+        let (film, _) = renderers::render(&scene, &bvh, &opts, Some(&rec), &|_| {}).unwrap();
+        rec.finish().unwrap();
+        film.write_png(&dir.join("image.png"), 1.0).unwrap();
+        (tmp, dir)
+    })
+    .1
+}
+
+fn pipeline(layers: &[(&str, Value)]) -> Pipeline {
+    let gpu = Gpu::headless().expect("these tests need a GPU adapter (lavapipe: apt-get install mesa-vulkan-drivers)");
+    let mut p = Pipeline::new(gpu, Sources::open(dataset()).unwrap());
+    for (k, s) in layers {
+        p.add(k, s).unwrap();
+    }
+    p
+}
+
+/// Compares with `tests/snapshots/NAME.png` (rewritten with UPDATE_SNAPSHOTS=1): at most 0.5% of
+/// pixels may differ by more than 24/255 in a channel (lavapipe versions rasterize edges
+/// slightly differently).
+fn snapshot(name: &str, img: &image::RgbaImage) {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/snapshots").join(format!("{name}.png"));
+    if std::env::var_os("UPDATE_SNAPSHOTS").is_some() || !path.exists() && std::env::var_os("CI").is_none() {
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        img.save(&path).unwrap();
+        return;
+    }
+    let want = image::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).to_rgba8();
+    assert_eq!(want.dimensions(), img.dimensions(), "{name}: size");
+    let bad = want
+        .pixels()
+        .zip(img.pixels())
+        .filter(|(a, b)| a.0.iter().zip(b.0.iter()).any(|(x, y)| x.abs_diff(*y) > 24))
+        .count();
+    let allowed = (want.width() * want.height()) as usize / 200;
+    if bad > allowed {
+        let new = path.with_extension("new.png");
+        img.save(&new).unwrap();
+        panic!("{name}: {bad} pixels differ (allowed {allowed}); wrote {}", new.display());
+    }
+}
+
+fn lit(img: &image::RgbaImage) -> usize {
+    img.pixels().filter(|p| p.0[..3].iter().any(|c| *c > 40)).count()
+}
+
+#[test]
+fn camera_rays_project_back_onto_their_pixels() {
+    // Registration: the camera ray of pixel (x, y) goes through film position (x + jx, y + jy),
+    // jx, jy in [0, 1): projected back it must land in that pixel, within half a pixel of its
+    // centre, for every pixel (corners included).
+    let s = Sources::open(dataset()).unwrap();
+    let cam = s.camera.expect("the dataset records its camera");
+    let frame = s.frame();
+    let b = s
+        .query("SELECT pixel_x, pixel_y, origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t FROM rays WHERE kind = 'camera'")
+        .unwrap();
+    let mut n = 0;
+    let mut corners = 0;
+    let mut worst = 0.0f64;
+    for batch in &b {
+        use arrow::array::AsArray;
+        use arrow::datatypes::{Float32Type, UInt32Type};
+        let u = |i: usize| batch.column(i).as_primitive::<UInt32Type>().clone();
+        let f = |i: usize| batch.column(i).as_primitive::<Float32Type>().clone();
+        let (px, py) = (u(0), u(1));
+        let cols: Vec<_> = (2..9).map(f).collect();
+        for r in 0..batch.num_rows() {
+            let o = [0, 1, 2].map(|k| f64::from(cols[k].value(r)));
+            let d = [3, 4, 5].map(|k| f64::from(cols[k].value(r)));
+            use arrow::array::Array;
+            let t = if cols[6].is_null(r) { 1000.0 } else { f64::from(cols[6].value(r)).min(2000.0) };
+            let p = [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t];
+            let q = cam.project(p, frame.anchor, frame.radius, W, H).unwrap();
+            let (x, y) = (f64::from(px.value(r)), f64::from(py.value(r)));
+            let e = (q[0] - (x + 0.5)).abs().max((q[1] - (y + 0.5)).abs());
+            worst = worst.max(e);
+            assert!(e <= 0.5 + 1e-3, "pixel ({x}, {y}) projects to ({:.3}, {:.3})", q[0], q[1]);
+            if (x == 0.0 || x == f64::from(W - 1)) && (y == 0.0 || y == f64::from(H - 1)) {
+                corners += 1;
+            }
+            n += 1;
+        }
+    }
+    assert_eq!(n, (W * H * 2) as usize);
+    assert_eq!(corners, 8);
+    assert!(worst > 0.05, "jittered camera rays should not all hit pixel centres ({worst})");
+}
+
+#[test]
+fn composition_hides_a_segment_behind_the_tall_box() {
+    // Two vertical segments at the tall box's x: one behind it (z = 500, box spans z 247..456),
+    // one in front (z = 150). With the composition layer below, only the front one shows.
+    let sql = "SELECT 370.0 AS origin_x, 60.0 AS origin_y, z AS origin_z, 0.0 AS dir_x, 1.0 AS dir_y, 0.0 AS dir_z, 200.0 AS t \
+               FROM (VALUES (500.0), (150.0)) v(z)";
+    let q = json!({"sql": sql, "line_width": 3.0});
+    let s = Sources::open(dataset()).unwrap();
+    let cam = s.camera.unwrap();
+    let f = s.frame();
+    let at = |z: f64| {
+        let p = cam.project([370.0, 160.0, z], f.anchor, f.radius, 4 * W, 4 * H).unwrap();
+        (p[0] as u32, p[1] as u32)
+    };
+    let (back, front) = (at(500.0), at(150.0));
+    assert!(front.0 + 6 < back.0 || back.0 + 6 < front.0, "segments apart on screen: {front:?} {back:?}");
+    let bright = |img: &image::RgbaImage, (x, y): (u32, u32)| img.get_pixel(x, y).0[..3].iter().any(|c| *c > 100);
+    let mut with = pipeline(&[("composition", Value::Null), ("query", q.clone())]);
+    with.resize(4 * W, 4 * H).unwrap();
+    let img = with.snapshot(false).unwrap();
+    assert!(bright(&img, front), "the segment in front of the box is visible");
+    assert!(!bright(&img, back), "the segment behind the box is hidden");
+    let mut without = pipeline(&[("query", q)]);
+    without.resize(4 * W, 4 * H).unwrap();
+    let img = without.snapshot(false).unwrap();
+    assert!(bright(&img, front) && bright(&img, back), "without composition both segments show");
+}
+
+#[test]
+fn only_changed_layers_are_rendered_again() {
+    let mut p = pipeline(&[
+        ("image", Value::Null),
+        ("composition", Value::Null),
+        ("geometry", Value::Null),
+        ("rays", json!({"pixel": [48, 54]})),
+    ]);
+    let counts = |p: &Pipeline| p.layers().iter().map(|l| l.renders).collect::<Vec<_>>();
+    p.render().unwrap();
+    assert_eq!(counts(&p), [1, 1, 1, 1]);
+    p.render().unwrap();
+    assert_eq!(counts(&p), [1, 1, 1, 1], "nothing changed: nothing re-rendered");
+    // Only the ray layer's own camera changes.
+    let rays = p.layers()[3].component.id();
+    let mut c = p.camera();
+    c.orbit(0.4, 0.1);
+    p.layer_mut(rays).unwrap().camera = Some(c);
+    p.render().unwrap();
+    assert_eq!(counts(&p), [1, 1, 1, 2]);
+    // The shared camera: the scene-space layers follow it, the dataset's image does not, and the
+    // ray layer keeps its own camera.
+    p.set_camera(c).unwrap();
+    p.render().unwrap();
+    assert_eq!(counts(&p), [1, 2, 2, 2]);
+    // A setting of one layer.
+    let geo = p.layers()[2].component.id();
+    p.layer_mut(geo).unwrap().component.set_settings(&json!({"style": "opaque"})).unwrap();
+    p.render().unwrap();
+    assert_eq!(counts(&p), [1, 2, 3, 2]);
+    // Hidden layers do no work.
+    p.layer_mut(geo).unwrap().component.set_settings(&json!({"style": "transparent"})).unwrap();
+    p.layer_mut(geo).unwrap().enabled = false;
+    p.render().unwrap();
+    assert_eq!(counts(&p), [1, 2, 3, 2]);
+    p.reorder(rays, 0).unwrap();
+    assert_eq!(p.layers()[0].component.id(), rays);
+    assert_eq!(
+        p.remove(ComponentId(999)).err().map(|e| e.to_string()),
+        Some("invalid setting: no component with id 999".into())
+    );
+}
+
+#[test]
+fn bad_input_gets_clear_errors() {
+    let mut p = pipeline(&[]);
+    let e = p.add("raytrees", &Value::Null).unwrap_err().to_string();
+    assert!(e.contains("unknown layer \"raytrees\"") && e.contains("rays, bvh"), "{e}");
+    p.add("query", &json!({"sql": "SELECT tree_id FROM rays LIMIT 3"})).unwrap();
+    let e = p.render().map(|_| ()).unwrap_err().to_string();
+    assert!(e.contains("origin_x") && e.contains("x, y, z") && e.contains("tree_id"), "{e}");
+    let mut p = pipeline(&[]);
+    let e = p.add("rays", &json!({"kinds": ["camera'; DROP"]})).unwrap_err().to_string();
+    assert!(e.contains("not a kind name"), "{e}");
+    let e = p.add("bvh", &json!({"levels": [5, 2]})).unwrap_err().to_string();
+    assert!(e.contains("empty"), "{e}");
+    let e = p.add("heatmap", &json!({"map": "rainbow"})).unwrap_err().to_string();
+    assert!(e.contains("viridis"), "{e}");
+    let mut c = p.camera();
+    c.target = c.position;
+    assert!(p.set_camera(c).unwrap_err().to_string().contains("equals its target"));
+    assert!(p.resize(0, 10).is_err());
+    // NaN and infinite rays are skipped and counted.
+    p.add("query", &json!({"sql": "SELECT 1.0 AS origin_x, 'NaN'::float AS origin_y, 0.0 AS origin_z, 0.0 AS dir_x, 1.0 AS dir_y, 0.0 AS dir_z UNION ALL SELECT 100.0, 100.0, 100.0, 0.0, 1.0, 0.0"})).unwrap();
+    p.render().unwrap();
+    let r = p.report().join("\n");
+    assert!(r.contains("query: 1 rows drawn") && r.contains("skipped 1 of 2"), "{r}");
+}
+
+#[test]
+fn a_dataset_without_scene_tables_renders_what_it_can() {
+    // Remove the triangles table and the camera from a copy: rays still draw, the geometry layer
+    // is not offered, and the missing pieces are named.
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("old");
+    copy_dir(dataset(), &dir);
+    let mpath = dir.join("manifest.json");
+    let mut m: Value = serde_json::from_str(&std::fs::read_to_string(&mpath).unwrap()).unwrap();
+    m["tables"].as_object_mut().unwrap().remove("triangles");
+    for k in ["camera.position", "camera.target", "camera.up", "camera.fov_y", "image.png"] {
+        m["attributes"].as_object_mut().unwrap().remove(k);
+    }
+    std::fs::write(&mpath, serde_json::to_string(&m).unwrap()).unwrap();
+    std::fs::remove_file(dir.join("image.png")).unwrap();
+    let s = Sources::open(&dir).unwrap();
+    assert!(s.missing.iter().any(|m| m.contains("no triangles table")), "{:?}", s.missing);
+    assert!(s.missing.iter().any(|m| m.contains("no camera attributes")));
+    let mut p = Pipeline::new(Gpu::headless().unwrap(), s);
+    let e = p.add("geometry", &Value::Null).unwrap_err().to_string();
+    assert!(e.contains("not available") && e.contains("triangles"), "{e}");
+    assert!(p.add("image", &Value::Null).is_err());
+    p.add("rays", &json!({"max_rays": 20000})).unwrap();
+    let img = p.snapshot(true).unwrap();
+    assert!(lit(&img) > 500, "rays are drawn: {} lit pixels", lit(&img));
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let p = e.path();
+        if p.is_dir() {
+            copy_dir(&p, &to.join(e.file_name()));
+        } else {
+            std::fs::copy(&p, to.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+#[test]
+fn each_layer_matches_its_stored_picture() {
+    let orbit = {
+        let s = Sources::open(dataset()).unwrap();
+        let mut c: ViewCamera = s.camera.unwrap();
+        c.position = [460.0, 480.0, -650.0];
+        c.target = [278.0, 200.0, 280.0];
+        c
+    };
+    type Case<'a> = (&'a str, Vec<(&'a str, Value)>, Option<ViewCamera>);
+    let cases: Vec<Case> = vec![
+        ("image", vec![("image", Value::Null)], None),
+        ("geometry_wireframe", vec![("geometry", Value::Null)], Some(orbit)),
+        ("geometry_opaque", vec![("geometry", json!({"style": "opaque"}))], Some(orbit)),
+        ("geometry_transparent", vec![("geometry", json!({"style": "transparent", "opacity": 0.35}))], Some(orbit)),
+        (
+            "rays_tree",
+            vec![("geometry", json!({"opacity": 0.3})), ("rays", json!({"pixel": [48, 54], "line_width": 2.0}))],
+            Some(orbit),
+        ),
+        ("bvh_levels", vec![("bvh", json!({"levels": [0, 3]}))], Some(orbit)),
+        (
+            "query_hits",
+            vec![
+                ("geometry", json!({"opacity": 0.3})),
+                (
+                    "query",
+                    json!({"sql": "SELECT origin_x AS x, origin_y AS y, origin_z AS z, depth FROM rays WHERE kind = 'shadow'", "colour_by": "depth", "line_width": 2.0}),
+                ),
+            ],
+            Some(orbit),
+        ),
+        ("heatmap", vec![("heatmap", Value::Null)], None),
+        (
+            "layered",
+            vec![
+                ("image", Value::Null),
+                ("composition", Value::Null),
+                ("rays", json!({"pixel": [48, 54], "line_width": 2.0})),
+            ],
+            None,
+        ),
+    ];
+    for (name, layers, camera) in cases {
+        let mut p = pipeline(&layers);
+        p.resize(4 * W, 4 * H).unwrap();
+        if let Some(c) = camera {
+            p.set_camera(c).unwrap();
+        }
+        let img = p.snapshot(true).unwrap();
+        assert!(lit(&img) > 100, "{name}: the picture is empty");
+        snapshot(name, &img);
+    }
+}
