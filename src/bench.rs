@@ -380,7 +380,7 @@ fn measure_errors(ds: &Dataset, trace: &Trace, ids: &[TreeId]) -> Result<Errors>
             if !(ok(f.origin) && ok(f.direction)) {
                 continue;
             }
-            let a = store::angle_between(f.direction, r.direction);
+            let a = store::geom::angle_between_f32(f.direction, r.direction);
             if a.is_finite() {
                 e.max_angle = e.max_angle.max(a);
                 e.sum_angle += a;

@@ -265,3 +265,65 @@ fn bench_record_reports_the_recording_overhead() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("failed"), "{}", String::from_utf8_lossy(&o.stderr));
 }
+
+#[test]
+fn demo_draws_a_picture_and_render_draws_layers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("t");
+    demo(&dir);
+    // The demo's layered picture: 32x24 drawn 8x larger (small images are enlarged up to 8x).
+    let pic = image::open(dir.join("demo.png")).unwrap().to_rgba8();
+    assert_eq!(pic.dimensions(), (256, 192));
+    let d = dir.to_str().unwrap();
+    let out_png = tmp.path().join("layers.png");
+    let out = rtvtk(&[
+        "render",
+        d,
+        "--layers",
+        "image,composition,rays,bvh",
+        "--pixel",
+        "16,18",
+        "--bvh-levels",
+        "0..2",
+        "--size",
+        "320x240",
+        "--out",
+        out_png.to_str().unwrap(),
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let img = image::open(&out_png).unwrap().to_rgba8();
+    assert_eq!(img.dimensions(), (320, 240));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("rays: ") && err.contains("segments") && err.contains("bvh: "), "{err}");
+    // Bad input: unknown layers list the known ones; a query layer without --sql; a query without
+    // positions names the columns it needs.
+    let e = rtvtk(&["render", d, "--layers", "image,trees", "--out", out_png.to_str().unwrap()]);
+    assert_eq!(e.status.code(), Some(2));
+    let msg = String::from_utf8_lossy(&e.stderr);
+    assert!(msg.contains("unknown layer \"trees\"") && msg.contains("geometry, composition, rays"), "{msg}");
+    let e = rtvtk(&["render", d, "--layers", "query", "--out", out_png.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&e.stderr).contains("--sql"));
+    let e = rtvtk(&[
+        "render",
+        d,
+        "--layers",
+        "query",
+        "--sql",
+        "SELECT kind FROM rays",
+        "--out",
+        out_png.to_str().unwrap(),
+    ]);
+    let msg = String::from_utf8_lossy(&e.stderr);
+    assert!(msg.contains("origin_x") && msg.contains("x, y, z") && msg.contains("kind"), "{msg}");
+    // No adapter at all (a backend this machine does not have): the error names the driver.
+    let e = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
+        .args(["render", d, "--out", out_png.to_str().unwrap()])
+        .env("WGPU_BACKEND", "dx12")
+        .output()
+        .unwrap();
+    if cfg!(target_os = "linux") {
+        let msg = String::from_utf8_lossy(&e.stderr);
+        assert_eq!(e.status.code(), Some(2), "{msg}");
+        assert!(msg.contains("no GPU adapter") && msg.contains("mesa-vulkan-drivers"), "{msg}");
+    }
+}

@@ -170,57 +170,20 @@ fn float_signature(n: usize, int_param: bool) -> Signature {
     Signature::one_of(vec![variant(DataType::Float32), variant(DataType::Float64)], Volatility::Immutable)
 }
 
-/// The angle between two directions (atan2 of the cross and dot products: accurate for tiny
-/// angles); None for a zero direction.
+/// The angle between two directions (`store::geom`); None for a zero or non-finite direction.
 fn angle(a: [f64; 3], b: [f64; 3]) -> Option<f64> {
-    let c = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-    let cross = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
-    let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    (cross != 0.0 || dot != 0.0).then(|| cross.atan2(dot))
+    store::geom::angle_between(a, b)
 }
 
-/// Möller–Trumbore, two-sided, with a small barycentric tolerance: true when the line of the ray
-/// hits the triangle at t > 0.
+/// Whether the ray from `o` along `d` hits the triangle at t > 0: the watertight test of
+/// `store::geom`, so a ray through a light's edge is decided exactly, with no tolerance.
 fn hits_triangle(o: [f64; 3], d: [f64; 3], tri: &[[f64; 3]; 3]) -> bool {
-    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-    let cross =
-        |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    let (e1, e2) = (sub(tri[1], tri[0]), sub(tri[2], tri[0]));
-    let p = cross(d, e2);
-    let det = dot(e1, p);
-    let scale = dot(e1, e1).sqrt() * dot(e2, e2).sqrt() * dot(d, d).sqrt();
-    // Parallel to the plane, or NaN.
-    if det.abs().partial_cmp(&(1e-12 * scale)) != Some(std::cmp::Ordering::Greater) {
-        return false;
-    }
-    let inv = 1.0 / det;
-    let s = sub(o, tri[0]);
-    let u = dot(s, p) * inv;
-    const EPS: f64 = 1e-5;
-    if !(-EPS..=1.0 + EPS).contains(&u) {
-        return false;
-    }
-    let q = cross(s, e1);
-    let v = dot(d, q) * inv;
-    if v < -EPS || u + v > 1.0 + EPS {
-        return false;
-    }
-    dot(e2, q) * inv > 0.0
+    store::geom::ray_triangle(o, d, tri).is_some()
 }
 
 /// Cell of a direction on an n × n octahedral map (row-major), None for a zero direction.
 fn octahedral_bin(d: [f64; 3], n: u32) -> Option<u32> {
-    let l1 = d[0].abs() + d[1].abs() + d[2].abs();
-    if l1 <= 0.0 {
-        return None;
-    }
-    let (mut x, mut y) = (d[0] / l1, d[1] / l1);
-    if d[2] < 0.0 {
-        let (ox, oy) = (x, y);
-        x = (1.0 - oy.abs()) * ox.signum();
-        y = (1.0 - ox.abs()) * oy.signum();
-    }
+    let [x, y] = store::geom::oct_fold(d)?;
     let cell = |v: f64| (((v * 0.5 + 0.5) * f64::from(n)).floor() as u32).min(n - 1);
     Some(cell(y) * n + cell(x))
 }
@@ -1005,6 +968,23 @@ mod tests {
         assert!(!slab_hit([-1.0, 1.5, 0.5], [1.0, 0.0, 0.0], lo, hi), "parallel outside");
         assert!(slab_hit([0.5, 0.5, 0.5], [0.0, 0.0, 1.0], lo, hi), "inside");
         assert!(slab_hit([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], lo, hi), "through a corner");
+    }
+
+    #[test]
+    fn rays_grazing_a_lights_edge_are_decided_exactly() {
+        // One triangle of the Cornell box's light; its edge x = 343 runs from z = 227 to 332.
+        let light = [[343.0, 548.8, 227.0], [343.0, 548.8, 332.0], [213.0, 548.8, 332.0]];
+        // Straight up through the edge: a hit; 1e-4 mm outside: a miss (the old Möller–Trumbore
+        // test with its 1e-5 barycentric tolerance called rays up to ~1e-3 mm outside hits).
+        assert!(hits_triangle([343.0, 0.0, 280.0], [0.0, 1.0, 0.0], &light));
+        assert!(!hits_triangle([343.0001, 0.0, 280.0], [0.0, 1.0, 0.0], &light));
+        // Slanted rays from the floor aimed just inside and just outside the edge.
+        let o = [278.0, 0.0, 280.0];
+        let aim = |x: f64| [x - o[0], 548.8 - o[1], 280.0 - o[2]];
+        assert!(hits_triangle(o, aim(343.0 - 1e-3), &light));
+        assert!(!hits_triangle(o, aim(343.0 + 1e-3), &light));
+        // Grazing: a ray in the light's plane does not hit it.
+        assert!(!hits_triangle([300.0, 548.8, 0.0], [0.0, 0.0, 1.0], &light));
     }
 
     #[test]

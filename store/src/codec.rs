@@ -176,16 +176,7 @@ fn unit_component(b: f32, c: f32, negative: bool) -> f32 {
 /// four surrounding lattice points by angle.
 fn oct_encode(d: [f32; 3], bits: u8) -> Option<u32> {
     let v = [f64::from(d[0]), f64::from(d[1]), f64::from(d[2])];
-    let l1 = v[0].abs() + v[1].abs() + v[2].abs();
-    if !(l1.is_finite() && l1 > 0.0) {
-        return None;
-    }
-    let (mut x, mut y) = (v[0] / l1, v[1] / l1);
-    if v[2] < 0.0 {
-        let (ox, oy) = (x, y);
-        x = (1.0 - oy.abs()) * if ox >= 0.0 { 1.0 } else { -1.0 };
-        y = (1.0 - ox.abs()) * if oy >= 0.0 { 1.0 } else { -1.0 };
-    }
+    let [x, y] = crate::geom::oct_fold(v)?;
     let max = f64::from((1u32 << bits) - 1);
     let (fx, fy) = ((x * 0.5 + 0.5) * max, (y * 0.5 + 0.5) * max);
     let n = normalize(v);
@@ -204,16 +195,6 @@ fn oct_encode(d: [f32; 3], bits: u8) -> Option<u32> {
     Some(best.1)
 }
 
-/// The angle between two directions in radians (atan2 of the cross and dot products, accurate
-/// for tiny angles where `acos` of the dot product is not); NaN when either is zero or not finite.
-pub fn angle_between(a: [f32; 3], b: [f32; 3]) -> f64 {
-    let (a, b) = (a.map(f64::from), b.map(f64::from));
-    let c = [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
-    let cross = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
-    let dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
-    if cross == 0.0 && dot == 0.0 { f64::NAN } else { cross.atan2(dot) }
-}
-
 fn normalize(v: [f64; 3]) -> [f64; 3] {
     let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
     [v[0] / l, v[1] / l, v[2] / l]
@@ -223,13 +204,7 @@ fn oct_decode64(code: u32, bits: u8) -> [f64; 3] {
     let max = f64::from((1u32 << bits) - 1);
     let x = f64::from(code >> 16) / max * 2.0 - 1.0;
     let y = f64::from(code & 0xffff) / max * 2.0 - 1.0;
-    let z = 1.0 - x.abs() - y.abs();
-    let (x, y) = if z < 0.0 {
-        ((1.0 - y.abs()) * if x >= 0.0 { 1.0 } else { -1.0 }, (1.0 - x.abs()) * if y >= 0.0 { 1.0 } else { -1.0 })
-    } else {
-        (x, y)
-    };
-    normalize([x, y, z])
+    crate::geom::oct_unfold([x, y])
 }
 
 fn oct_decode(code: u32, bits: u8) -> [f32; 3] {
@@ -763,7 +738,7 @@ mod tests {
                 let (code, w, dec) = encode_dir(d, Encoding::Oct(bits));
                 assert_eq!(code, DIR_OCT);
                 assert_eq!(decode_dir(code, w, bits).unwrap(), dec);
-                worst[k] = worst[k].max(angle_between(d, dec));
+                worst[k] = worst[k].max(crate::geom::angle_between_f32(d, dec));
             }
         }
         assert!(worst[0] < 0.02, "8-bit error {} rad", worst[0]);

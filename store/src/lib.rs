@@ -5,6 +5,7 @@ mod codec;
 mod columns;
 mod dataset;
 mod error;
+pub mod geom;
 mod manifest;
 mod pages;
 mod planes;
@@ -15,7 +16,7 @@ mod stats;
 mod tree;
 mod writer;
 
-pub use codec::{Decoder, ENC_T, ENCODED_COLUMNS, Encoding, KIND_CODE, angle_between, file_schema};
+pub use codec::{Decoder, ENC_T, ENCODED_COLUMNS, Encoding, KIND_CODE, file_schema};
 pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
 pub use dataset::{CheckReport, Dataset, TreeEntry, TreeIter};
 pub use error::{Error, Result};

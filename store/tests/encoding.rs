@@ -366,7 +366,7 @@ fn octahedral_directions_stay_within_their_error_and_the_rest_is_exact() {
                 if !d.iter().all(|c| c.is_finite()) {
                     continue;
                 }
-                worst = worst.max(store::angle_between(d, r.direction));
+                worst = worst.max(store::geom::angle_between_f32(d, r.direction));
                 let g = r.direction.map(f64::from);
                 let gl = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
                 assert!((gl - 1.0).abs() < 1e-6, "decoded directions are unit length");

@@ -285,6 +285,11 @@ fn each_layer_matches_its_stored_picture() {
         ),
         ("bvh_levels", vec![("bvh", json!({"levels": [0, 3]}))], Some(orbit)),
         (
+            "bvh_visits",
+            vec![("bvh", json!({"levels": [4, 9], "only_visited": true, "colour": "visits", "map": "inferno"}))],
+            Some(orbit),
+        ),
+        (
             "query_hits",
             vec![
                 ("geometry", json!({"opacity": 0.3})),
@@ -316,4 +321,30 @@ fn each_layer_matches_its_stored_picture() {
         assert!(lit(&img) > 100, "{name}: the picture is empty");
         snapshot(name, &img);
     }
+}
+
+#[test]
+fn the_image_layer_refines_progressively_with_the_cpu_tracer() {
+    // No stored image needed: the image layer path-traces the scene at the pipeline's camera, one
+    // sample per pixel per idle call, and is re-rendered only when a sample was added.
+    let mut p = pipeline(&[("image", json!({"source": "trace", "max_spp": 3}))]);
+    let id = p.layers()[0].component.id();
+    let mut changed = 0;
+    for _ in 0..5 {
+        if p.idle().unwrap() {
+            changed += 1;
+        }
+        p.render().unwrap();
+    }
+    assert_eq!(changed, 3, "stops at max_spp");
+    assert_eq!(p.layers()[0].renders, 3);
+    let img = p.snapshot(false).unwrap();
+    assert!(lit(&img) > (W * H / 3) as usize, "the traced Cornell box is lit: {}", lit(&img));
+    // A new camera restarts the accumulation.
+    let mut c = p.camera();
+    c.orbit(0.2, 0.0);
+    p.set_camera(c).unwrap();
+    assert!(p.idle().unwrap());
+    assert!(p.report().iter().any(|r| r.contains("1 samples per pixel")), "{:?}", p.report());
+    assert!(p.layer_mut(id).is_ok());
 }
