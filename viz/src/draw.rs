@@ -99,18 +99,33 @@ pub fn bind_view_storage(
 
 /// Begins a pass into a layer; `clear` clears colour to transparent and depth to far.
 pub fn layer_pass<'e>(enc: &'e mut wgpu::CommandEncoder, target: &LayerTarget, color: bool) -> wgpu::RenderPass<'e> {
+    pass_into(enc, target, color, true)
+}
+
+/// A pass into a layer that keeps (`clear` false) or clears what the layer holds.
+pub fn pass_into<'e>(
+    enc: &'e mut wgpu::CommandEncoder,
+    target: &LayerTarget,
+    color: bool,
+    clear: bool,
+) -> wgpu::RenderPass<'e> {
+    let (cload, dload) = if clear {
+        (wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT), wgpu::LoadOp::Clear(1.0))
+    } else {
+        (wgpu::LoadOp::Load, wgpu::LoadOp::Load)
+    };
     let color_att = [Some(wgpu::RenderPassColorAttachment {
         view: &target.color_view,
         depth_slice: None,
         resolve_target: None,
-        ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT), store: wgpu::StoreOp::Store },
+        ops: wgpu::Operations { load: cload, store: wgpu::StoreOp::Store },
     })];
     enc.begin_render_pass(&wgpu::RenderPassDescriptor {
         label: Some("layer"),
         color_attachments: if color { &color_att } else { &[] },
         depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
             view: &target.depth_view,
-            depth_ops: Some(wgpu::Operations { load: wgpu::LoadOp::Clear(1.0), store: wgpu::StoreOp::Store }),
+            depth_ops: Some(wgpu::Operations { load: dload, store: wgpu::StoreOp::Store }),
             stencil_ops: None,
         }),
         timestamp_writes: None,
@@ -189,23 +204,48 @@ impl SegmentBuffers {
         self.staged.clear();
     }
 
+    /// Segments made elsewhere, uploaded at the first draw.
+    pub fn from_segments(segments: Vec<GpuSegment>) -> SegmentBuffers {
+        let count = segments.len() as u64;
+        SegmentBuffers { chunk: usize::MAX, buffers: Vec::new(), staged: segments, count }
+    }
+
     /// GPU bytes allocated.
     pub fn gpu_bytes(&self) -> u64 {
         self.buffers.iter().map(|(b, _)| b.size()).sum()
     }
 
     /// Draws every buffer with `pipeline` (`per` vertices per segment).
-    pub fn draw(&self, gpu: &Gpu, ctx: &RenderCtx, pipeline: &wgpu::RenderPipeline, view: &ViewUniform, per: u32) {
+    /// `clear`: clear the layer first (the first draw into it), else draw over what is there.
+    pub fn draw(
+        &self,
+        gpu: &Gpu,
+        ctx: &RenderCtx,
+        pipeline: &wgpu::RenderPipeline,
+        view: &ViewUniform,
+        per: u32,
+        clear: bool,
+    ) {
         let ubuf = uniform(gpu, "view", view);
+        let staged = (!self.staged.is_empty()).then(|| {
+            use wgpu::util::DeviceExt;
+            let b = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("segments"),
+                contents: bytemuck::cast_slice(&self.staged),
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+            (b, self.staged.len() as u64)
+        });
         let groups: Vec<_> = self
             .buffers
             .iter()
             .filter(|(_, n)| *n > 0)
+            .chain(staged.iter())
             .map(|(b, n)| (bind_view_storage(gpu, pipeline, &ubuf, b), *n))
             .collect();
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         {
-            let mut pass = layer_pass(&mut enc, ctx.target, true);
+            let mut pass = pass_into(&mut enc, ctx.target, true, clear);
             pass.set_pipeline(pipeline);
             for (g, n) in &groups {
                 pass.set_bind_group(0, g, &[]);

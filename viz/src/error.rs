@@ -44,6 +44,9 @@ pub enum Error {
     #[error(transparent)]
     Render(#[from] renderers::Error),
 
+    #[error(transparent)]
+    Record(#[from] rl::Error),
+
     #[error("Arrow: {0}")]
     Arrow(#[from] arrow::error::ArrowError),
 }

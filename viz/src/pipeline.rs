@@ -227,6 +227,17 @@ impl Pipeline {
         Ok(changed)
     }
 
+    /// Immediate mode: the component `id` traces the ray tree of `pixel` (of the pipeline's
+    /// view) at its camera; `Ok(None)` when that component does not trace.
+    pub fn trace_ray(&mut self, id: ComponentId, pixel: [u32; 2]) -> Result<Option<crate::component::TracedPixel>> {
+        let (camera, width, height) = (self.camera, self.width, self.height);
+        let i = self.index(id)?;
+        let l = &mut self.layers[i];
+        let camera = l.camera.unwrap_or(camera);
+        let mut ctx = crate::component::TraceCtx { sources: &self.sources, camera: &camera, width, height };
+        l.component.trace_ray(&mut ctx, pixel)
+    }
+
     /// Renders the layers that changed and composites all shown layers into the output.
     pub fn render(&mut self) -> Result<&wgpu::Texture> {
         let size = [self.width, self.height];

@@ -348,3 +348,23 @@ fn the_image_layer_refines_progressively_with_the_cpu_tracer() {
     assert!(p.report().iter().any(|r| r.contains("1 samples per pixel")), "{:?}", p.report());
     assert!(p.layer_mut(id).is_ok());
 }
+
+#[test]
+fn ctrl_click_traces_a_pixel_with_no_dataset_loaded() {
+    // Immediate mode: the scene alone (no dataset), the ray layer traces one pixel's tree through
+    // `rl` immediate mode and draws it at once; a pixel outside the view is refused.
+    let scene = renderers::BuiltinScene::Cornell.build(1).unwrap();
+    let sources = Sources::from_scene(scene, 4 * W, 4 * H).unwrap();
+    let mut p = Pipeline::new(Gpu::headless().unwrap(), sources);
+    p.add("geometry", &json!({"opacity": 0.2})).unwrap();
+    let rays = p.add("rays", &Value::Null).unwrap();
+    let before = p.snapshot(false).unwrap();
+    let traced = p.trace_ray(rays, [2 * W, 3 * H]).unwrap().expect("the ray layer traces");
+    assert!(traced.rays >= 2, "a camera ray and what it spawned: {traced:?}");
+    let after = p.snapshot(true).unwrap();
+    assert!(lit(&after) > lit(&before) + 50, "the traced tree is drawn: {} -> {}", lit(&before), lit(&after));
+    assert!(p.legends().iter().any(|l| matches!(l, rtvtk_viz::Legend::Swatches { title, .. } if title == "ray kinds")));
+    assert!(p.trace_ray(rays, [4 * W, 0]).unwrap_err().to_string().contains("outside"));
+    // No dataset: layers that need one are not offered.
+    assert!(p.add("heatmap", &Value::Null).unwrap_err().to_string().contains("not available"));
+}

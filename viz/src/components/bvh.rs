@@ -189,7 +189,7 @@ impl Component for BvhBoxes {
         let (Some(p), Some(b)) = (&self.pipeline, &self.boxes) else { return Ok(()) };
         let s = &self.settings;
         let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, 0.0);
-        b.draw(ctx.gpu, ctx, p, &view, 72);
+        b.draw(ctx.gpu, ctx, p, &view, 72, true);
         Ok(())
     }
     fn legend(&self) -> Vec<Legend> {

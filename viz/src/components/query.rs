@@ -239,7 +239,7 @@ impl Component for Query {
         let (Some(p), Some(segs)) = (&self.pipeline, &self.segments) else { return Ok(()) };
         let s = &self.settings;
         let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, 1.0);
-        segs.draw(ctx.gpu, ctx, p, &view, 6);
+        segs.draw(ctx.gpu, ctx, p, &view, 6, true);
         Ok(())
     }
     fn legend(&self) -> Vec<Legend> {

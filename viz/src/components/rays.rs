@@ -9,7 +9,9 @@ use arrow::datatypes::{Float32Type, UInt64Type};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::component::{
+    Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, TraceCtx, TracedPixel, decode_settings,
+};
 use crate::draw::{Blend, GpuSegment, SEGMENT_BYTES, SegmentBuffers, pack_rgba, scene_pipeline, shader};
 use crate::gpu::Gpu;
 use crate::sources::Sources;
@@ -198,12 +200,16 @@ pub struct Rays {
     misses: u64,
     /// Seconds the last load took.
     pub load_secs: f64,
+    /// Trees traced in immediate mode (`trace_ray`), drawn highlighted over the loaded rays.
+    traced: Option<SegmentBuffers>,
+    traced_kinds: BTreeMap<String, u64>,
+    bvh: Option<std::sync::Arc<renderers::Bvh>>,
 }
 
 impl Rays {
     pub fn new(id: ComponentId, sources: &Sources, settings: &serde_json::Value) -> Result<Rays> {
-        if sources.dataset.is_none() {
-            return Err(Error::Layer { layer: "rays".into(), message: "no dataset is loaded".into() });
+        if sources.dataset.is_none() && sources.scene.is_none() {
+            return Err(Error::Layer { layer: "rays".into(), message: "no dataset and no scene to trace".into() });
         }
         let mut r = Rays {
             id,
@@ -216,6 +222,9 @@ impl Rays {
             skipped: 0,
             misses: 0,
             load_secs: 0.0,
+            traced: None,
+            traced_kinds: BTreeMap::new(),
+            bvh: None,
         };
         if !settings.is_null() {
             r.set_settings(settings)?;
@@ -246,6 +255,12 @@ impl Rays {
         let mut builder = SegmentBuilder::new(sources.bounds, frame);
         let mut kinds: BTreeMap<String, u64> = BTreeMap::new();
         let selected = s.selected_tree;
+        if sources.dataset.is_none() {
+            // Immediate mode only: nothing recorded to load.
+            self.segments = Some(bufs);
+            self.loaded = Some((frame, self.settings.data_key()));
+            return Ok(());
+        }
         sources.query_batches(&sql, |b| {
             let [ox, oy, oz, dx, dy, dz, t] =
                 f32_columns(b, ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"])?;
@@ -355,16 +370,65 @@ impl Component for Rays {
             s.opacity,
             if s.gradient { 1.0 } else { 0.0 },
         );
-        segs.draw(ctx.gpu, ctx, p, &view, 6);
+        segs.draw(ctx.gpu, ctx, p, &view, 6, true);
+        if let Some(t) = &self.traced {
+            t.draw(ctx.gpu, ctx, p, &view, 6, false);
+        }
         Ok(())
     }
+    fn trace_ray(&mut self, ctx: &mut TraceCtx, [x, y]: [u32; 2]) -> Result<Option<TracedPixel>> {
+        let Some(scene) = &ctx.sources.scene else { return Ok(None) };
+        if x >= ctx.width || y >= ctx.height {
+            return Err(Error::Settings(format!("pixel {x},{y} is outside the {}x{} view", ctx.width, ctx.height)));
+        }
+        let bvh = self.bvh.get_or_insert_with(|| std::sync::Arc::new(renderers::Bvh::build(&scene.tris))).clone();
+        let mut s = (**scene).clone();
+        let c = ctx.camera;
+        let v = |a: [f64; 3]| glam::DVec3::from_array(a).as_vec3a();
+        s.camera =
+            renderers::Camera { position: v(c.position), target: v(c.target), up: v(c.up), fov_y: c.fov_y as f32 };
+        // The pixel's ray tree through `rl` immediate mode, as a renderer records it.
+        let options = rl::RecorderOptions { payload: renderers::payload_schema(), ..Default::default() };
+        let (rec, trace) = rl::Recorder::immediate(options)?;
+        let opts = renderers::RenderOptions {
+            width: ctx.width,
+            height: ctx.height,
+            spp: 1,
+            seed: u64::from(x) << 32 | u64::from(y),
+            window: Some([x, y, x + 1, y + 1]),
+            threads: 1,
+            ..Default::default()
+        };
+        renderers::render(&s, &bvh, &opts, Some(&rec), &|_| {})?;
+        rec.finish()?;
+        let kinds = store::KindTable::default();
+        let mut builder = SegmentBuilder::new(ctx.sources.bounds, ctx.sources.frame());
+        let mut segs = Vec::new();
+        self.traced_kinds.clear();
+        for tree in trace.trees_at_pixel(x, y, None)? {
+            for r in &tree.rays {
+                let name = kinds.name(r.kind).unwrap_or("?").to_string();
+                let Some((a, e)) = builder.end(r.origin, r.direction, r.t.unwrap_or(f32::INFINITY)) else { continue };
+                segs.push(builder.segment(a, e, kind_color(&name), 1));
+                *self.traced_kinds.entry(name).or_default() += 1;
+            }
+        }
+        let n = segs.len();
+        self.traced = Some(SegmentBuffers::from_segments(segs));
+        self.generation += 1;
+        Ok(Some(TracedPixel { pixel: [x, y], rays: n }))
+    }
     fn legend(&self) -> Vec<Legend> {
+        let mut all = self.kinds.clone();
+        for (k, n) in &self.traced_kinds {
+            *all.entry(k.clone()).or_default() += n;
+        }
         let mut entries: Vec<(String, [u8; 4])> = KIND_ORDER
             .iter()
-            .filter(|k| self.kinds.contains_key(**k))
-            .map(|k| (format!("{k} ({})", self.kinds[*k]), kind_color(k)))
+            .filter(|k| all.contains_key(**k))
+            .map(|k| (format!("{k} ({})", all[*k]), kind_color(k)))
             .collect();
-        for (k, n) in &self.kinds {
+        for (k, n) in &all {
             if !KIND_ORDER.contains(&k.as_str()) {
                 entries.push((format!("{k} ({n})"), kind_color(k)));
             }
