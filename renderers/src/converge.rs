@@ -79,62 +79,159 @@ pub fn log_log_slope(points: &[(f64, f64)]) -> f64 {
     sxy / sxx
 }
 
-/// Writes a log-log plot of RMSE (blue) and relative MSE's square root (red) against time, with a
-/// grey line of slope −1/2 through the first RMSE point. Axes span whole decades, gridlines at each.
+/// A tick value in at most 3 significant digits (`0.25`, `1200`, `3e-5`).
+pub fn tick(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let a = v.abs();
+    if !(1e-3..1e5).contains(&a) {
+        let s = format!("{v:.1e}");
+        return s.replace(".0e", "e");
+    }
+    let digits = (2 - a.log10().floor() as i32).clamp(0, 6) as usize;
+    let s = format!("{v:.digits$}");
+    if s.contains('.') { s.trim_end_matches('0').trim_end_matches('.').to_string() } else { s }
+}
+
+/// Registers egui's font as plotters' "sans-serif" (once): plots need no system fonts.
+pub fn plot_font() -> &'static str {
+    static DONE: std::sync::Once = std::sync::Once::new();
+    DONE.call_once(|| {
+        // A font that cannot be registered leaves the plot without text; nothing else fails.
+        let _ = plotters::style::register_font(
+            "sans-serif",
+            plotters::style::FontStyle::Normal,
+            epaint_default_fonts::UBUNTU_LIGHT,
+        );
+    });
+    "sans-serif"
+}
+
+/// Writes a log-log plot of RMSE (blue) and relative MSE's square root (red) against seconds,
+/// with a grey line of slope −1/2 through the first RMSE point: axes with decade ticks and
+/// values, labels and a legend (plotters).
 pub fn write_plot(points: &[ConvergencePoint], path: &Path) -> Result<()> {
-    let (w, h, m) = (640u32, 480u32, 40u32);
-    let mut img = image::RgbImage::from_pixel(w, h, image::Rgb([255, 255, 255]));
-    let xs: Vec<f64> = points.iter().map(|p| p.secs.max(1e-9).log10()).collect();
-    let ys: Vec<f64> =
-        points.iter().flat_map(|p| [p.rmse.max(1e-12).log10(), p.rel_mse.max(1e-24).sqrt().log10()]).collect();
+    use plotters::prelude::*;
+    let bad = |e: String| Error::Image { path: path.into(), message: e };
+    let (w, h) = (800u32, 560u32);
+    let font = plot_font();
+    let xs: Vec<f64> = points.iter().map(|p| p.secs.max(1e-9)).collect();
+    let ys: Vec<f64> = points.iter().flat_map(|p| [p.rmse.max(1e-12), p.rel_mse.max(1e-24).sqrt()]).collect();
+    let decade = |v: f64, up: bool| 10f64.powf(if up { v.log10().ceil() } else { v.log10().floor() });
     let (x0, x1) = (
-        xs.iter().cloned().fold(f64::INFINITY, f64::min).floor(),
-        xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max).ceil(),
+        decade(xs.iter().cloned().fold(f64::INFINITY, f64::min), false),
+        decade(xs.iter().cloned().fold(f64::NEG_INFINITY, f64::max), true),
     );
     let (y0, y1) = (
-        ys.iter().cloned().fold(f64::INFINITY, f64::min).floor(),
-        ys.iter().cloned().fold(f64::NEG_INFINITY, f64::max).ceil(),
+        decade(ys.iter().cloned().fold(f64::INFINITY, f64::min), false),
+        decade(ys.iter().cloned().fold(f64::NEG_INFINITY, f64::max), true),
     );
-    let (x1, y1) = (if x1 <= x0 { x0 + 1.0 } else { x1 }, if y1 <= y0 { y0 + 1.0 } else { y1 });
-    let px = |x: f64| m as f64 + (x - x0) / (x1 - x0) * f64::from(w - 2 * m);
-    let py = |y: f64| f64::from(h - m) - (y - y0) / (y1 - y0) * f64::from(h - 2 * m);
-    let put = |img: &mut image::RgbImage, x: f64, y: f64, c: [u8; 3]| {
-        if x >= 0.0 && y >= 0.0 && (x as u32) < w && (y as u32) < h {
-            img.put_pixel(x as u32, y as u32, image::Rgb(c));
+    let (x0, x1, y0, y1) = (
+        if x0.is_finite() { x0 } else { 1e-3 },
+        if x1.is_finite() && x1 > x0 { x1 } else { x0 * 10.0 },
+        if y0.is_finite() { y0 } else { 1e-3 },
+        if y1.is_finite() && y1 > y0 { y1 } else { y0 * 10.0 },
+    );
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| bad(e.to_string()))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption("Error against render time", (font, 22))
+            .margin(14)
+            .x_label_area_size(44)
+            .y_label_area_size(64)
+            .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+            .map_err(|e| bad(e.to_string()))?;
+        chart
+            .configure_mesh()
+            .x_desc("seconds")
+            .y_desc("error")
+            .label_style((font, 14))
+            .axis_desc_style((font, 16))
+            .x_labels(12)
+            .y_labels(12)
+            .x_label_formatter(&|v| tick(*v))
+            .y_label_formatter(&|v| tick(*v))
+            .draw()
+            .map_err(|e| bad(e.to_string()))?;
+        let blue = RGBColor(30, 60, 200);
+        let red = RGBColor(200, 40, 40);
+        let series = |f: &dyn Fn(&ConvergencePoint) -> f64| -> Vec<(f64, f64)> {
+            points.iter().map(|p| (p.secs.max(1e-9), f(p))).collect()
+        };
+        let rmse = series(&|p| p.rmse.max(1e-12));
+        let rel = series(&|p| p.rel_mse.max(1e-24).sqrt());
+        chart
+            .draw_series(LineSeries::new(rmse.clone(), blue.stroke_width(2)))
+            .map_err(|e| bad(e.to_string()))?
+            .label("RMSE")
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], blue.stroke_width(2)));
+        chart.draw_series(rmse.iter().map(|&p| Circle::new(p, 3, blue.filled()))).map_err(|e| bad(e.to_string()))?;
+        chart
+            .draw_series(LineSeries::new(rel.clone(), red.stroke_width(2)))
+            .map_err(|e| bad(e.to_string()))?
+            .label("sqrt(relMSE)")
+            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], red.stroke_width(2)));
+        chart.draw_series(rel.iter().map(|&p| Circle::new(p, 3, red.filled()))).map_err(|e| bad(e.to_string()))?;
+        if let Some(&(sx, sy)) = rmse.first() {
+            let grey = RGBColor(140, 140, 140);
+            // From the first point to the plot's edge, or to where it leaves through the bottom.
+            let end = x1.min(sx * (sy / y0).powi(2));
+            let line: Vec<(f64, f64)> = [sx, end].iter().map(|&x| (x, sy * (x / sx).powf(-0.5))).collect();
+            chart
+                .draw_series(LineSeries::new(line, grey.stroke_width(1)))
+                .map_err(|e| bad(e.to_string()))?
+                .label("slope -1/2 (Monte Carlo)")
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], grey.stroke_width(1)));
         }
-    };
-    let grey = [200, 200, 200];
-    for d in (x0 as i32)..=(x1 as i32) {
-        for y in m..h - m {
-            put(&mut img, px(f64::from(d)), f64::from(y), grey);
-        }
+        chart
+            .configure_series_labels()
+            .label_font((font, 14))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| bad(e.to_string()))?;
+        root.present().map_err(|e| bad(e.to_string()))?;
     }
-    for d in (y0 as i32)..=(y1 as i32) {
-        for x in m..w - m {
-            put(&mut img, f64::from(x), py(f64::from(d)), grey);
-        }
+    image::save_buffer(path, &buf, w, h, image::ColorType::Rgb8)
+        .map_err(|e| Error::Image { path: path.into(), message: e.to_string() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ticks_are_short() {
+        assert_eq!(tick(0.1), "0.1");
+        assert_eq!(tick(0.25), "0.25");
+        assert_eq!(tick(1200.0), "1200");
+        assert_eq!(tick(3e-5), "3e-5");
+        assert_eq!(tick(1.0), "1");
     }
-    let line = |img: &mut image::RgbImage, a: (f64, f64), b: (f64, f64), c: [u8; 3]| {
-        let steps = 400;
-        for i in 0..=steps {
-            let t = f64::from(i) / f64::from(steps);
-            let (x, y) = (a.0 + (b.0 - a.0) * t, a.1 + (b.1 - a.1) * t);
-            if y >= y0 && y <= y1 {
-                for (dx, dy) in [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)] {
-                    put(img, px(x) + dx, py(y) + dy, c);
-                }
-            }
-        }
-    };
-    if let Some(first) = points.first() {
-        let (lx, ly) = (first.secs.max(1e-9).log10(), first.rmse.max(1e-12).log10());
-        line(&mut img, (lx, ly), (x1, ly - 0.5 * (x1 - lx)), [150, 150, 150]);
+
+    #[test]
+    fn the_plot_has_text_and_curves() {
+        let pts: Vec<ConvergencePoint> = [1u32, 2, 4, 8]
+            .iter()
+            .map(|&spp| ConvergencePoint {
+                spp,
+                secs: 0.01 * f64::from(spp),
+                rmse: 0.5 / f64::from(spp).sqrt(),
+                rel_mse: 0.2 / f64::from(spp),
+            })
+            .collect();
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("c.png");
+        write_plot(&pts, &p).unwrap();
+        let img = image::open(&p).unwrap().to_rgb8();
+        let blue = img.pixels().filter(|q| q.0 == [30, 60, 200]).count();
+        let red = img.pixels().filter(|q| q.0 == [200, 40, 40]).count();
+        // Dark pixels that are neither curve: text, ticks and axes.
+        let ink = img.pixels().filter(|q| q.0.iter().all(|c| *c < 90)).count();
+        assert!(blue > 200 && red > 200, "curves drawn: {blue} {red}");
+        assert!(ink > 2000, "axes and labels drawn: {ink}");
     }
-    for pair in points.windows(2) {
-        let f = |p: &ConvergencePoint| (p.secs.max(1e-9).log10(), p.rmse.max(1e-12).log10());
-        let g = |p: &ConvergencePoint| (p.secs.max(1e-9).log10(), p.rel_mse.max(1e-24).sqrt().log10());
-        line(&mut img, f(&pair[0]), f(&pair[1]), [30, 60, 200]);
-        line(&mut img, g(&pair[0]), g(&pair[1]), [200, 40, 40]);
-    }
-    img.save(path).map_err(|e| Error::Image { path: path.into(), message: e.to_string() })
 }
