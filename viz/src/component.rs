@@ -168,3 +168,22 @@ pub trait Component: Send {
 pub fn decode_settings<T: serde::de::DeserializeOwned>(kind: &str, v: &serde_json::Value) -> Result<T> {
     serde_json::from_value(v.clone()).map_err(|e| Error::Settings(format!("{kind}: {e}")))
 }
+
+/// Replaces `current` with `new` when they differ, bumping `generation`; returns whether they did.
+pub fn replace_settings<T: PartialEq>(current: &mut T, new: T, generation: &mut u64) -> bool {
+    if *current == new {
+        return false;
+    }
+    *current = new;
+    *generation += 1;
+    true
+}
+
+/// Checks the line width (pixels) and opacity shared by the line-drawing layers.
+pub fn check_lines(kind: &str, line_width: f32, opacity: f32) -> Result<()> {
+    if line_width > 0.0 && line_width <= 64.0 && (0.0..=1.0).contains(&opacity) {
+        Ok(())
+    } else {
+        Err(Error::Settings(format!("{kind}: line_width must be in (0, 64] pixels and opacity in 0..1")))
+    }
+}

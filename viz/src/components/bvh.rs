@@ -169,13 +169,8 @@ impl Component for BvhBoxes {
         if s.levels[0] > s.levels[1] {
             return Err(Error::Settings(format!("bvh: level range {}..{} is empty", s.levels[0], s.levels[1])));
         }
-        if !(s.line_width > 0.0 && s.line_width <= 64.0 && (0.0..=1.0).contains(&s.opacity)) {
-            return Err(Error::Settings("bvh: line_width must be in (0, 64] pixels and opacity in 0..1".into()));
-        }
-        if s != self.settings {
-            self.settings = s;
-            self.generation += 1;
-        }
+        crate::component::check_lines("bvh", s.line_width, s.opacity)?;
+        crate::component::replace_settings(&mut self.settings, s, &mut self.generation);
         Ok(())
     }
     fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {

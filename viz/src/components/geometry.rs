@@ -173,10 +173,7 @@ impl Component for Geometry {
         if !((0.0..=1.0).contains(&s.opacity) && s.line_width > 0.0 && s.line_width <= 64.0) {
             return Err(Error::Settings("geometry: opacity must be in 0..1 and line_width in (0, 64] pixels".into()));
         }
-        if s != self.settings {
-            self.settings = s;
-            self.generation += 1;
-        }
+        crate::component::replace_settings(&mut self.settings, s, &mut self.generation);
         Ok(())
     }
     fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {

@@ -414,10 +414,8 @@ impl Component for Heatmap {
         if !(0.0..=1.0).contains(&s.opacity) {
             return Err(Error::Settings("heatmap: opacity must be in 0..1".into()));
         }
-        if s != self.settings {
-            self.settings = s;
+        if crate::component::replace_settings(&mut self.settings, s, &mut self.generation) {
             self.image = None;
-            self.generation += 1;
         }
         Ok(())
     }

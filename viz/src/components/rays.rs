@@ -342,13 +342,8 @@ impl Component for Rays {
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
         let s: RaysSettings = decode_settings("rays", v)?;
         s.predicate()?;
-        if !(s.line_width > 0.0 && s.line_width <= 64.0 && (0.0..=1.0).contains(&s.opacity)) {
-            return Err(Error::Settings("rays: line_width must be in (0, 64] pixels and opacity in 0..1".into()));
-        }
-        if s != self.settings {
-            self.settings = s;
-            self.generation += 1;
-        }
+        crate::component::check_lines("rays", s.line_width, s.opacity)?;
+        crate::component::replace_settings(&mut self.settings, s, &mut self.generation);
         Ok(())
     }
     fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
