@@ -21,6 +21,9 @@ fi
 cargo fmt --all --check
 # Every package of the lock file, for all targets: the layering test reads `cargo metadata --offline`.
 cargo fetch --locked
-cargo clippy --workspace --all-targets --locked -- -D warnings
+# Clippy lints the workspace's crates while they are built for the tests (see lint-env.sh): one
+# build of the dependencies, shared with `cargo run -- demo`, and no separate check pass.
+source scripts/lint-env.sh
+cargo build --workspace --all-targets --locked
 cargo nextest run --workspace --locked --no-fail-fast
 cargo test --workspace --doc --locked

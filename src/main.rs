@@ -13,6 +13,7 @@ mod record;
 mod render;
 mod serve;
 mod sql;
+mod view;
 
 use std::path::PathBuf;
 
@@ -48,6 +49,8 @@ enum Command {
     /// Draw a dataset's layers (image, geometry, composition, rays, bvh, query, heatmap) into a
     /// PNG with the GPU visualizer, headless.
     Render(Box<render::RenderArgs>),
+    /// Open the interactive viewer on datasets (or on a scene, `--scene cornell`, with no dataset).
+    View(Box<view::ViewArgs>),
     /// Image error (RMSE, relative MSE) of the path tracer against time and samples per pixel.
     Converge {
         #[arg(long, default_value = "cornell")]
@@ -161,6 +164,7 @@ fn main() {
         }
         Command::Record(args) => record::run(&args).map(|_| 0),
         Command::Render(args) => render::run(&args).map(|_| 0),
+        Command::View(args) => view::run(&args).map(|_| 0),
         Command::Info { dataset, json } => commands::info(&dataset, json).map(|_| 0),
         Command::Tree { dataset, pixel, sample, tree, json } => {
             commands::tree(&dataset, pixel, sample, tree, json).map(|_| 0)

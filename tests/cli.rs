@@ -327,3 +327,43 @@ fn demo_draws_a_picture_and_render_draws_layers() {
         assert!(msg.contains("no GPU adapter") && msg.contains("mesa-vulkan-drivers"), "{msg}");
     }
 }
+
+/// The real window under Xvfb (`.ci/run` installs it): `rtvtk view DATASET --screenshot` opens
+/// eframe's wgpu window, draws the pipeline, writes a screenshot and closes.
+#[test]
+fn view_opens_a_window_and_writes_a_screenshot() {
+    let Some(xvfb) = ["/usr/bin/Xvfb", "/usr/local/bin/Xvfb"].into_iter().find(|p| Path::new(p).exists()) else {
+        assert!(std::env::var_os("CI").is_none(), "CI must install Xvfb (apt-get install xvfb)");
+        eprintln!("skipped: no Xvfb (apt-get install xvfb xauth libxkbcommon-x11-0 libxcursor1 libxi6 libxrandr2)");
+        return;
+    };
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("t");
+    demo(&dir);
+    let display = format!(":{}", 90 + std::process::id() % 100);
+    let mut x =
+        Command::new(xvfb).args([display.as_str(), "-screen", "0", "1400x900x24", "-nolisten", "tcp"]).spawn().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(800));
+    let shot = tmp.path().join("window.png");
+    let out = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
+        .args(["view", dir.to_str().unwrap(), "--screenshot", shot.to_str().unwrap()])
+        .env("DISPLAY", &display)
+        .env_remove("WAYLAND_DISPLAY")
+        .env("HOME", tmp.path())
+        .env("XDG_DATA_HOME", tmp.path())
+        .output()
+        .unwrap();
+    let _ = x.kill();
+    let _ = x.wait();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let img = image::open(&shot).unwrap_or_else(|e| panic!("{}: {e}", shot.display())).to_rgba8();
+    assert_eq!(img.dimensions(), (1400, 860), "the window's size");
+    // The render window shows the picture: many distinct colours on its left half.
+    let mut colours = std::collections::HashSet::new();
+    for y in (100..760).step_by(7) {
+        for x in (20..700).step_by(7) {
+            colours.insert(img.get_pixel(x, y).0);
+        }
+    }
+    assert!(colours.len() > 200, "the render window looks empty ({} colours)", colours.len());
+}

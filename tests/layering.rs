@@ -82,6 +82,10 @@ fn dependency_direction_holds() {
     forbid(&g, "rtvtk-query", &gpu);
     forbid(&g, "rtvtk-renderers", &["rtvtk-query", "rtvtk-viz", "datafusion"]);
     forbid(&g, "rtvtk-renderers", &["egui", "eframe", "winit"]);
+    // The visualizer's GPU layer knows no egui; only the viewer on top of it does.
+    forbid(&g, "rtvtk-viz", &["egui", "eframe", "winit", "rtvtk-viewer"]);
+    assert!(g.closure("rtvtk-viewer").contains("rtvtk-viz"));
+    assert!(g.closure("rtvtk-viewer").contains("eframe"));
     assert!(g.closure("rl").contains("rtvtk-store"));
     assert!(g.closure("rtvtk-renderers").contains("rl"));
     assert!(g.closure("rtvtk-query").contains("rtvtk-store"));
@@ -90,7 +94,7 @@ fn dependency_direction_holds() {
 #[test]
 fn no_workspace_cycles() {
     let g = graph();
-    for krate in ["rtvtk-store", "rl", "rtvtk-query", "rtvtk-renderers", "rtvtk-viz", "rtvtk"] {
+    for krate in ["rtvtk-store", "rl", "rtvtk-query", "rtvtk-renderers", "rtvtk-viz", "rtvtk-viewer", "rtvtk"] {
         assert!(!g.closure(krate).contains(krate), "{krate} depends on itself");
     }
 }

@@ -105,6 +105,98 @@ pub struct TraceCtx<'a> {
     pub height: u32,
 }
 
+/// The small target a pick draws into: ids ([`crate::draw::PICK_FORMAT`]) and depth, `size`
+/// pixels square around the cursor, shared by every pickable layer so the nearest item wins.
+pub struct PickTarget {
+    pub ids: wgpu::Texture,
+    pub ids_view: wgpu::TextureView,
+    pub depth_view: wgpu::TextureView,
+    pub size: u32,
+}
+
+impl PickTarget {
+    pub fn new(gpu: &Gpu, size: u32) -> PickTarget {
+        let ids = gpu.target("pick ids", crate::draw::PICK_FORMAT, size, size);
+        let depth = gpu.target("pick depth", crate::gpu::DEPTH_FORMAT, size, size);
+        PickTarget {
+            ids_view: ids.create_view(&Default::default()),
+            depth_view: depth.create_view(&Default::default()),
+            ids,
+            size,
+        }
+    }
+
+    /// A pass that keeps what earlier layers drew (the pipeline clears the target once).
+    pub fn pass<'e>(&self, enc: &'e mut wgpu::CommandEncoder) -> wgpu::RenderPass<'e> {
+        self.pass_with(enc, wgpu::LoadOp::Load, wgpu::LoadOp::Load)
+    }
+
+    pub(crate) fn pass_with<'e>(
+        &self,
+        enc: &'e mut wgpu::CommandEncoder,
+        ids: wgpu::LoadOp<wgpu::Color>,
+        depth: wgpu::LoadOp<f32>,
+    ) -> wgpu::RenderPass<'e> {
+        enc.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("pick"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: &self.ids_view,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations { load: ids, store: wgpu::StoreOp::Store },
+            })],
+            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                view: &self.depth_view,
+                depth_ops: Some(wgpu::Operations { load: depth, store: wgpu::StoreOp::Store }),
+                stencil_ops: None,
+            }),
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        })
+    }
+}
+
+/// Arguments of [`Component::pick`]: draw the ids of what can be picked.
+pub struct PickCtx<'a> {
+    pub gpu: &'a Gpu,
+    pub sources: &'a Sources,
+    /// The layer's view-projection, cropped to the pick target around the cursor.
+    pub view_proj: glam::Mat4,
+    pub target: &'a PickTarget,
+    /// The layer's slot, written with every id (`ViewUniform::params.x` of the pick draw).
+    pub slot: u32,
+}
+
+impl PickCtx<'_> {
+    /// The uniform block of a pick draw: the cropped projection, the target's size (so line
+    /// widths stay in pixels) and the slot.
+    pub fn view(&self, line_width: f32) -> crate::camera::ViewUniform {
+        let mut v =
+            crate::camera::ViewUniform::new(self.view_proj, self.target.size, self.target.size, line_width, 1.0, 0.0);
+        v.params[0] = self.slot as f32;
+        v
+    }
+}
+
+/// What a click picked: the layer, the item's index in it and what the item is.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Picked {
+    pub layer: Option<ComponentId>,
+    /// The layer's kind (`rays`, `bvh`, `query`).
+    pub kind: String,
+    pub index: u32,
+    /// A ray: its tree and index in the tree.
+    pub tree: Option<u64>,
+    pub ray: Option<u32>,
+    /// A BVH node.
+    pub node: Option<u64>,
+    /// A row of the layer's query result (0-based).
+    pub row: Option<u64>,
+    /// In words.
+    pub label: String,
+}
+
 /// What a trace of one pixel produced (immediate mode).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TracedPixel {
@@ -154,6 +246,15 @@ pub trait Component: Send {
     /// does not trace.
     fn trace_ray(&mut self, _ctx: &mut TraceCtx, _pixel: [u32; 2]) -> Result<Option<TracedPixel>> {
         Ok(None)
+    }
+    /// Picking: draws the ids of the layer's items into `ctx.target`; `Ok(false)` when the layer
+    /// has nothing to pick.
+    fn pick(&mut self, _ctx: &mut PickCtx) -> Result<bool> {
+        Ok(false)
+    }
+    /// What item `index` of the last pick drawing is.
+    fn picked(&self, _index: u32) -> Option<Picked> {
+        None
     }
     fn legend(&self) -> Vec<Legend> {
         Vec::new()

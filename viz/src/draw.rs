@@ -71,6 +71,43 @@ pub fn scene_pipeline(
     })
 }
 
+/// Format of the picking target: (layer slot, item index + 1) per pixel.
+pub const PICK_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg32Uint;
+
+/// A picking pipeline: the ids of `vs`'s items into a [`PICK_FORMAT`] target, depth tested, so
+/// the nearest item wins (`fs_pick` of `lines.wgsl`).
+pub fn pick_pipeline(gpu: &Gpu, module: &wgpu::ShaderModule, vs: &str) -> wgpu::RenderPipeline {
+    let targets =
+        [Some(wgpu::ColorTargetState { format: PICK_FORMAT, blend: None, write_mask: wgpu::ColorWrites::ALL })];
+    gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some("pick"),
+        layout: None,
+        vertex: wgpu::VertexState {
+            module,
+            entry_point: Some(vs),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: wgpu::PrimitiveState { cull_mode: None, ..Default::default() },
+        depth_stencil: Some(wgpu::DepthStencilState {
+            format: DEPTH_FORMAT,
+            depth_write_enabled: Some(true),
+            depth_compare: Some(wgpu::CompareFunction::LessEqual),
+            stencil: Default::default(),
+            bias: Default::default(),
+        }),
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module,
+            entry_point: Some("fs_pick"),
+            compilation_options: Default::default(),
+            targets: &targets,
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
 /// A uniform buffer holding `v`.
 pub fn uniform<T: bytemuck::Pod>(gpu: &Gpu, label: &str, v: &T) -> wgpu::Buffer {
     gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -213,6 +250,45 @@ impl SegmentBuffers {
     /// GPU bytes allocated.
     pub fn gpu_bytes(&self) -> u64 {
         self.buffers.iter().map(|(b, _)| b.size()).sum()
+    }
+
+    /// Draws the ids of every segment (index in push order) into a picking target with a
+    /// [`pick_pipeline`]; `base` is added to every index (a second buffer set drawn after this one).
+    pub fn draw_ids(
+        &self,
+        gpu: &Gpu,
+        target: &crate::component::PickTarget,
+        pipeline: &wgpu::RenderPipeline,
+        view: &ViewUniform,
+        per: u32,
+        base: u32,
+    ) {
+        let ubuf = uniform(gpu, "pick view", view);
+        let staged = (!self.staged.is_empty()).then(|| {
+            use wgpu::util::DeviceExt;
+            let b = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("segments"),
+                contents: bytemuck::cast_slice(&self.staged),
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+            (b, self.staged.len() as u64)
+        });
+        let mut first = base;
+        let mut groups = Vec::new();
+        for (b, n) in self.buffers.iter().filter(|(_, n)| *n > 0).chain(staged.iter()) {
+            groups.push((bind_view_storage(gpu, pipeline, &ubuf, b), *n as u32, first));
+            first = first.saturating_add(*n as u32);
+        }
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = target.pass(&mut enc);
+            pass.set_pipeline(pipeline);
+            for (g, n, first) in &groups {
+                pass.set_bind_group(0, g, &[]);
+                pass.draw(0..n * per, *first..*first + 1);
+            }
+        }
+        gpu.queue.submit([enc.finish()]);
     }
 
     /// Draws every buffer with `pipeline` (`per` vertices per segment).

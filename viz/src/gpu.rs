@@ -117,8 +117,13 @@ impl Gpu {
 
     /// Reads an RGBA8 texture back (rows tightly packed).
     pub fn read_rgba(&self, texture: &wgpu::Texture) -> Result<Vec<u8>> {
+        self.read_texels(texture, 4)
+    }
+
+    /// Reads a texture of `bytes` bytes per texel back (rows tightly packed).
+    pub fn read_texels(&self, texture: &wgpu::Texture, bytes: u32) -> Result<Vec<u8>> {
         let (w, h) = (texture.width(), texture.height());
-        let row = (4 * w).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+        let row = (bytes * w).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
         let buf = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("readback"),
             size: u64::from(row) * u64::from(h),
@@ -148,9 +153,9 @@ impl Gpu {
         self.wait()?;
         rx.recv().map_err(|e| Error::Gpu(e.to_string()))?.map_err(|e| Error::Gpu(e.to_string()))?;
         let data = slice.get_mapped_range().map_err(|e| Error::Gpu(e.to_string()))?;
-        let mut out = Vec::with_capacity((4 * w * h) as usize);
+        let mut out = Vec::with_capacity((bytes * w * h) as usize);
         for y in 0..h as usize {
-            out.extend_from_slice(&data[y * row as usize..y * row as usize + 4 * w as usize]);
+            out.extend_from_slice(&data[y * row as usize..y * row as usize + (bytes * w) as usize]);
         }
         drop(data);
         buf.unmap();

@@ -12,7 +12,7 @@ pub mod registry;
 pub mod sources;
 
 pub use camera::ViewCamera;
-pub use component::{Component, ComponentId, LayerRole, Legend};
+pub use component::{Component, ComponentId, LayerRole, Legend, Picked};
 pub use error::{Error, Result};
 pub use gpu::Gpu;
 pub use pipeline::Pipeline;

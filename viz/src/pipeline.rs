@@ -5,7 +5,8 @@
 
 use crate::camera::ViewCamera;
 use crate::component::{
-    Component, ComponentId, Frame, IdleCtx, LayerRole, LayerTarget, Legend, RenderCtx, depth_range,
+    Component, ComponentId, Frame, IdleCtx, LayerRole, LayerTarget, Legend, PickCtx, PickTarget, Picked, RenderCtx,
+    depth_range,
 };
 use crate::gpu::{COLOR_FORMAT, Gpu};
 use crate::legend::{Canvas, draw_legends};
@@ -79,6 +80,20 @@ impl Compositor {
         });
         Compositor { pipeline }
     }
+}
+
+/// The clip-space transform that maps the `size`-pixel square around `pixel` of a `view`-sized
+/// image onto a whole target (rows top to bottom).
+pub fn crop_matrix([x, y]: [u32; 2], [w, h]: [u32; 2], size: u32) -> glam::Mat4 {
+    let cx = 2.0 * (x as f32 + 0.5) / w as f32 - 1.0;
+    let cy = 1.0 - 2.0 * (y as f32 + 0.5) / h as f32;
+    let (sx, sy) = (w as f32 / size as f32, h as f32 / size as f32);
+    glam::Mat4::from_cols(
+        glam::Vec4::new(sx, 0.0, 0.0, 0.0),
+        glam::Vec4::new(0.0, sy, 0.0, 0.0),
+        glam::Vec4::Z,
+        glam::Vec4::new(-sx * cx, -sy * cy, 0.0, 1.0),
+    )
 }
 
 /// Relative depth bias of the composition: a segment ending on a surface stays visible.
@@ -336,6 +351,55 @@ impl Pipeline {
             }
         }
         gpu.queue.submit([enc.finish()]);
+    }
+
+    /// Picking: the nearest pickable item (ray segment, BVH box, query row) within `radius`
+    /// pixels of `pixel` of the view. The shown layers draw their items' ids into a small
+    /// target around the cursor (the projection cropped to it, depth tested), which is read back:
+    /// no CPU search over the segments.
+    pub fn pick(&mut self, [x, y]: [u32; 2], radius: u32) -> Result<Option<Picked>> {
+        let (w, h) = (self.width, self.height);
+        if x >= w || y >= h {
+            return Err(Error::Settings(format!("pixel {x},{y} is outside the {w}x{h} view")));
+        }
+        let size = 2 * radius.min(64) + 1;
+        let target = PickTarget::new(&self.gpu, size);
+        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
+        drop(target.pass_with(&mut enc, wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT), wgpu::LoadOp::Clear(1.0)));
+        self.gpu.queue.submit([enc.finish()]);
+        let crop = crop_matrix([x, y], [w, h], size);
+        for (slot, l) in self.layers.iter_mut().enumerate() {
+            if !l.enabled || l.key.is_none() {
+                continue;
+            }
+            let camera = l.camera.unwrap_or(self.camera);
+            let view_proj = crop * camera.view_proj_f32(self.frame.anchor, self.frame.radius, w, h);
+            let mut ctx =
+                PickCtx { gpu: &self.gpu, sources: &self.sources, view_proj, target: &target, slot: slot as u32 + 1 };
+            l.component.pick(&mut ctx)?;
+        }
+        self.gpu.check()?;
+        let texels = self.gpu.read_texels(&target.ids, 8)?;
+        let word = |k: usize| u32::from_le_bytes([texels[k], texels[k + 1], texels[k + 2], texels[k + 3]]);
+        let r = (size / 2) as i64;
+        let mut best: Option<(i64, u32, u32)> = None;
+        for j in 0..size as usize {
+            for i in 0..size as usize {
+                let k = (j * size as usize + i) * 8;
+                let (slot, id) = (word(k), word(k + 4));
+                let d = (i as i64 - r).pow(2) + (j as i64 - r).pow(2);
+                if id != 0 && slot != 0 && best.is_none_or(|b| d < b.0) {
+                    best = Some((d, slot, id - 1));
+                }
+            }
+        }
+        let Some((_, slot, index)) = best else { return Ok(None) };
+        let Some(l) = self.layers.get(slot as usize - 1) else { return Ok(None) };
+        Ok(l.component.picked(index).map(|mut p| {
+            p.layer = Some(l.component.id());
+            p.index = index;
+            p
+        }))
     }
 
     /// The legends of the shown layers, bottom to top.

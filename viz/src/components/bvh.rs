@@ -56,6 +56,9 @@ pub struct BvhBoxes {
     generation: u64,
     loaded: Option<(Frame, BvhSettings)>,
     boxes: Option<SegmentBuffers>,
+    /// Node id of every box, in buffer order (picking).
+    nodes: Vec<u64>,
+    pick_pipeline: Option<wgpu::RenderPipeline>,
     pipeline: Option<wgpu::RenderPipeline>,
     range: Option<(f64, f64)>,
 }
@@ -71,6 +74,8 @@ impl BvhBoxes {
             generation: 0,
             loaded: None,
             boxes: None,
+            nodes: Vec::new(),
+            pick_pipeline: None,
             pipeline: None,
             range: None,
         };
@@ -93,32 +98,34 @@ impl BvhBoxes {
             let tree = s.tree.map_or(String::new(), |t| format!(" WHERE tree_id = {t}"));
             let join = if s.only_visited { "JOIN" } else { "LEFT JOIN" };
             format!(
-                "SELECT n.level, n.min_x, n.min_y, n.min_z, n.max_x, n.max_y, n.max_z, coalesce(v.visits, 0) AS visits \
+                "SELECT n.level, n.min_x, n.min_y, n.min_z, n.max_x, n.max_y, n.max_z, coalesce(v.visits, 0) AS visits, n.node_id \
                  FROM bvh_nodes n {join} (SELECT node_id, count(*) AS visits FROM ray_nodes{tree} GROUP BY node_id) v \
                  ON n.node_id = v.node_id WHERE n.level BETWEEN {a} AND {b}"
             )
         } else {
             format!(
-                "SELECT level, min_x, min_y, min_z, max_x, max_y, max_z, 0 AS visits FROM bvh_nodes WHERE level BETWEEN {a} AND {b}"
+                "SELECT level, min_x, min_y, min_z, max_x, max_y, max_z, 0 AS visits, node_id FROM bvh_nodes WHERE level BETWEEN {a} AND {b}"
             )
         }
     }
 
     fn load(&mut self, ctx: &RenderCtx) -> Result<()> {
         let gpu = ctx.gpu;
-        let mut rows: Vec<([f64; 3], [f64; 3], f64)> = Vec::new();
+        let mut rows: Vec<([f64; 3], [f64; 3], f64, u64)> = Vec::new();
         let by_visits = self.settings.colour == BoxColour::Visits;
         ctx.sources.query_batches(&self.sql(), |b| {
             let [x0, y0, z0, x1, y1, z1] = f32_columns(b, ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z"])?;
             let level = arrow::compute::cast(b.column(0), &DataType::Float64)?;
             let visits = arrow::compute::cast(b.column(7), &DataType::Float64)?;
             let (level, visits) = (level.as_primitive::<Float64Type>(), visits.as_primitive::<Float64Type>());
+            let node = arrow::compute::cast(b.column(8), &DataType::UInt64)?;
+            let node = node.as_primitive::<arrow::datatypes::UInt64Type>();
             for r in 0..b.num_rows() {
                 let lo = [x0.value(r), y0.value(r), z0.value(r)].map(f64::from);
                 let hi = [x1.value(r), y1.value(r), z1.value(r)].map(f64::from);
                 if lo.iter().chain(hi.iter()).all(|v| v.is_finite()) {
                     let v = if by_visits { (1.0 + visits.value(r)).log10() } else { level.value(r) };
-                    rows.push((lo, hi, v));
+                    rows.push((lo, hi, v, node.value(r)));
                 }
             }
             Ok(())
@@ -127,7 +134,8 @@ impl BvhBoxes {
         self.range = (lo <= hi).then_some((lo, hi));
         let map = colour_map(&self.settings.map)?;
         let mut bufs = SegmentBuffers::new(gpu);
-        for (a, b, v) in rows {
+        self.nodes = rows.iter().map(|r| r.3).collect();
+        for (a, b, v, _) in rows {
             let t = if hi > lo { (v - lo) / (hi - lo) } else { 0.5 };
             let c = map.eval_continuous(t);
             bufs.push(
@@ -186,6 +194,24 @@ impl Component for BvhBoxes {
         let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, 0.0);
         b.draw(ctx.gpu, ctx, p, &view, 72, true);
         Ok(())
+    }
+    fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
+        if self.pick_pipeline.is_none() {
+            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
+            self.pick_pipeline = Some(crate::draw::pick_pipeline(ctx.gpu, &m, "vs_box"));
+        }
+        let (Some(p), Some(b)) = (&self.pick_pipeline, &self.boxes) else { return Ok(false) };
+        b.draw_ids(ctx.gpu, ctx.target, p, &ctx.view(self.settings.line_width.max(3.0)), 72, 0);
+        Ok(true)
+    }
+    fn picked(&self, index: u32) -> Option<crate::component::Picked> {
+        let node = *self.nodes.get(index as usize)?;
+        Some(crate::component::Picked {
+            kind: "bvh".into(),
+            node: Some(node),
+            label: format!("BVH node {node}"),
+            ..Default::default()
+        })
     }
     fn legend(&self) -> Vec<Legend> {
         let Some((min, max)) = self.range else { return Vec::new() };

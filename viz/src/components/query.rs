@@ -52,6 +52,9 @@ pub struct Query {
     legend: Vec<Legend>,
     rows: u64,
     skipped: u64,
+    /// Result row of every drawn segment or point (picking).
+    row_of: Vec<u64>,
+    pick_pipeline: Option<wgpu::RenderPipeline>,
 }
 
 fn palette(i: usize) -> [u8; 4] {
@@ -72,6 +75,8 @@ impl Query {
             legend: Vec::new(),
             rows: 0,
             skipped: 0,
+            row_of: Vec::new(),
+            pick_pipeline: None,
         };
         q.set_settings(settings)?;
         Ok(q)
@@ -117,7 +122,9 @@ impl Query {
         let mut bufs = SegmentBuffers::new(gpu);
         let mut builder = SegmentBuilder::new(ctx.sources.bounds, ctx.frame);
         let mut rows = 0;
+        let mut row_of = Vec::new();
         for (b, vals) in batches.iter().zip(&all) {
+            let first = rows;
             rows += b.num_rows() as u64;
             let colour = |r: usize, names: &mut BTreeMap<String, usize>| -> [u8; 4] {
                 match vals {
@@ -156,6 +163,7 @@ impl Query {
                     };
                     let c = colour(r, &mut names);
                     bufs.push(gpu, builder.segment(a, e, c, 0));
+                    row_of.push(first + r as u64);
                 }
             } else {
                 let cols: Vec<_> = POINT_COLUMNS
@@ -171,11 +179,13 @@ impl Query {
                     }
                     let c = colour(r, &mut names);
                     bufs.push(gpu, builder.segment(q, q, c, 0));
+                    row_of.push(first + r as u64);
                 }
             }
         }
         bufs.flush(gpu);
         self.rows = rows;
+        self.row_of = row_of;
         self.skipped = builder.skipped;
         self.legend = match (&self.settings.colour_by, lo <= hi, names.is_empty()) {
             (Some(c), true, _) => {
@@ -236,6 +246,24 @@ impl Component for Query {
         let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, 1.0);
         segs.draw(ctx.gpu, ctx, p, &view, 6, true);
         Ok(())
+    }
+    fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
+        if self.pick_pipeline.is_none() {
+            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
+            self.pick_pipeline = Some(crate::draw::pick_pipeline(ctx.gpu, &m, "vs_seg"));
+        }
+        let (Some(p), Some(segs)) = (&self.pick_pipeline, &self.segments) else { return Ok(false) };
+        segs.draw_ids(ctx.gpu, ctx.target, p, &ctx.view(self.settings.line_width.max(3.0)), 6, 0);
+        Ok(true)
+    }
+    fn picked(&self, index: u32) -> Option<crate::component::Picked> {
+        let row = *self.row_of.get(index as usize)?;
+        Some(crate::component::Picked {
+            kind: "query".into(),
+            row: Some(row),
+            label: format!("row {row} of the query"),
+            ..Default::default()
+        })
     }
     fn legend(&self) -> Vec<Legend> {
         self.legend.clone()

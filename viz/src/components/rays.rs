@@ -45,6 +45,8 @@ pub struct RaysSettings {
     pub pixel: Option<[u32; 2]>,
     /// Only this sample (with or without `pixel`).
     pub sample: Option<u32>,
+    /// Only rays whose index in their tree is at most this (stepping through a tree ray by ray).
+    pub ray_upto: Option<u32>,
     /// At most this many rays (`None`: all that match).
     pub max_rays: Option<u64>,
     pub line_width: f32,
@@ -63,6 +65,7 @@ impl Default for RaysSettings {
             tree: None,
             pixel: None,
             sample: None,
+            ray_upto: None,
             max_rays: Some(10_000_000),
             line_width: 1.5,
             opacity: 1.0,
@@ -73,8 +76,16 @@ impl Default for RaysSettings {
 }
 
 /// What decides which rays are loaded (and highlighted).
-type DataKey =
-    (Option<Vec<String>>, Option<[u32; 2]>, Option<u64>, Option<[u32; 2]>, Option<u32>, Option<u64>, Option<u64>);
+type DataKey = (
+    Option<Vec<String>>,
+    Option<[u32; 2]>,
+    Option<u64>,
+    Option<[u32; 2]>,
+    Option<u32>,
+    Option<u64>,
+    Option<u64>,
+    Option<u32>,
+);
 
 impl RaysSettings {
     /// The filters as a SQL predicate over the `rays` table.
@@ -104,11 +115,23 @@ impl RaysSettings {
         if let Some(s) = self.sample {
             w.push(format!("sample = {s}"));
         }
+        if let Some(n) = self.ray_upto {
+            w.push(format!("ray <= {n}"));
+        }
         Ok(if w.is_empty() { "TRUE".into() } else { w.join(" AND ") })
     }
 
     fn data_key(&self) -> DataKey {
-        (self.kinds.clone(), self.depth, self.tree, self.pixel, self.sample, self.max_rays, self.selected_tree)
+        (
+            self.kinds.clone(),
+            self.depth,
+            self.tree,
+            self.pixel,
+            self.sample,
+            self.max_rays,
+            self.selected_tree,
+            self.ray_upto,
+        )
     }
 }
 
@@ -203,6 +226,12 @@ pub struct Rays {
     /// Trees traced in immediate mode (`trace_ray`), drawn highlighted over the loaded rays.
     traced: Option<SegmentBuffers>,
     traced_kinds: BTreeMap<String, u64>,
+    /// Tree and ray index of every loaded segment, in buffer order (picking).
+    pick_trees: Vec<u64>,
+    pick_rays: Vec<u32>,
+    /// Pixel, tree and ray index of every traced segment.
+    traced_ids: Vec<([u32; 2], u64, u32)>,
+    pick_pipeline: Option<wgpu::RenderPipeline>,
     bvh: Option<std::sync::Arc<renderers::Bvh>>,
 }
 
@@ -224,6 +253,10 @@ impl Rays {
             load_secs: 0.0,
             traced: None,
             traced_kinds: BTreeMap::new(),
+            pick_trees: Vec::new(),
+            pick_rays: Vec::new(),
+            traced_ids: Vec::new(),
+            pick_pipeline: None,
             bvh: None,
         };
         if !settings.is_null() {
@@ -248,13 +281,14 @@ impl Rays {
         let s = &self.settings;
         let limit = s.max_rays.map_or(String::new(), |n| format!(" LIMIT {n}"));
         let sql = format!(
-            "SELECT tree_id, kind, origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t FROM rays WHERE {}{limit}",
+            "SELECT tree_id, kind, origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t, ray FROM rays WHERE {}{limit}",
             s.predicate()?
         );
         let mut bufs = SegmentBuffers::new(gpu);
         let mut builder = SegmentBuilder::new(sources.bounds, frame);
         let mut kinds: BTreeMap<String, u64> = BTreeMap::new();
         let selected = s.selected_tree;
+        let (mut pick_trees, mut pick_rays) = (Vec::new(), Vec::new());
         if sources.dataset.is_none() {
             // Immediate mode only: nothing recorded to load.
             self.segments = Some(bufs);
@@ -268,6 +302,8 @@ impl Rays {
                 .column(0)
                 .as_primitive_opt::<UInt64Type>()
                 .ok_or_else(|| Error::Columns("tree_id is not UInt64".into()))?;
+            let ray = arrow::compute::cast(b.column(9), &arrow::datatypes::DataType::UInt32)?;
+            let ray = ray.as_primitive::<arrow::datatypes::UInt32Type>();
             let kind_col = b.column(1);
             // Colours per dictionary value where the kind column is dictionary-encoded.
             let colors: Vec<([u8; 4], usize)> = match kind_col.as_any_dictionary_opt() {
@@ -309,6 +345,8 @@ impl Rays {
                 };
                 let flags = u32::from(selected == Some(tree.value(r)));
                 bufs.push(gpu, builder.segment(a, e, *colour, flags));
+                pick_trees.push(tree.value(r));
+                pick_rays.push(ray.value(r));
             }
             Ok(())
         })?;
@@ -317,6 +355,8 @@ impl Rays {
         self.misses = builder.misses;
         self.kinds = kinds;
         self.segments = Some(bufs);
+        self.pick_trees = pick_trees;
+        self.pick_rays = pick_rays;
         self.loaded = Some((frame, self.settings.data_key()));
         self.load_secs = t0.elapsed().as_secs_f64();
         Ok(())
@@ -400,11 +440,13 @@ impl Component for Rays {
         let mut builder = SegmentBuilder::new(ctx.sources.bounds, ctx.sources.frame());
         let mut segs = Vec::new();
         self.traced_kinds.clear();
+        self.traced_ids.clear();
         for tree in trace.trees_at_pixel(x, y, None)? {
             for r in &tree.rays {
                 let name = kinds.name(r.kind).unwrap_or("?").to_string();
                 let Some((a, e)) = builder.end(r.origin, r.direction, r.t.unwrap_or(f32::INFINITY)) else { continue };
                 segs.push(builder.segment(a, e, kind_color(&name), 1));
+                self.traced_ids.push(([x, y], tree.info.id.0, r.index));
                 *self.traced_kinds.entry(name).or_default() += 1;
             }
         }
@@ -412,6 +454,43 @@ impl Component for Rays {
         self.traced = Some(SegmentBuffers::from_segments(segs));
         self.generation += 1;
         Ok(Some(TracedPixel { pixel: [x, y], rays: n }))
+    }
+    fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
+        if self.pick_pipeline.is_none() {
+            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
+            self.pick_pipeline = Some(crate::draw::pick_pipeline(ctx.gpu, &m, "vs_seg"));
+        }
+        let Some(p) = &self.pick_pipeline else { return Ok(false) };
+        // A little wider than drawn, so thin rays are easy to hit.
+        let view = ctx.view(self.settings.line_width.max(3.0));
+        let loaded = self.segments.as_ref().map_or(0, |s| s.count);
+        if let Some(segs) = &self.segments {
+            segs.draw_ids(ctx.gpu, ctx.target, p, &view, 6, 0);
+        }
+        if let Some(t) = &self.traced {
+            t.draw_ids(ctx.gpu, ctx.target, p, &view, 6, loaded as u32);
+        }
+        Ok(true)
+    }
+    fn picked(&self, index: u32) -> Option<crate::component::Picked> {
+        let i = index as usize;
+        if let (Some(&tree), Some(&ray)) = (self.pick_trees.get(i), self.pick_rays.get(i)) {
+            return Some(crate::component::Picked {
+                kind: "rays".into(),
+                tree: Some(tree),
+                ray: Some(ray),
+                label: format!("ray {ray} of tree {tree}"),
+                ..Default::default()
+            });
+        }
+        let j = i.checked_sub(self.pick_trees.len())?;
+        let ([x, y], tree, ray) = *self.traced_ids.get(j)?;
+        Some(crate::component::Picked {
+            kind: "rays".into(),
+            ray: Some(ray),
+            label: format!("traced ray {ray} of pixel {x},{y} (immediate mode, tree {tree} of the live trace)"),
+            ..Default::default()
+        })
     }
     fn legend(&self) -> Vec<Legend> {
         let mut all = self.kinds.clone();

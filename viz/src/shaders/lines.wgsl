@@ -19,6 +19,9 @@ struct LOut {
     @location(0) color: vec4<f32>,
     // 0 at the segment's start, 1 at its end
     @location(1) s: f32,
+    // Index of the segment or box in the layer (picking): instance index (the draw's first
+    // instance is the buffer's first index) plus the index within the buffer.
+    @location(2) @interpolate(flat) id: u32,
 };
 
 fn line_vertex(pa: vec3<f32>, pb: vec3<f32>, corner: u32, width: f32, color: vec4<f32>) -> LOut {
@@ -75,19 +78,21 @@ fn line_vertex(pa: vec3<f32>, pb: vec3<f32>, corner: u32, width: f32, color: vec
 }
 
 @vertex
-fn vs_seg(@builtin(vertex_index) vi: u32) -> LOut {
+fn vs_seg(@builtin(vertex_index) vi: u32, @builtin(instance_index) first: u32) -> LOut {
     let s = segs[vi / 6u];
     var width = view.viewport.z;
     var color = unpack4x8unorm(s.color);
     if (s.flags & 1u) != 0u {
         width = width * 2.5;
     }
-    return line_vertex(s.a, s.b, vi % 6u, width, color);
+    var o = line_vertex(s.a, s.b, vi % 6u, width, color);
+    o.id = first + vi / 6u;
+    return o;
 }
 
 // Boxes: `a` is the minimum corner, `b` the maximum; 12 edges of 6 vertices each.
 @vertex
-fn vs_box(@builtin(vertex_index) vi: u32) -> LOut {
+fn vs_box(@builtin(vertex_index) vi: u32, @builtin(instance_index) first: u32) -> LOut {
     let bx = segs[vi / 72u];
     let e = (vi % 72u) / 6u;
     var e_from = array<u32, 12>(0u, 1u, 3u, 2u, 4u, 5u, 7u, 6u, 0u, 1u, 2u, 3u);
@@ -102,6 +107,7 @@ fn vs_box(@builtin(vertex_index) vi: u32) -> LOut {
     }
     var o = line_vertex(pi, pj, vi % 6u, width, unpack4x8unorm(bx.color));
     o.s = 1.0;
+    o.id = first + vi / 72u;
     return o;
 }
 
@@ -114,4 +120,10 @@ fn fs_line(v: LOut) -> @location(0) vec4<f32> {
     }
     let a = v.color.a * view.viewport.w;
     return vec4<f32>(v.color.rgb * g * a, a);
+}
+
+// Picking: the layer's slot (params.x of the pick draw) and the item's index + 1 (0: nothing).
+@fragment
+fn fs_pick(v: LOut) -> @location(0) vec2<u32> {
+    return vec2<u32>(u32(view.params.x), v.id + 1u);
 }

@@ -1,0 +1,424 @@
+//! The render worker: a thread that owns the visualizer's pipeline (its own headless GPU device)
+//! and turns commands from the UI into composited frames. The UI thread never waits for the GPU:
+//! it sends commands, keeps drawing the last frame, and picks up new frames and events when they
+//! arrive. Commands that supersede each other (camera moves, resizes) are coalesced, so a slow
+//! device (lavapipe on two cores) renders the latest view, not a backlog.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, Sender, TryRecvError, channel};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use viz::component::Picked;
+use viz::{ComponentId, Gpu, Legend, Pipeline, Sources, ViewCamera};
+
+/// What the viewer shows: a recorded dataset, or a scene with no dataset (immediate mode only).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Source {
+    Dataset(PathBuf),
+    /// A built-in scene name (`cornell`, ...) or an OBJ file.
+    Scene(String),
+}
+
+impl Source {
+    pub fn label(&self) -> String {
+        match self {
+            Source::Dataset(p) => p.display().to_string(),
+            Source::Scene(s) => format!("scene {s}"),
+        }
+    }
+}
+
+/// A component as it is saved and restored: kind, settings, shown or not.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LayerSpec {
+    pub id: u64,
+    pub kind: String,
+    pub settings: serde_json::Value,
+    pub enabled: bool,
+}
+
+/// A component as the UI shows it.
+#[derive(Clone, Debug)]
+pub struct LayerInfo {
+    pub id: ComponentId,
+    pub kind: String,
+    pub name: String,
+    pub enabled: bool,
+    pub settings: serde_json::Value,
+    pub legend: Vec<Legend>,
+    pub report: Vec<String>,
+    pub renders: u64,
+}
+
+impl LayerInfo {
+    pub fn spec(&self) -> LayerSpec {
+        LayerSpec { id: self.id.0, kind: self.kind.clone(), settings: self.settings.clone(), enabled: self.enabled }
+    }
+}
+
+/// A component kind the registry offers for the open source (or why not).
+#[derive(Clone, Debug)]
+pub struct Offer {
+    pub kind: &'static str,
+    pub name: &'static str,
+    pub description: &'static str,
+    pub available: Result<(), String>,
+}
+
+/// What opening a source found.
+#[derive(Clone, Debug)]
+pub struct Opened {
+    pub source: Source,
+    pub name: String,
+    pub camera: ViewCamera,
+    pub image_size: [u32; 2],
+    pub has_dataset: bool,
+    pub missing: Vec<String>,
+    pub offers: Vec<Offer>,
+}
+
+/// A composited frame, read back (RGBA8, rows top to bottom).
+pub struct Rendered {
+    pub size: [u32; 2],
+    pub rgba: Vec<u8>,
+    /// Milliseconds the render and read-back took.
+    pub ms: f64,
+    pub camera: ViewCamera,
+}
+
+pub enum Cmd {
+    /// Opens a source and makes these components on it (none: the default pipeline).
+    Open(Source, Vec<LayerSpec>),
+    Camera(ViewCamera),
+    Resize([u32; 2]),
+    Add(LayerSpec),
+    Remove(ComponentId),
+    /// Moves a component to a position (0: bottom).
+    Reorder(ComponentId, usize),
+    Enable(ComponentId, bool),
+    Settings(ComponentId, serde_json::Value),
+    /// Immediate mode: trace this pixel's tree with the first ray layer.
+    Trace([u32; 2]),
+    /// Picking at a pixel of the view.
+    Pick([u32; 2]),
+    /// Writes the composited picture (with legends) to a PNG.
+    Screenshot(PathBuf),
+    Quit,
+}
+
+pub enum Event {
+    Opened(Opened),
+    /// Opening failed: the UI keeps what it had.
+    OpenFailed {
+        source: Source,
+        message: String,
+    },
+    Frame(Rendered),
+    Layers(Vec<LayerInfo>),
+    /// A command on a component (or the pipeline, `None`) failed.
+    Error {
+        layer: Option<ComponentId>,
+        message: String,
+    },
+    Traced {
+        pixel: [u32; 2],
+        rays: usize,
+    },
+    Picked {
+        pixel: [u32; 2],
+        picked: Option<Picked>,
+    },
+    Screenshot(Result<PathBuf, String>),
+}
+
+/// The handle the UI holds.
+pub struct Worker {
+    tx: Sender<Cmd>,
+    rx: Receiver<Event>,
+    thread: Option<std::thread::JoinHandle<()>>,
+    /// Commands sent and not yet answered by a frame or event (for "rendering…" and tests).
+    pending: Arc<std::sync::atomic::AtomicUsize>,
+}
+
+impl Worker {
+    /// Starts the thread; `wake` is called whenever an event is ready (the UI's repaint).
+    pub fn spawn(wake: Arc<dyn Fn() + Send + Sync>) -> Worker {
+        let (tx, crx) = channel();
+        let (etx, rx) = channel();
+        let pending = Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let p = pending.clone();
+        let thread = std::thread::Builder::new().name("rtvtk-render".into()).spawn(move || run(crx, etx, wake, p)).ok();
+        Worker { tx, rx, thread, pending }
+    }
+
+    pub fn send(&self, cmd: Cmd) {
+        self.pending.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+        if self.tx.send(cmd).is_err() {
+            self.pending.fetch_sub(1, std::sync::atomic::Ordering::SeqCst);
+        }
+    }
+
+    /// Events that arrived since the last call.
+    pub fn poll(&self) -> Vec<Event> {
+        self.rx.try_iter().collect()
+    }
+
+    /// Whether commands are still being worked on.
+    pub fn busy(&self) -> bool {
+        self.pending.load(std::sync::atomic::Ordering::SeqCst) > 0
+    }
+}
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        let _ = self.tx.send(Cmd::Quit);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// The components a fresh pipeline starts with, where the source offers them.
+pub fn default_layers(has_dataset: bool) -> Vec<LayerSpec> {
+    let spec = |id, kind: &str, settings| LayerSpec { id, kind: kind.into(), settings, enabled: true };
+    let mut v = vec![
+        spec(1, "image", serde_json::Value::Null),
+        LayerSpec {
+            enabled: false,
+            ..spec(2, "geometry", serde_json::json!({ "style": "wireframe", "opacity": 0.6, "line_width": 1.0 }))
+        },
+        spec(3, "composition", serde_json::Value::Null),
+    ];
+    if has_dataset {
+        // A few hundred trees to start with (readable, as the paper's figures are): the whole
+        // trace is a choice in the rays tab, not a default.
+        v.push(spec(4, "rays", serde_json::json!({ "max_rays": 2000 })));
+    } else {
+        v.push(spec(4, "rays", serde_json::json!({ "max_rays": 0 })));
+    }
+    v
+}
+
+fn open(source: &Source) -> viz::Result<Sources> {
+    match source {
+        Source::Dataset(dir) => Sources::open(dir),
+        Source::Scene(name) => {
+            let scene = renderers::load_scene(name, None, 0)?;
+            Sources::from_scene(scene, 512, 512)
+        }
+    }
+}
+
+struct State {
+    pipeline: Pipeline,
+}
+
+fn run(
+    rx: Receiver<Cmd>,
+    tx: Sender<Event>,
+    wake: Arc<dyn Fn() + Send + Sync>,
+    pending: Arc<std::sync::atomic::AtomicUsize>,
+) {
+    let send = |e: Event| {
+        let _ = tx.send(e);
+        wake();
+    };
+    let mut state: Option<State> = None;
+    let mut dirty = false;
+    let mut refining = false;
+    loop {
+        let mut cmds = Vec::new();
+        if dirty || refining {
+            loop {
+                match rx.try_recv() {
+                    Ok(c) => cmds.push(c),
+                    Err(TryRecvError::Empty) => break,
+                    Err(TryRecvError::Disconnected) => return,
+                }
+            }
+        } else {
+            match rx.recv() {
+                Ok(c) => cmds.push(c),
+                Err(_) => return,
+            }
+            cmds.extend(rx.try_iter());
+        }
+        let n = cmds.len();
+        // Only the last camera and size count.
+        let last_camera = cmds.iter().rposition(|c| matches!(c, Cmd::Camera(_)));
+        let last_size = cmds.iter().rposition(|c| matches!(c, Cmd::Resize(_)));
+        for (i, cmd) in cmds.into_iter().enumerate() {
+            match cmd {
+                Cmd::Quit => return,
+                Cmd::Camera(_) if Some(i) != last_camera => {}
+                Cmd::Resize(_) if Some(i) != last_size => {}
+                cmd => {
+                    if let Some(e) = apply(&mut state, cmd) {
+                        send(e);
+                    }
+                    dirty = true;
+                }
+            }
+        }
+        if let Some(s) = &mut state {
+            match s.pipeline.idle() {
+                Ok(changed) => {
+                    refining = changed;
+                    dirty |= changed;
+                }
+                Err(e) => {
+                    refining = false;
+                    send(Event::Error { layer: None, message: e.to_string() });
+                }
+            }
+            if dirty {
+                dirty = false;
+                let t0 = Instant::now();
+                let frame = s.pipeline.render().map(|_| ()).and_then(|_| s.pipeline.snapshot(false));
+                match frame {
+                    Ok(img) => {
+                        let size = [img.width(), img.height()];
+                        let ms = t0.elapsed().as_secs_f64() * 1e3;
+                        let camera = s.pipeline.camera();
+                        send(Event::Frame(Rendered { size, rgba: img.into_raw(), ms, camera }));
+                    }
+                    Err(e) => send(Event::Error { layer: None, message: e.to_string() }),
+                }
+                send(Event::Layers(layers(&s.pipeline)));
+            }
+        }
+        pending
+            .fetch_sub(n.min(pending.load(std::sync::atomic::Ordering::SeqCst)), std::sync::atomic::Ordering::SeqCst);
+        wake();
+    }
+}
+
+fn layers(p: &Pipeline) -> Vec<LayerInfo> {
+    p.layers()
+        .iter()
+        .map(|l| LayerInfo {
+            id: l.component.id(),
+            kind: l.component.kind().to_string(),
+            name: l.component.display_name(),
+            enabled: l.enabled,
+            settings: l.component.settings(),
+            legend: l.component.legend(),
+            report: l.component.report(),
+            renders: l.renders,
+        })
+        .collect()
+}
+
+fn make(p: &mut Pipeline, spec: &LayerSpec) -> viz::Result<()> {
+    let c = viz::make(&spec.kind, ComponentId(spec.id), &p.sources, &spec.settings)?;
+    p.push(c);
+    p.layer_mut(ComponentId(spec.id))?.enabled = spec.enabled;
+    Ok(())
+}
+
+fn apply(state: &mut Option<State>, cmd: Cmd) -> Option<Event> {
+    let err = |layer, e: viz::Error| Some(Event::Error { layer, message: e.to_string() });
+    if let Cmd::Open(source, specs) = cmd {
+        let sources = match open(&source) {
+            Ok(s) => s,
+            Err(e) => return Some(Event::OpenFailed { source, message: e.to_string() }),
+        };
+        let gpu = match Gpu::headless() {
+            Ok(g) => g,
+            Err(e) => return Some(Event::OpenFailed { source, message: e.to_string() }),
+        };
+        let offers = viz::registry()
+            .iter()
+            .map(|i| Offer {
+                kind: i.kind,
+                name: i.display_name,
+                description: i.description,
+                available: (i.offered)(&sources),
+            })
+            .collect();
+        let has_dataset = sources.dataset.is_some();
+        let mut pipeline = Pipeline::new(gpu, sources);
+        let specs = if specs.is_empty() { default_layers(has_dataset) } else { specs };
+        let mut failed = Vec::new();
+        for spec in &specs {
+            if let Err(e) = make(&mut pipeline, spec) {
+                failed.push(format!("{} #{}: {e}", spec.kind, spec.id));
+            }
+        }
+        let opened = Opened {
+            source,
+            name: pipeline.sources.name.clone(),
+            camera: pipeline.camera(),
+            image_size: pipeline.size(),
+            has_dataset,
+            missing: pipeline.sources.missing.iter().cloned().chain(failed).collect(),
+            offers,
+        };
+        *state = Some(State { pipeline });
+        return Some(Event::Opened(opened));
+    }
+    let Some(s) = state.as_mut() else {
+        return Some(Event::Error { layer: None, message: "nothing is open".into() });
+    };
+    let p = &mut s.pipeline;
+    match cmd {
+        Cmd::Open(..) | Cmd::Quit => None,
+        Cmd::Camera(c) => p.set_camera(c).err().and_then(|e| err(None, e)),
+        Cmd::Resize([w, h]) => p.resize(w, h).err().and_then(|e| err(None, e)),
+        Cmd::Add(spec) => {
+            let id = ComponentId(spec.id);
+            let r = make(p, &spec);
+            r.err().and_then(|e| err(Some(id), e)).or(Some(Event::Layers(layers(p))))
+        }
+        Cmd::Remove(id) => p.remove(id).err().and_then(|e| err(Some(id), e)).or(Some(Event::Layers(layers(p)))),
+        Cmd::Reorder(id, to) => {
+            p.reorder(id, to).err().and_then(|e| err(Some(id), e)).or(Some(Event::Layers(layers(p))))
+        }
+        Cmd::Enable(id, on) => match p.layer_mut(id) {
+            Ok(l) => {
+                l.enabled = on;
+                Some(Event::Layers(layers(p)))
+            }
+            Err(e) => err(Some(id), e),
+        },
+        Cmd::Settings(id, v) => match p.layer_mut(id) {
+            Ok(l) => l.component.set_settings(&v).err().and_then(|e| err(Some(id), e)),
+            Err(e) => err(Some(id), e),
+        },
+        Cmd::Trace(pixel) => {
+            let Some(id) = p.layers().iter().find(|l| l.component.kind() == "rays").map(|l| l.component.id()) else {
+                return Some(Event::Error {
+                    layer: None,
+                    message: "immediate mode needs a rays component: add one".into(),
+                });
+            };
+            match p.trace_ray(id, pixel) {
+                Ok(Some(t)) => Some(Event::Traced { pixel: t.pixel, rays: t.rays }),
+                Ok(None) => Some(Event::Error {
+                    layer: Some(id),
+                    message: "this source has no scene to trace (no triangles table)".into(),
+                }),
+                Err(e) => err(Some(id), e),
+            }
+        }
+        Cmd::Pick(pixel) => {
+            if let Err(e) = p.render() {
+                return err(None, e);
+            }
+            match p.pick(pixel, 4) {
+                Ok(picked) => Some(Event::Picked { pixel, picked }),
+                Err(e) => err(None, e),
+            }
+        }
+        Cmd::Screenshot(path) => {
+            let r = p
+                .snapshot(true)
+                .map_err(|e| e.to_string())
+                .and_then(|img| img.save(&path).map_err(|e| format!("cannot write {}: {e}", path.display())))
+                .map(|_| path);
+            Some(Event::Screenshot(r))
+        }
+    }
+}
