@@ -181,7 +181,7 @@ impl Drop for Worker {
 }
 
 /// The components a fresh pipeline starts with, where the source offers them.
-pub fn default_layers(has_dataset: bool) -> Vec<LayerSpec> {
+pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2]) -> Vec<LayerSpec> {
     let spec = |id, kind: &str, settings| LayerSpec { id, kind: kind.into(), settings, enabled: true };
     let mut v = vec![
         spec(1, "image", serde_json::Value::Null),
@@ -192,9 +192,9 @@ pub fn default_layers(has_dataset: bool) -> Vec<LayerSpec> {
         spec(3, "composition", serde_json::Value::Null),
     ];
     if has_dataset {
-        // A few hundred trees to start with (readable, as the paper's figures are): the whole
-        // trace is a choice in the rays tab, not a default.
-        v.push(spec(4, "rays", serde_json::json!({ "max_rays": 2000 })));
+        // The ray trees of the centre pixel to start with (readable, as the paper's Figure 3):
+        // all trees are one click away in the rays tab ("All trees").
+        v.push(spec(4, "rays", serde_json::json!({ "pixel": [w / 2, h / 2], "max_rays": 100_000 })));
     } else {
         v.push(spec(4, "rays", serde_json::json!({ "max_rays": 0 })));
     }
@@ -339,8 +339,9 @@ fn apply(state: &mut Option<State>, cmd: Cmd) -> Option<Event> {
             })
             .collect();
         let has_dataset = sources.dataset.is_some();
+        let size = sources.image_size;
         let mut pipeline = Pipeline::new(gpu, sources);
-        let specs = if specs.is_empty() { default_layers(has_dataset) } else { specs };
+        let specs = if specs.is_empty() { default_layers(has_dataset, size) } else { specs };
         let mut failed = Vec::new();
         for spec in &specs {
             if let Err(e) = make(&mut pipeline, spec) {
