@@ -77,7 +77,8 @@ pub fn demo(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) 
         Err(e) => eprintln!("no picture: {e:#}"),
     }
     println!();
-    println!("try: rtvtk tree {} --pixel {},{}", dir.display(), w / 2, h / 2);
+    println!("try: rtvtk view {}             # the interactive viewer", dir.display());
+    println!("     rtvtk tree {} --pixel {},{}", dir.display(), w / 2, h / 2);
     println!(
         "     rtvtk render {} --layers image,composition,rays --pixel {},{} --out layers.png",
         dir.display(),
