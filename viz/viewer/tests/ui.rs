@@ -322,3 +322,51 @@ fn clicking_a_ray_picks_it_and_the_window_matches_its_snapshot() {
     }
     h.snapshot_options("viewer", &egui_kittest::SnapshotOptions::new().threshold(2.0).max_failed_pixels(3000));
 }
+
+#[test]
+fn the_console_runs_against_a_flight_sql_service_and_survives_losing_it() {
+    // `rtvtk serve` in-process: the read-only Flight SQL service over the dataset.
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let src = query::TraceSource { name: "trace".into(), path: dataset().to_path_buf() };
+    let ctx = rt.block_on(query::session(&[src])).unwrap();
+    let want = rt.block_on(async { ctx.sql("SELECT count(*) AS n FROM rays").await.unwrap().collect().await.unwrap() });
+    let want = arrow::util::display::ArrayFormatter::try_new(want[0].column(0).as_ref(), &Default::default())
+        .unwrap()
+        .value(0)
+        .to_string();
+    let listener = query::service::bind("127.0.0.1:0").unwrap();
+    let addr = query::service::local_addr(&listener).unwrap();
+    let server_ctx = ctx.clone();
+    rt.spawn(async move { query::service::serve(&server_ctx, listener, std::future::pending()).await });
+
+    let v = Viewer::new(
+        ViewerOptions {
+            sources: vec![Source::Dataset(dataset().to_path_buf())],
+            connect: Some(format!("grpc://{addr}")),
+            ..Default::default()
+        },
+        None,
+    )
+    .unwrap();
+    let mut h = Harness::builder()
+        .with_size([1280.0, 800.0])
+        .with_max_steps(100_000)
+        .wgpu()
+        .build_ui_state(|ui, v: &mut Viewer| v.ui(ui), v);
+    wait(&mut h, "the dataset and the connection", ready);
+    assert!(matches!(h.state().queries.target, rtvtk_viewer::query_service::Target::Flight { .. }));
+    h.state_mut().state.console.sql = "SELECT count(*) AS n FROM rays".into();
+    h.run_steps(2);
+    click(&mut h, "Run");
+    wait(&mut h, "the service's answer", |v| v.state.console.result.is_some() || v.state.console.error.is_some());
+    let r = h.state().state.console.result.clone().unwrap_or_else(|| panic!("{:?}", h.state().state.console.error));
+    assert_eq!(r.value(0, "n"), Some(want.clone()), "the service's count is the local one");
+    // The service goes away: the next query is an inline error, the last result stays, the UI runs.
+    rt.shutdown_background();
+    h.state_mut().state.console.sql = "SELECT 1 AS one".into();
+    h.run_steps(2);
+    click(&mut h, "Run");
+    wait(&mut h, "the lost connection", |v| v.state.console.error.is_some());
+    assert_eq!(h.state().state.console.result.as_ref().unwrap().value(0, "n"), Some(want));
+    assert!(h.state().state.shown.is_some(), "the picture stays");
+}
