@@ -108,6 +108,33 @@ pub fn pick_pipeline(gpu: &Gpu, module: &wgpu::ShaderModule, vs: &str) -> wgpu::
     })
 }
 
+/// Picking for layers of line segments or boxes (`vs`: `vs_seg` or `vs_box`, `per` vertices
+/// each): the pick pipeline is made on first use in `slot`, then the ids of every set are drawn,
+/// numbered on from one set to the next, lines at least 3 pixels wide so thin ones are easy to hit.
+/// Returns whether anything was drawn.
+pub fn pick_sets(
+    slot: &mut Option<wgpu::RenderPipeline>,
+    ctx: &crate::component::PickCtx,
+    vs: &str,
+    per: u32,
+    line_width: f32,
+    sets: &[Option<&SegmentBuffers>],
+) -> bool {
+    let p = slot.get_or_insert_with(|| {
+        let m = shader(ctx.gpu, "lines", include_str!("shaders/lines.wgsl"));
+        pick_pipeline(ctx.gpu, &m, vs)
+    });
+    let view = ctx.view(line_width.max(3.0));
+    let mut base = 0u32;
+    let mut any = false;
+    for set in sets.iter().flatten() {
+        set.draw_ids(ctx.gpu, ctx.target, p, &view, per, base);
+        base = base.saturating_add(set.count as u32);
+        any = true;
+    }
+    any
+}
+
 /// A uniform buffer holding `v`.
 pub fn uniform<T: bytemuck::Pod>(gpu: &Gpu, label: &str, v: &T) -> wgpu::Buffer {
     gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -252,18 +279,15 @@ impl SegmentBuffers {
         self.buffers.iter().map(|(b, _)| b.size()).sum()
     }
 
-    /// Draws the ids of every segment (index in push order) into a picking target with a
-    /// [`pick_pipeline`]; `base` is added to every index (a second buffer set drawn after this one).
-    pub fn draw_ids(
+    /// Bind groups (view uniform + storage) of every buffer, the staged segments uploaded into one
+    /// more, each with its segment count and the index of its first segment (from `base`).
+    fn bind_groups(
         &self,
         gpu: &Gpu,
-        target: &crate::component::PickTarget,
         pipeline: &wgpu::RenderPipeline,
-        view: &ViewUniform,
-        per: u32,
+        ubuf: &wgpu::Buffer,
         base: u32,
-    ) {
-        let ubuf = uniform(gpu, "pick view", view);
+    ) -> Vec<(wgpu::BindGroup, u32, u32)> {
         let staged = (!self.staged.is_empty()).then(|| {
             use wgpu::util::DeviceExt;
             let b = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -276,9 +300,25 @@ impl SegmentBuffers {
         let mut first = base;
         let mut groups = Vec::new();
         for (b, n) in self.buffers.iter().filter(|(_, n)| *n > 0).chain(staged.iter()) {
-            groups.push((bind_view_storage(gpu, pipeline, &ubuf, b), *n as u32, first));
+            groups.push((bind_view_storage(gpu, pipeline, ubuf, b), *n as u32, first));
             first = first.saturating_add(*n as u32);
         }
+        groups
+    }
+
+    /// Draws the ids of every segment (index in push order) into a picking target with a
+    /// [`pick_pipeline`]; `base` is added to every index (a second buffer set drawn after this one).
+    pub fn draw_ids(
+        &self,
+        gpu: &Gpu,
+        target: &crate::component::PickTarget,
+        pipeline: &wgpu::RenderPipeline,
+        view: &ViewUniform,
+        per: u32,
+        base: u32,
+    ) {
+        let ubuf = uniform(gpu, "pick view", view);
+        let groups = self.bind_groups(gpu, pipeline, &ubuf, base);
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         {
             let mut pass = target.pass(&mut enc);
@@ -303,29 +343,14 @@ impl SegmentBuffers {
         clear: bool,
     ) {
         let ubuf = uniform(gpu, "view", view);
-        let staged = (!self.staged.is_empty()).then(|| {
-            use wgpu::util::DeviceExt;
-            let b = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("segments"),
-                contents: bytemuck::cast_slice(&self.staged),
-                usage: wgpu::BufferUsages::STORAGE,
-            });
-            (b, self.staged.len() as u64)
-        });
-        let groups: Vec<_> = self
-            .buffers
-            .iter()
-            .filter(|(_, n)| *n > 0)
-            .chain(staged.iter())
-            .map(|(b, n)| (bind_view_storage(gpu, pipeline, &ubuf, b), *n))
-            .collect();
+        let groups = self.bind_groups(gpu, pipeline, &ubuf, 0);
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         {
             let mut pass = pass_into(&mut enc, ctx.target, true, clear);
             pass.set_pipeline(pipeline);
-            for (g, n) in &groups {
+            for (g, n, _) in &groups {
                 pass.set_bind_group(0, g, &[]);
-                pass.draw(0..(*n as u32) * per, 0..1);
+                pass.draw(0..n * per, 0..1);
             }
         }
         gpu.queue.submit([enc.finish()]);

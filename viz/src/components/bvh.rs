@@ -196,13 +196,8 @@ impl Component for BvhBoxes {
         Ok(())
     }
     fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
-        if self.pick_pipeline.is_none() {
-            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
-            self.pick_pipeline = Some(crate::draw::pick_pipeline(ctx.gpu, &m, "vs_box"));
-        }
-        let (Some(p), Some(b)) = (&self.pick_pipeline, &self.boxes) else { return Ok(false) };
-        b.draw_ids(ctx.gpu, ctx.target, p, &ctx.view(self.settings.line_width.max(3.0)), 72, 0);
-        Ok(true)
+        let sets = [self.boxes.as_ref()];
+        Ok(crate::draw::pick_sets(&mut self.pick_pipeline, ctx, "vs_box", 72, self.settings.line_width, &sets))
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let node = *self.nodes.get(index as usize)?;

@@ -248,13 +248,8 @@ impl Component for Query {
         Ok(())
     }
     fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
-        if self.pick_pipeline.is_none() {
-            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
-            self.pick_pipeline = Some(crate::draw::pick_pipeline(ctx.gpu, &m, "vs_seg"));
-        }
-        let (Some(p), Some(segs)) = (&self.pick_pipeline, &self.segments) else { return Ok(false) };
-        segs.draw_ids(ctx.gpu, ctx.target, p, &ctx.view(self.settings.line_width.max(3.0)), 6, 0);
-        Ok(true)
+        let sets = [self.segments.as_ref()];
+        Ok(crate::draw::pick_sets(&mut self.pick_pipeline, ctx, "vs_seg", 6, self.settings.line_width, &sets))
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let row = *self.row_of.get(index as usize)?;

@@ -456,21 +456,8 @@ impl Component for Rays {
         Ok(Some(TracedPixel { pixel: [x, y], rays: n }))
     }
     fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
-        if self.pick_pipeline.is_none() {
-            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
-            self.pick_pipeline = Some(crate::draw::pick_pipeline(ctx.gpu, &m, "vs_seg"));
-        }
-        let Some(p) = &self.pick_pipeline else { return Ok(false) };
-        // A little wider than drawn, so thin rays are easy to hit.
-        let view = ctx.view(self.settings.line_width.max(3.0));
-        let loaded = self.segments.as_ref().map_or(0, |s| s.count);
-        if let Some(segs) = &self.segments {
-            segs.draw_ids(ctx.gpu, ctx.target, p, &view, 6, 0);
-        }
-        if let Some(t) = &self.traced {
-            t.draw_ids(ctx.gpu, ctx.target, p, &view, 6, loaded as u32);
-        }
-        Ok(true)
+        let sets = [self.segments.as_ref(), self.traced.as_ref()];
+        Ok(crate::draw::pick_sets(&mut self.pick_pipeline, ctx, "vs_seg", 6, self.settings.line_width, &sets))
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let i = index as usize;
