@@ -21,6 +21,8 @@ fi
 cargo fmt --all --check
 # Every package of the lock file, for all targets: the layering test reads `cargo metadata --offline`.
 cargo fetch --locked
+# The demo's build (--no-default-features) and this one must give shared crates the same features.
+python3 scripts/feature-pins.py --check
 # Clippy lints the workspace's crates while they are built for the tests (see lint-env.sh): one
 # build of the dependencies, shared with `cargo run -- demo`, and no separate check pass.
 source scripts/lint-env.sh

@@ -77,7 +77,12 @@ pub fn demo(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) 
         Err(e) => eprintln!("no picture: {e:#}"),
     }
     println!();
-    println!("try: rtvtk view {}             # the interactive viewer", dir.display());
+    if cfg!(feature = "sql") {
+        println!("try: rtvtk view {}             # the interactive viewer", dir.display());
+    } else {
+        // The demo's quick first build leaves out the SQL engine, and the viewer with it.
+        println!("try: cargo run -- view {}      # the interactive viewer (a default build)", dir.display());
+    }
     println!("     rtvtk tree {} --pixel {},{}", dir.display(), w / 2, h / 2);
     println!(
         "     rtvtk render {} --layers image,composition,rays --pixel {},{} --out layers.png",

@@ -1,18 +1,27 @@
 //! `rtvtk`: the command line of the ray tracing visualization toolkit.
 
+#[cfg(feature = "sql")]
 mod analyze;
+#[cfg(feature = "sql")]
 mod bench;
+#[cfg(feature = "sql")]
 mod bench_query;
+#[cfg(feature = "sql")]
 mod bench_record;
+#[cfg(feature = "sql")]
 mod bench_trace;
+#[cfg(feature = "sql")]
 mod bench_viz;
 mod commands;
 #[cfg(feature = "embree")]
 mod embree;
 mod record;
 mod render;
+#[cfg(feature = "sql")]
 mod serve;
+#[cfg(feature = "sql")]
 mod sql;
+#[cfg(feature = "sql")]
 mod view;
 
 use std::path::PathBuf;
@@ -50,6 +59,7 @@ enum Command {
     /// PNG with the GPU visualizer, headless.
     Render(Box<render::RenderArgs>),
     /// Open the interactive viewer on datasets (or on a scene, `--scene cornell`, with no dataset).
+    #[cfg(feature = "sql")]
     View(Box<view::ViewArgs>),
     /// Image error (RMSE, relative MSE) of the path tracer against time and samples per pixel.
     Converge {
@@ -104,20 +114,33 @@ enum Command {
         out: PathBuf,
     },
     /// SQL over datasets: `rtvtk sql TRACE "SELECT kind, count(*) FROM rays GROUP BY kind"`.
+    #[cfg(feature = "sql")]
     Sql(sql::SqlArgs),
     /// Canned analyses (coherence, bvh, bugs, diff) as a markdown report with PNG heatmaps.
+    #[cfg(feature = "sql")]
     Analyze(analyze::AnalyzeArgs),
     /// The read-only query service: Arrow Flight SQL over datasets (any Flight SQL client: ADBC,
     /// JDBC, arrow-flight), with the same tables and functions as `rtvtk sql`.
+    #[cfg(feature = "sql")]
     Serve(serve::ServeArgs),
     /// Benchmarks, each against a baseline in the same run.
+    #[cfg(feature = "sql")]
     Bench {
         #[command(subcommand)]
         what: bench::BenchCommand,
     },
+    /// Built without the `sql` feature: the commands that need the SQL engine say so.
+    #[cfg(not(feature = "sql"))]
+    #[command(external_subcommand)]
+    NeedsSql(Vec<String>),
 }
 
+/// The commands a build without the `sql` feature leaves out.
+#[cfg(not(feature = "sql"))]
+const SQL_COMMANDS: [&str; 5] = ["view", "sql", "analyze", "serve", "bench"];
+
 /// The Tokio runtime the query commands run on.
+#[cfg(feature = "sql")]
 fn runtime() -> Result<tokio::runtime::Runtime> {
     use anyhow::Context as _;
     tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")
@@ -151,10 +174,11 @@ fn main() {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
     let cli = Cli::parse();
-    if matches!(
-        cli.command,
-        Command::Demo { .. } | Command::Record(_) | Command::Bench { what: bench::BenchCommand::Store { .. } }
-    ) {
+    #[cfg(feature = "sql")]
+    let bench_store = matches!(cli.command, Command::Bench { what: bench::BenchCommand::Store { .. } });
+    #[cfg(not(feature = "sql"))]
+    let bench_store = false;
+    if bench_store || matches!(cli.command, Command::Demo { .. } | Command::Record(_)) {
         keep_freed_memory();
     }
     let result: Result<i32> = match cli.command {
@@ -164,6 +188,7 @@ fn main() {
         }
         Command::Record(args) => record::run(&args).map(|_| 0),
         Command::Render(args) => render::run(&args).map(|_| 0),
+        #[cfg(feature = "sql")]
         Command::View(args) => view::run(&args).map(|_| 0),
         Command::Info { dataset, json } => commands::info(&dataset, json).map(|_| 0),
         Command::Tree { dataset, pixel, sample, tree, json } => {
@@ -171,10 +196,26 @@ fn main() {
         }
         Command::Check { dataset, json } => commands::check(&dataset, json),
         Command::Export { dataset, out } => commands::export(&dataset, &out).map(|_| 0),
+        #[cfg(feature = "sql")]
         Command::Sql(args) => sql::run(&args).map(|_| 0),
+        #[cfg(feature = "sql")]
         Command::Analyze(args) => analyze::run(&args).map(|_| 0),
+        #[cfg(feature = "sql")]
         Command::Serve(args) => serve::run(&args).map(|_| 0),
+        #[cfg(feature = "sql")]
         Command::Bench { what } => bench::run(what).map(|_| 0),
+        #[cfg(not(feature = "sql"))]
+        Command::NeedsSql(args) => {
+            let name = args.first().map_or("", String::as_str);
+            if SQL_COMMANDS.contains(&name) {
+                Err(anyhow::anyhow!(
+                    "`rtvtk {name}` needs the SQL engine, and this rtvtk was built without it \
+                     (`--no-default-features`): run it from a default build, `cargo run -- {name} ...`"
+                ))
+            } else {
+                Err(anyhow::anyhow!("unknown command `{name}`: see `rtvtk --help`"))
+            }
+        }
     };
     match result {
         Ok(code) => std::process::exit(code),

@@ -407,6 +407,12 @@ impl Dataset {
 
     /// Every tree of a pixel (of one sample, or of all samples), ordered by sample then id.
     pub fn trees_at_pixel(&self, x: u32, y: u32, sample: Option<u32>) -> Result<Vec<Tree>> {
+        self.tree_entries_at_pixel(x, y, sample)?.iter().map(|e| self.load_tree(e)).collect()
+    }
+
+    /// Where the trees of a pixel are (of one sample, or of all), ordered by sample then id;
+    /// reads no rays.
+    pub fn tree_entries_at_pixel(&self, x: u32, y: u32, sample: Option<u32>) -> Result<Vec<TreeEntry>> {
         let ix = self.index()?;
         let key = |k: &u32| {
             let i = &ix.by_id[*k as usize].info;
@@ -420,7 +426,7 @@ impl Dataset {
             }
             let e = &ix.by_id[*k as usize];
             if sample.is_none_or(|s| s == e.info.sample) {
-                out.push(self.load_tree(e)?);
+                out.push(*e);
             }
         }
         Ok(out)

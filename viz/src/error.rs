@@ -35,11 +35,19 @@ pub enum Error {
     #[error(transparent)]
     Store(#[from] store::Error),
 
+    #[cfg(feature = "sql")]
     #[error(transparent)]
     Query(#[from] query::Error),
 
+    #[cfg(feature = "sql")]
     #[error("SQL: {0}")]
     DataFusion(#[from] datafusion::error::DataFusionError),
+
+    #[error(
+        "this rtvtk was built without its SQL engine (the `sql` feature, on by default): \
+         rebuild with default features for queries, the query and heatmap layers and BVH visits"
+    )]
+    NoSql,
 
     #[error(transparent)]
     Render(#[from] renderers::Error),

@@ -20,10 +20,6 @@ fn needs_scene(s: &Sources) -> Result<(), String> {
     if s.scene.is_some() { Ok(()) } else { Err("no triangles table".into()) }
 }
 
-fn needs_dataset(s: &Sources) -> Result<(), String> {
-    if s.dataset.is_some() { Ok(()) } else { Err("no dataset".into()) }
-}
-
 static REGISTRY: [ComponentInfo; 7] = [
     ComponentInfo {
         kind: "image",
@@ -61,21 +57,24 @@ static REGISTRY: [ComponentInfo; 7] = [
         kind: "bvh",
         display_name: "BVH",
         description: "BVH node boxes of a range of levels, optionally only the visited ones, coloured by level or visits",
-        offered: |s| if s.has_bvh_nodes { Ok(()) } else { Err("no bvh_nodes table".into()) },
+        offered: |s| {
+            s.can_query()?;
+            if s.has_bvh_nodes { Ok(()) } else { Err("no bvh_nodes table".into()) }
+        },
         make: |id, s, v| Ok(Box::new(BvhBoxes::new(id, s, v)?)),
     },
     ComponentInfo {
         kind: "query",
         display_name: "Query results",
         description: "the rows of a SQL query in scene space (segments or points), coloured by a column",
-        offered: needs_dataset,
+        offered: Sources::can_query,
         make: |id, s, v| Ok(Box::new(Query::new(id, s, v)?)),
     },
     ComponentInfo {
         kind: "heatmap",
         display_name: "Heatmap",
         description: "a per-pixel value over the image (rays per pixel or any GROUP BY pixel_x, pixel_y query)",
-        offered: needs_dataset,
+        offered: Sources::can_query,
         make: |id, s, v| Ok(Box::new(picture::Heatmap::new(id, s, v)?)),
     },
 ];

@@ -1,12 +1,10 @@
-//! What the components draw from: a dataset (its rays through the SQL session, its scene tables,
-//! camera and image) or a scene with no dataset at all.
+//! What the components draw from: a dataset (its rays from the store, its scene tables, camera
+//! and image, and with the `sql` feature a SQL session over it) or a scene with no dataset at all.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use arrow::array::RecordBatch;
-use datafusion::prelude::SessionContext;
-use futures::StreamExt;
 use renderers::{Camera, Scene};
 use store::Dataset;
 use store::scene::{BVH_NODES_TABLE, CameraAttrs, RAY_NODES_TABLE, TRIANGLES_TABLE, attr};
@@ -28,8 +26,8 @@ pub struct Sources {
     pub name: String,
     pub dir: Option<PathBuf>,
     pub dataset: Option<Arc<Dataset>>,
-    session: Option<SessionContext>,
-    runtime: tokio::runtime::Runtime,
+    /// The SQL session over the dataset, made on the first query.
+    sql: std::sync::OnceLock<sql::Sql>,
     /// The scene (from the `triangles` table, or built in).
     pub scene: Option<Arc<Scene>>,
     /// The camera and image size the dataset was rendered with.
@@ -44,12 +42,71 @@ pub struct Sources {
     pub missing: Vec<String>,
 }
 
-fn runtime() -> Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(std::thread::available_parallelism().map_or(2, |n| n.get()).min(8))
-        .enable_all()
-        .build()
-        .map_err(|e| Error::Settings(format!("cannot start the query runtime: {e}")))
+/// The SQL session (DataFusion) over a dataset: only with the `sql` feature.
+#[cfg(feature = "sql")]
+mod sql {
+    use std::path::Path;
+
+    use arrow::array::RecordBatch;
+    use datafusion::prelude::SessionContext;
+    use futures::StreamExt;
+
+    use crate::{Error, Result};
+
+    pub struct Sql {
+        pub ctx: SessionContext,
+        runtime: tokio::runtime::Runtime,
+    }
+
+    impl Sql {
+        pub fn open(dir: &Path) -> Result<Sql> {
+            let runtime = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(std::thread::available_parallelism().map_or(2, |n| n.get()).min(8))
+                .enable_all()
+                .build()
+                .map_err(|e| Error::Settings(format!("cannot start the query runtime: {e}")))?;
+            let src = query::TraceSource { name: "trace".into(), path: dir.to_path_buf() };
+            let ctx = runtime.block_on(query::session(&[src]))?;
+            Ok(Sql { ctx, runtime })
+        }
+
+        pub fn query_batches(&self, sql: &str, each: &mut dyn FnMut(&RecordBatch) -> Result<()>) -> Result<()> {
+            let opts = datafusion::execution::context::SQLOptions::new()
+                .with_allow_ddl(false)
+                .with_allow_dml(false)
+                .with_allow_statements(false);
+            self.runtime.block_on(async {
+                let df = self.ctx.sql_with_options(sql, opts).await?;
+                let mut stream = df.execute_stream().await?;
+                while let Some(b) = stream.next().await {
+                    each(&b?)?;
+                }
+                Ok(())
+            })
+        }
+    }
+}
+
+/// Built without the `sql` feature: no SQL engine, and every query says so.
+#[cfg(not(feature = "sql"))]
+mod sql {
+    use std::path::Path;
+
+    use arrow::array::RecordBatch;
+
+    use crate::{Error, Result};
+
+    pub struct Sql;
+
+    impl Sql {
+        pub fn open(_dir: &Path) -> Result<Sql> {
+            Err(Error::NoSql)
+        }
+
+        pub fn query_batches(&self, _sql: &str, _each: &mut dyn FnMut(&RecordBatch) -> Result<()>) -> Result<()> {
+            Err(Error::NoSql)
+        }
+    }
 }
 
 fn scene_bounds(scene: &Scene) -> ([f64; 3], [f64; 3]) {
@@ -141,16 +198,12 @@ impl Sources {
                 "no ray_nodes table (record with --record-visits): BVH boxes cannot be limited to visited nodes".into(),
             );
         }
-        let runtime = runtime()?;
-        let src = query::TraceSource { name: "trace".into(), path: dir.to_path_buf() };
-        let session = runtime.block_on(query::session(&[src]))?;
         let name = m.attributes.get("scene").cloned().unwrap_or_else(|| dir.display().to_string());
         Ok(Sources {
             name,
             dir: Some(dir.to_path_buf()),
             dataset: Some(ds.clone()),
-            session: Some(session),
-            runtime,
+            sql: std::sync::OnceLock::new(),
             scene,
             camera,
             image_size,
@@ -172,8 +225,7 @@ impl Sources {
             name: scene.name.clone(),
             dir: None,
             dataset: None,
-            session: None,
-            runtime: runtime()?,
+            sql: std::sync::OnceLock::new(),
             bounds: Some(scene_bounds(&scene)),
             scene: Some(Arc::new(scene)),
             camera: Some(camera),
@@ -205,29 +257,39 @@ impl Sources {
         }
     }
 
+    /// The SQL session over the dataset (made on first use).
+    fn sql(&self) -> Result<&sql::Sql> {
+        let Some(dir) = &self.dir else {
+            return Err(Error::Settings("no dataset is loaded, so there is nothing to query".into()));
+        };
+        if let Some(s) = self.sql.get() {
+            return Ok(s);
+        }
+        let s = sql::Sql::open(dir)?;
+        Ok(self.sql.get_or_init(|| s))
+    }
+
     /// The SQL session over the dataset (tables `rays`, `trees`, `bvh_nodes`, ...).
-    pub fn session(&self) -> Result<&SessionContext> {
-        self.session
-            .as_ref()
-            .ok_or_else(|| Error::Settings("no dataset is loaded, so there is nothing to query".into()))
+    #[cfg(feature = "sql")]
+    pub fn session(&self) -> Result<&datafusion::prelude::SessionContext> {
+        Ok(&self.sql()?.ctx)
+    }
+
+    /// Whether this build can run SQL (the `sql` feature) and there is a dataset to query.
+    pub fn can_query(&self) -> Result<(), String> {
+        if !cfg!(feature = "sql") {
+            return Err(Error::NoSql.to_string());
+        }
+        if self.dataset.is_none() {
+            return Err("no dataset".into());
+        }
+        Ok(())
     }
 
     /// Runs a read-only query and hands its record batches to `each` as they arrive (the result
     /// is never held whole).
     pub fn query_batches(&self, sql: &str, mut each: impl FnMut(&RecordBatch) -> Result<()>) -> Result<()> {
-        let ctx = self.session()?;
-        let opts = datafusion::execution::context::SQLOptions::new()
-            .with_allow_ddl(false)
-            .with_allow_dml(false)
-            .with_allow_statements(false);
-        self.runtime.block_on(async {
-            let df = ctx.sql_with_options(sql, opts).await?;
-            let mut stream = df.execute_stream().await?;
-            while let Some(b) = stream.next().await {
-                each(&b?)?;
-            }
-            Ok(())
-        })
+        self.sql()?.query_batches(sql, &mut each)
     }
 
     /// Runs a query and collects its result (small results: tables, heatmaps).

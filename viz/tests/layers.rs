@@ -368,3 +368,47 @@ fn ctrl_click_traces_a_pixel_with_no_dataset_loaded() {
     // No dataset: layers that need one are not offered.
     assert!(p.add("heatmap", &Value::Null).unwrap_err().to_string().contains("not available"));
 }
+
+/// The ray layer reads the store itself (no SQL engine): for every kind of filter it must load
+/// exactly the rays the same filters select in SQL.
+#[test]
+fn the_ray_layer_loads_what_its_filters_select_in_sql() {
+    use rtvtk_viz::components::rays::{Rays, RaysSettings};
+    let gpu = Gpu::headless().expect("these tests need a GPU adapter (lavapipe: apt-get install mesa-vulkan-drivers)");
+    let sources = Sources::open(dataset()).unwrap();
+    let some_tree: u64 = {
+        let b =
+            sources.query("SELECT tree_id FROM trees WHERE pixel_x = 50 AND pixel_y = 40 ORDER BY tree_id").unwrap();
+        let c = b[0].column(0).as_any().downcast_ref::<arrow::array::UInt64Array>().unwrap();
+        c.value(c.len() - 1)
+    };
+    let base = RaysSettings { max_rays: None, ..Default::default() };
+    let cases = [
+        base.clone(),
+        RaysSettings { kinds: Some(vec!["shadow".into()]), ..base.clone() },
+        RaysSettings { kinds: Some(vec!["diffuse".into(), "camera".into()]), depth: Some([1, 2]), ..base.clone() },
+        RaysSettings { kinds: Some(vec![]), ..base.clone() },
+        RaysSettings { pixel: Some([50, 40]), ..base.clone() },
+        RaysSettings { pixel: Some([50, 40]), sample: Some(1), ..base.clone() },
+        RaysSettings { sample: Some(0), depth: Some([0, 0]), ..base.clone() },
+        RaysSettings { tree: Some(some_tree), ray_upto: Some(1), ..base.clone() },
+        RaysSettings { tree: Some(u64::MAX), ..base.clone() },
+        RaysSettings { pixel: Some([95, 71]), ..base.clone() },
+        RaysSettings { max_rays: Some(1000), ..base.clone() },
+    ];
+    for s in cases {
+        let sql = format!(
+            "SELECT count(*) FROM (SELECT * FROM rays WHERE {}{})",
+            s.predicate().unwrap(),
+            s.max_rays.map_or(String::new(), |n| format!(" LIMIT {n}"))
+        );
+        let b = sources.query(&sql).unwrap();
+        let want = b[0].column(0).as_any().downcast_ref::<arrow::array::Int64Array>().unwrap().value(0) as u64;
+        let mut rays = Rays::new(ComponentId(1), &sources, &serde_json::to_value(&s).unwrap()).unwrap();
+        rays.load(&gpu, &sources, sources.frame()).unwrap();
+        assert_eq!(rays.segment_count(), want, "{s:?}");
+        if s.tree == Some(some_tree) || s.pixel == Some([50, 40]) {
+            assert!(want > 0, "{s:?} selects rays");
+        }
+    }
+}

@@ -64,7 +64,7 @@ fn palette(i: usize) -> [u8; 4] {
 
 impl Query {
     pub fn new(id: ComponentId, sources: &crate::sources::Sources, settings: &serde_json::Value) -> Result<Query> {
-        sources.session()?;
+        sources.can_query().map_err(|message| Error::Layer { layer: "query".into(), message })?;
         let mut q = Query {
             id,
             settings: QuerySettings::default(),

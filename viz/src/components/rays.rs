@@ -275,81 +275,94 @@ impl Rays {
         self.segments.as_ref().map_or(0, |s| s.gpu_bytes())
     }
 
-    /// Streams the rays that pass the filters from the dataset onto the GPU.
+    /// Streams the rays that pass the filters from the dataset onto the GPU, straight from the
+    /// store (no SQL engine): the tree, pixel and sample filters pick whole trees from the tree
+    /// index, so only the pages holding their rows are read; kinds, depths and `ray_upto` are
+    /// applied to the decoded columns batch by batch, and no copy of the whole trace is kept.
     pub fn load(&mut self, gpu: &Gpu, sources: &Sources, frame: Frame) -> Result<()> {
         let t0 = std::time::Instant::now();
-        let s = &self.settings;
-        let limit = s.max_rays.map_or(String::new(), |n| format!(" LIMIT {n}"));
-        let sql = format!(
-            "SELECT tree_id, kind, origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t, ray FROM rays WHERE {}{limit}",
-            s.predicate()?
-        );
+        let s = self.settings.clone();
+        s.predicate()?;
         let mut bufs = SegmentBuffers::new(gpu);
         let mut builder = SegmentBuilder::new(sources.bounds, frame);
         let mut kinds: BTreeMap<String, u64> = BTreeMap::new();
-        let selected = s.selected_tree;
         let (mut pick_trees, mut pick_rays) = (Vec::new(), Vec::new());
-        if sources.dataset.is_none() {
+        let Some(ds) = &sources.dataset else {
             // Immediate mode only: nothing recorded to load.
             self.segments = Some(bufs);
             self.loaded = Some((frame, self.settings.data_key()));
             return Ok(());
-        }
-        sources.query_batches(&sql, |b| {
-            let [ox, oy, oz, dx, dy, dz, t] =
-                f32_columns(b, ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"])?;
-            let tree = b
-                .column(0)
-                .as_primitive_opt::<UInt64Type>()
-                .ok_or_else(|| Error::Columns("tree_id is not UInt64".into()))?;
-            let ray = arrow::compute::cast(b.column(9), &arrow::datatypes::DataType::UInt32)?;
-            let ray = ray.as_primitive::<arrow::datatypes::UInt32Type>();
-            let kind_col = b.column(1);
-            // Colours per dictionary value where the kind column is dictionary-encoded.
-            let colors: Vec<([u8; 4], usize)> = match kind_col.as_any_dictionary_opt() {
-                Some(dict) => {
-                    let names = kind_names(dict.values().as_ref())?;
-                    let keys = dict.normalized_keys();
-                    let mut per = vec![0u64; names.len()];
-                    let out = keys
-                        .iter()
-                        .map(|&k| {
-                            per[k] += 1;
-                            (kind_color(names[k].as_deref().unwrap_or("?")), k)
-                        })
-                        .collect();
-                    for (k, n) in per.iter().enumerate() {
-                        if *n > 0 {
-                            *kinds.entry(names[k].clone().unwrap_or_default()).or_default() += n;
-                        }
-                    }
-                    out
-                }
-                None => kind_names(kind_col.as_ref())?
-                    .into_iter()
-                    .map(|n| {
-                        let n = n.unwrap_or_default();
-                        let c = kind_color(&n);
-                        *kinds.entry(n).or_default() += 1;
-                        (c, 0)
-                    })
-                    .collect(),
+        };
+        let rows = tree_rows(ds, &s)?;
+        let names: Vec<String> =
+            ["tree_id", "ray", "depth", "kind", "origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"]
+                .map(String::from)
+                .to_vec();
+        let mut left = s.max_rays.unwrap_or(u64::MAX);
+        'segments: for i in 0..ds.manifest().segments.len() {
+            let ranges = match &rows {
+                Some(per) => match per.get(&i) {
+                    Some(r) => Some(r.as_slice()),
+                    None => continue,
+                },
+                None => None,
             };
-            for (r, (colour, _)) in colors.iter().enumerate() {
-                // A miss has a null t.
-                let tv = if t.is_null(r) { f32::INFINITY } else { t.value(r) };
-                let Some((a, e)) =
-                    builder.end([ox.value(r), oy.value(r), oz.value(r)], [dx.value(r), dy.value(r), dz.value(r)], tv)
-                else {
-                    continue;
-                };
-                let flags = u32::from(selected == Some(tree.value(r)));
-                bufs.push(gpu, builder.segment(a, e, *colour, flags));
-                pick_trees.push(tree.value(r));
-                pick_rays.push(ray.value(r));
+            for b in ds.segment_columns_in(i, &names, ranges)? {
+                let b = b?;
+                let [ox, oy, oz, dx, dy, dz, t] =
+                    f32_columns(&b, ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"])?;
+                let tree = b
+                    .column(0)
+                    .as_primitive_opt::<UInt64Type>()
+                    .ok_or_else(|| Error::Columns("tree_id is not UInt64".into()))?;
+                let ray = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::UInt32)?;
+                let ray = ray.as_primitive::<arrow::datatypes::UInt32Type>();
+                let depth = arrow::compute::cast(b.column(2), &arrow::datatypes::DataType::UInt32)?;
+                let depth = depth.as_primitive::<arrow::datatypes::UInt32Type>();
+                let (names_of, codes) = kind_codes(b.column(3).as_ref())?;
+                // Per kind value: its colour, and whether the kind filter keeps it.
+                let per_kind: Vec<([u8; 4], bool)> = names_of
+                    .iter()
+                    .map(|n| {
+                        let n = n.as_deref().unwrap_or("?");
+                        (kind_color(n), s.kinds.as_ref().is_none_or(|k| k.iter().any(|w| w == n)))
+                    })
+                    .collect();
+                let mut per_count = vec![0u64; names_of.len()];
+                for (r, &k) in codes.iter().enumerate() {
+                    let (colour, keep) = per_kind[k];
+                    if !keep
+                        || s.depth.is_some_and(|[a, z]| depth.value(r) < a || depth.value(r) > z)
+                        || s.ray_upto.is_some_and(|n| ray.value(r) > n)
+                    {
+                        continue;
+                    }
+                    if left == 0 {
+                        break 'segments;
+                    }
+                    left -= 1;
+                    per_count[k] += 1;
+                    // A miss has a null t.
+                    let tv = if t.is_null(r) { f32::INFINITY } else { t.value(r) };
+                    let Some((a, e)) = builder.end(
+                        [ox.value(r), oy.value(r), oz.value(r)],
+                        [dx.value(r), dy.value(r), dz.value(r)],
+                        tv,
+                    ) else {
+                        continue;
+                    };
+                    let flags = u32::from(s.selected_tree == Some(tree.value(r)));
+                    bufs.push(gpu, builder.segment(a, e, colour, flags));
+                    pick_trees.push(tree.value(r));
+                    pick_rays.push(ray.value(r));
+                }
+                for (k, n) in per_count.iter().enumerate() {
+                    if *n > 0 {
+                        *kinds.entry(names_of[k].clone().unwrap_or_default()).or_default() += n;
+                    }
+                }
             }
-            Ok(())
-        })?;
+        }
         bufs.flush(gpu);
         self.skipped = builder.skipped;
         self.misses = builder.misses;
@@ -361,6 +374,62 @@ impl Rays {
         self.load_secs = t0.elapsed().as_secs_f64();
         Ok(())
     }
+}
+
+/// The rows the tree-level filters (tree, pixel, sample) keep, as sorted disjoint ranges of whole
+/// trees per segment, from the tree index; `None` when they keep every row.
+fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<BTreeMap<usize, Vec<std::ops::Range<u64>>>>> {
+    if s.tree.is_none() && s.pixel.is_none() && s.sample.is_none() {
+        return Ok(None);
+    }
+    let mut entries = match (s.tree, s.pixel) {
+        (Some(t), _) => match ds.entry_of(store::TreeId(t)) {
+            Ok(e) => vec![e],
+            Err(store::Error::NoSuchTree(_)) => Vec::new(),
+            Err(e) => return Err(e.into()),
+        },
+        (None, Some([x, y])) => ds.tree_entries_at_pixel(x, y, s.sample)?,
+        (None, None) => ds.tree_entries()?,
+    };
+    entries.retain(|e| {
+        s.pixel.is_none_or(|p| p == e.info.pixel)
+            && s.sample.is_none_or(|v| v == e.info.sample)
+            && s.tree.is_none_or(|t| t == e.info.id.0)
+    });
+    entries.sort_by_key(|e| (e.segment, e.first_row));
+    let mut out: BTreeMap<usize, Vec<std::ops::Range<u64>>> = BTreeMap::new();
+    for e in entries {
+        let r = e.first_row..e.first_row + u64::from(e.info.ray_count);
+        if r.is_empty() {
+            continue;
+        }
+        let v = out.entry(e.segment as usize).or_default();
+        match v.last_mut() {
+            Some(last) if last.end == r.start => last.end = r.end,
+            _ => v.push(r),
+        }
+    }
+    Ok(Some(out))
+}
+
+/// The distinct names of a kind column and each row's index into them (dictionary-encoded or
+/// plain strings).
+fn kind_codes(col: &dyn Array) -> Result<(Vec<Option<String>>, Vec<usize>)> {
+    if let Some(dict) = col.as_any_dictionary_opt() {
+        return Ok((kind_names(dict.values().as_ref())?, dict.normalized_keys()));
+    }
+    let mut names: Vec<Option<String>> = Vec::new();
+    let codes = kind_names(col)?
+        .into_iter()
+        .map(|n| match names.iter().position(|m| *m == n) {
+            Some(i) => i,
+            None => {
+                names.push(n);
+                names.len() - 1
+            }
+        })
+        .collect();
+    Ok((names, codes))
 }
 
 impl Component for Rays {
