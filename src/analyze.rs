@@ -94,27 +94,19 @@ fn source(name: &str, path: &Path) -> query::TraceSource {
     query::TraceSource { name: name.into(), path: path.to_path_buf() }
 }
 
-/// A perceptually ordered colour ramp (dark blue, purple, orange, yellow): `t` in 0..=1.
-fn ramp(t: f64) -> [u8; 3] {
-    const STOPS: [[f64; 3]; 5] =
-        [[13.0, 8.0, 135.0], [126.0, 3.0, 168.0], [204.0, 71.0, 120.0], [248.0, 149.0, 64.0], [240.0, 249.0, 33.0]];
-    let x = t.clamp(0.0, 1.0) * (STOPS.len() - 1) as f64;
-    let i = (x.floor() as usize).min(STOPS.len() - 2);
-    let f = x - i as f64;
-    [0, 1, 2].map(|k| (STOPS[i][k] + (STOPS[i + 1][k] - STOPS[i][k]) * f).round() as u8)
-}
-
-/// Writes a grid as a PNG, each cell scaled up to at least 256 pixels across; black where NaN.
+/// Writes a grid as a heatmap with axes in pixels, its title and a colour bar (plotters).
 fn write_heatmap(g: &Grid, path: &Path) -> Result<()> {
     if g.width == 0 || g.height == 0 {
         bail!("{}: empty grid", g.name);
     }
-    let scale = (256 / g.width.max(g.height)).max(1) as u32;
-    let (lo, hi) = g.range().unwrap_or((0.0, 1.0));
-    let span = if hi > lo { hi - lo } else { 1.0 };
-    let img = image::RgbImage::from_fn(g.width as u32 * scale, g.height as u32 * scale, |x, y| {
-        let v = g.values[(y / scale) as usize * g.width + (x / scale) as usize];
-        image::Rgb(if v.is_finite() { ramp((v - lo) / span) } else { [0, 0, 0] })
-    });
-    img.save(path).with_context(|| format!("writing {}", path.display()))
+    let map = renderers::plot::Heatmap {
+        title: &g.title,
+        width: g.width,
+        height: g.height,
+        values: &g.values,
+        x_desc: "pixel x",
+        y_desc: "pixel y",
+        cell: g.cell as f64,
+    };
+    renderers::plot::write_heatmap(&map, path).with_context(|| format!("the heatmap {}", g.name))
 }

@@ -52,10 +52,19 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
         // Frames: orbit the camera a little each frame so every frame really draws.
         let mut cam = sources.initial_camera();
         let mut times = Vec::with_capacity(frames);
+        let progress = rtvtk_viz::component::Progress::default();
         for i in 0..frames + 2 {
             cam.orbit(0.002, 0.0);
             let t = Instant::now();
-            let mut ctx = RenderCtx { gpu: &gpu, sources: &sources, camera: &cam, frame, target: &target };
+            let mut ctx = RenderCtx {
+                gpu: &gpu,
+                sources: &sources,
+                camera: &cam,
+                frame,
+                target: &target,
+                progress: &progress,
+                preview: None,
+            };
             rays.render(&mut ctx)?;
             gpu.wait()?;
             if i >= 2 {

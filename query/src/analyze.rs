@@ -34,6 +34,8 @@ pub struct Grid {
     pub title: String,
     pub width: usize,
     pub height: usize,
+    /// Pixels one cell spans along each axis (1 per pixel, the tile size per tile).
+    pub cell: usize,
     pub values: Vec<f64>,
 }
 
@@ -43,6 +45,21 @@ impl Grid {
         let mut it = self.values.iter().copied().filter(|v| v.is_finite());
         let first = it.next()?;
         Some(it.fold((first, first), |(lo, hi), v| (lo.min(v), hi.max(v))))
+    }
+}
+
+/// The cells a grid picture has across and down, and the pixels each spans.
+#[derive(Clone, Copy, Debug)]
+struct Cells {
+    width: usize,
+    height: usize,
+    cell: usize,
+}
+
+impl Cells {
+    /// One cell per pixel of a `(width, height)` image.
+    fn pixels((width, height): (usize, usize)) -> Cells {
+        Cells { width, height, cell: 1 }
     }
 }
 
@@ -69,17 +86,19 @@ impl Report {
         ctx: &SessionContext,
         heading: Option<&str>,
         sql: &str,
-        size: (usize, usize),
+        cells: Cells,
         name: &str,
         title: &str,
     ) -> Result<()> {
+        let size = (cells.width, cells.height);
         if size.0 == 0 || size.1 == 0 {
             return Ok(());
         }
         if let Some(h) = heading {
             self.heading(h);
         }
-        let g = grid(ctx, sql, size, name, title).await?;
+        let mut g = grid(ctx, sql, size, name, title).await?;
+        g.cell = cells.cell.max(1);
         self.grid(g);
         Ok(())
     }
@@ -91,7 +110,7 @@ impl Report {
         };
         let _ = writeln!(
             self.markdown,
-            "![{}]({}.png)\n\n*{}: {}×{}, dark (low) to bright (high), {range}; black where there is no data.*\n",
+            "![{}]({}.png)\n\n*{}: {}×{}, dark (low) to bright (high), {range} (colour bar beside it); grey where there is no data.*\n",
             grid.title, grid.name, grid.title, grid.width, grid.height
         );
         self.grids.push(grid);
@@ -216,7 +235,7 @@ async fn grid(ctx: &SessionContext, sql: &str, (w, h): (usize, usize), name: &st
             }
         }
     }
-    Ok(Grid { name: name.into(), title: title.into(), width: w, height: h, values })
+    Ok(Grid { name: name.into(), title: title.into(), width: w, height: h, cell: 1, values })
 }
 
 /// Direction coherence and origin spread by kind and depth, and the packet what-if analysis.
@@ -297,7 +316,7 @@ pub async fn coherence(ctx: &SessionContext, opts: &CoherenceOptions) -> Result<
         ctx,
         Some("Coherence of each pixel's secondary rays"),
         "SELECT pixel_x, pixel_y, dir_coherence(dir_x, dir_y, dir_z) FROM rays WHERE depth = 1 GROUP BY pixel_x, pixel_y",
-        size,
+        Cells::pixels(size),
         "coherence_per_pixel",
         "dir_coherence of the depth-1 rays of each pixel",
     )
@@ -512,7 +531,7 @@ pub async fn bvh(ctx: &SessionContext, subtree_level: u16) -> Result<Report> {
         ctx,
         Some("Nodes visited per camera ray"),
         "SELECT pixel_x, pixel_y, avg(nodes_visited) FROM rays WHERE kind = 'camera' GROUP BY pixel_x, pixel_y",
-        size,
+        Cells::pixels(size),
         "nodes_per_pixel",
         "mean nodes visited by the camera rays of each pixel",
     )
@@ -610,7 +629,7 @@ pub async fn bugs(ctx: &SessionContext) -> Result<Report> {
             let sql =
                 format!("SELECT pixel_x, pixel_y, count(*) FROM rays WHERE {WRONG_SHADOW} GROUP BY pixel_x, pixel_y");
             let title = "shadow rays aiming at no light, per pixel";
-            rep.add_grid(ctx, None, &sql, size, "wrong_shadow_rays", title).await?;
+            rep.add_grid(ctx, None, &sql, Cells::pixels(size), "wrong_shadow_rays", title).await?;
         }
     }
     rep.heading("Broken rays");
@@ -715,14 +734,14 @@ pub async fn diff(ctx: &SessionContext, a: &str, b: &str, tile: usize) -> Result
     .await?;
     rep.para(&markdown(&t)?);
     let (w, h) = image_size(ctx, &format!("{a}.")).await?;
-    let size = (w.div_ceil(tile), h.div_ceil(tile));
+    let cells = Cells { width: w.div_ceil(tile), height: h.div_ceil(tile), cell: tile };
     let title = format!("relative change of the ray count per {tile}×{tile} tile, {b} over {a} minus 1");
     let sql = format!("SELECT tile_x, tile_y, rays_change FROM ({joined})");
-    rep.add_grid(ctx, None, &sql, size, "rays_change_per_tile", &title).await?;
+    rep.add_grid(ctx, None, &sql, cells, "rays_change_per_tile", &title).await?;
     if lights {
         let title = format!("change of the share of rays hitting an emitter per {tile}×{tile} tile, {b} minus {a}");
         let sql = format!("SELECT tile_x, tile_y, lit_change FROM ({joined})");
-        rep.add_grid(ctx, None, &sql, size, "lit_change_per_tile", &title).await?;
+        rep.add_grid(ctx, None, &sql, cells, "lit_change_per_tile", &title).await?;
     }
     Ok(rep)
 }

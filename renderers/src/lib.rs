@@ -6,6 +6,7 @@ mod error;
 pub mod film;
 pub mod geometry;
 pub mod material;
+pub mod plot;
 pub mod render;
 pub mod sampling;
 pub mod scene;

@@ -70,6 +70,59 @@ pub struct RenderCtx<'a> {
     pub camera: &'a ViewCamera,
     pub frame: Frame,
     pub target: &'a LayerTarget,
+    /// Where a long load reports how far it got, and learns it was cancelled.
+    pub progress: &'a Progress,
+    /// Draw at most this many items, evenly spread (a preview while the camera moves).
+    pub preview: Option<u64>,
+}
+
+/// How far a layer's long load (millions of rays) has got, shared with another thread (the
+/// viewer's status bar), which may cancel it: the layer then keeps what it loaded so far.
+#[derive(Debug, Default)]
+pub struct Progress {
+    done: std::sync::atomic::AtomicU64,
+    total: std::sync::atomic::AtomicU64,
+    cancel: std::sync::atomic::AtomicBool,
+    what: std::sync::Mutex<String>,
+}
+
+impl Progress {
+    /// A load of `total` items begins (a cancel asked for before still holds: see `reset`).
+    pub fn start(&self, what: &str, total: u64) {
+        use std::sync::atomic::Ordering::SeqCst;
+        if let Ok(mut w) = self.what.lock() {
+            *w = what.to_string();
+        }
+        self.done.store(0, SeqCst);
+        self.total.store(total.max(1), SeqCst);
+    }
+    /// `n` more items done; false once the load was cancelled.
+    pub fn advance(&self, n: u64) -> bool {
+        use std::sync::atomic::Ordering::SeqCst;
+        self.done.fetch_add(n, SeqCst);
+        !self.cancel.load(SeqCst)
+    }
+    /// The load ended (finished or cancelled).
+    pub fn finish(&self) {
+        self.total.store(0, std::sync::atomic::Ordering::SeqCst);
+    }
+    /// Forgets a cancel (the viewer's render thread does so when new commands arrive).
+    pub fn reset(&self) {
+        self.cancel.store(false, std::sync::atomic::Ordering::SeqCst);
+    }
+    /// Asks the running load (and any that starts before `reset`) to stop.
+    pub fn cancel(&self) {
+        self.cancel.store(true, std::sync::atomic::Ordering::SeqCst);
+    }
+    /// What is loading, items done and total, while a load runs.
+    pub fn get(&self) -> Option<(String, u64, u64)> {
+        use std::sync::atomic::Ordering::SeqCst;
+        let total = self.total.load(SeqCst);
+        (total > 0).then(|| {
+            let what = self.what.lock().map(|w| w.clone()).unwrap_or_default();
+            (what, self.done.load(SeqCst).min(total), total)
+        })
+    }
 }
 
 impl RenderCtx<'_> {
@@ -175,6 +228,8 @@ impl PickCtx<'_> {
         let mut v =
             crate::camera::ViewUniform::new(self.view_proj, self.target.size, self.target.size, line_width, 1.0, 0.0);
         v.params[0] = self.slot as f32;
+        // Every segment (no preview stride).
+        v.params[1] = 1.0;
         v
     }
 }
@@ -230,6 +285,11 @@ pub trait Component: Send {
     fn uses_camera(&self) -> bool {
         self.role() != LayerRole::Flat
     }
+    /// Whether the layer draws a cheaper preview when `RenderCtx::preview` asks for one (and so
+    /// is drawn again in full once the camera stops).
+    fn previews(&self) -> bool {
+        false
+    }
     /// Counter bumped on every change of output (settings, data, progressive refinement).
     fn generation(&self) -> u64;
     fn settings(&self) -> serde_json::Value;
@@ -263,6 +323,21 @@ pub trait Component: Send {
     fn report(&self) -> Vec<String> {
         Vec::new()
     }
+    /// How a progressive layer's error fell with time (empty for other layers).
+    fn convergence(&self) -> Vec<ConvergencePoint> {
+        Vec::new()
+    }
+}
+
+/// One step of a progressive layer: time spent refining so far, samples per pixel, and the
+/// image's estimated error.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ConvergencePoint {
+    pub secs: f64,
+    pub spp: u32,
+    /// Estimated RMSE of the mean image (linear radiance, over pixels and channels), from the
+    /// difference of the even- and odd-sample half images: needs no reference image.
+    pub rmse: f64,
 }
 
 /// Decodes a component's settings, naming the component on error.

@@ -77,8 +77,23 @@ pub const PICK_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg32Uint;
 /// A picking pipeline: the ids of `vs`'s items into a [`PICK_FORMAT`] target, depth tested, so
 /// the nearest item wins (`fs_pick` of `lines.wgsl`).
 pub fn pick_pipeline(gpu: &Gpu, module: &wgpu::ShaderModule, vs: &str) -> wgpu::RenderPipeline {
-    let targets =
-        [Some(wgpu::ColorTargetState { format: PICK_FORMAT, blend: None, write_mask: wgpu::ColorWrites::ALL })];
+    pick_pipeline_with(gpu, module, vs, "fs_pick", wgpu::ColorWrites::ALL)
+}
+
+/// A pick pipeline that writes depth only (`fs` outputs a `vec2<u32>` that is not written): the
+/// scene's triangles, so ids of the layers above the composition hide behind geometry.
+pub fn pick_depth_pipeline(gpu: &Gpu, module: &wgpu::ShaderModule, vs: &str, fs: &str) -> wgpu::RenderPipeline {
+    pick_pipeline_with(gpu, module, vs, fs, wgpu::ColorWrites::empty())
+}
+
+fn pick_pipeline_with(
+    gpu: &Gpu,
+    module: &wgpu::ShaderModule,
+    vs: &str,
+    fs: &str,
+    write_mask: wgpu::ColorWrites,
+) -> wgpu::RenderPipeline {
+    let targets = [Some(wgpu::ColorTargetState { format: PICK_FORMAT, blend: None, write_mask })];
     gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
         label: Some("pick"),
         layout: None,
@@ -99,7 +114,7 @@ pub fn pick_pipeline(gpu: &Gpu, module: &wgpu::ShaderModule, vs: &str) -> wgpu::
         multisample: Default::default(),
         fragment: Some(wgpu::FragmentState {
             module,
-            entry_point: Some("fs_pick"),
+            entry_point: Some(fs),
             compilation_options: Default::default(),
             targets: &targets,
         }),
@@ -342,7 +357,32 @@ impl SegmentBuffers {
         per: u32,
         clear: bool,
     ) {
-        let ubuf = uniform(gpu, "view", view);
+        self.draw_strided(gpu, ctx, pipeline, view, per, clear, 1);
+    }
+
+    /// The stride that keeps a draw within `budget` segments (1: every segment).
+    pub fn stride_for(&self, budget: Option<u64>) -> u32 {
+        budget.map_or(1, |b| self.count.div_ceil(b.max(1)).clamp(1, u64::from(u32::MAX)) as u32)
+    }
+
+    /// [`SegmentBuffers::draw`] of every `stride`-th segment only (the shader reads the stride
+    /// from `view.params.y`, which this sets): a preview of millions of segments while the
+    /// camera moves, spread over the whole layer.
+    #[allow(clippy::too_many_arguments)]
+    pub fn draw_strided(
+        &self,
+        gpu: &Gpu,
+        ctx: &RenderCtx,
+        pipeline: &wgpu::RenderPipeline,
+        view: &ViewUniform,
+        per: u32,
+        clear: bool,
+        stride: u32,
+    ) {
+        let stride = stride.max(1);
+        let mut view = *view;
+        view.params[1] = stride as f32;
+        let ubuf = uniform(gpu, "view", &view);
         let groups = self.bind_groups(gpu, pipeline, &ubuf, 0);
         let mut enc = gpu.device.create_command_encoder(&Default::default());
         {
@@ -350,7 +390,7 @@ impl SegmentBuffers {
             pass.set_pipeline(pipeline);
             for (g, n, _) in &groups {
                 pass.set_bind_group(0, g, &[]);
-                pass.draw(0..n * per, 0..1);
+                pass.draw(0..n.div_ceil(stride) * per, 0..1);
             }
         }
         gpu.queue.submit([enc.finish()]);

@@ -19,6 +19,8 @@ struct RenderKey {
     camera: Option<ViewCamera>,
     size: [u32; 2],
     frame: Frame,
+    /// The preview budget the layer was drawn with (only for layers that preview).
+    preview: Option<u64>,
 }
 
 /// One layer: a component, whether it is shown, its own camera (when it does not follow the
@@ -115,6 +117,11 @@ pub struct Pipeline {
     next_id: u64,
     /// Background colour (display values, opaque).
     pub background: [f64; 3],
+    /// How far the running load has got; another thread may read it and cancel the load.
+    pub progress: std::sync::Arc<crate::component::Progress>,
+    /// While the camera moves (the viewer sets it): at most this many items per layer are drawn,
+    /// spread evenly over the layer; `None` draws everything.
+    pub preview: Option<u64>,
 }
 
 impl Pipeline {
@@ -128,6 +135,8 @@ impl Pipeline {
         crate::draw::clear_layer(&gpu, &far);
         let compositor = Compositor::new(&gpu);
         Pipeline {
+            progress: Default::default(),
+            preview: None,
             gpu,
             sources,
             layers: Vec::new(),
@@ -263,6 +272,7 @@ impl Pipeline {
                 camera: l.component.uses_camera().then_some(camera),
                 size,
                 frame: self.frame,
+                preview: self.preview.filter(|_| l.component.previews()),
             };
             if l.key == Some(key) {
                 continue;
@@ -272,8 +282,15 @@ impl Pipeline {
             }
             let Some(target) = &l.target else { continue };
             crate::draw::clear_layer(&self.gpu, target);
-            let mut ctx =
-                RenderCtx { gpu: &self.gpu, sources: &self.sources, camera: &camera, frame: self.frame, target };
+            let mut ctx = RenderCtx {
+                gpu: &self.gpu,
+                sources: &self.sources,
+                camera: &camera,
+                frame: self.frame,
+                target,
+                progress: &self.progress,
+                preview: key.preview,
+            };
             l.component.render(&mut ctx)?;
             self.gpu.check().map_err(|e| Error::Layer { layer: l.component.kind().into(), message: e.to_string() })?;
             l.range = depth_range(&camera, self.frame);

@@ -148,10 +148,15 @@ fn composition_hides_a_segment_behind_the_tall_box() {
     let img = with.snapshot(false).unwrap();
     assert!(bright(&img, front), "the segment in front of the box is visible");
     assert!(!bright(&img, back), "the segment behind the box is hidden");
+    // Picking sees what the picture shows: the front segment, not the one behind the box.
+    let front_pick = with.pick([front.0, front.1], 2).unwrap().expect("the front segment is picked");
+    assert_eq!(front_pick.kind, "query");
+    assert_eq!(with.pick([back.0, back.1], 2).unwrap(), None, "no pick through the tall box");
     let mut without = pipeline(&[("query", q)]);
     without.resize(4 * W, 4 * H).unwrap();
     let img = without.snapshot(false).unwrap();
     assert!(bright(&img, front) && bright(&img, back), "without composition both segments show");
+    assert!(without.pick([back.0, back.1], 2).unwrap().is_some(), "without composition it is picked");
 }
 
 #[test]
@@ -338,6 +343,12 @@ fn the_image_layer_refines_progressively_with_the_cpu_tracer() {
     }
     assert_eq!(changed, 3, "stops at max_spp");
     assert_eq!(p.layers()[0].renders, 3);
+    // Its convergence curve: one point per sample from the second on, the error estimated from
+    // the half images (no reference), positive and falling or level as time goes on.
+    let curve = p.layers()[0].component.convergence();
+    assert_eq!(curve.iter().map(|c| c.spp).collect::<Vec<_>>(), [2, 3], "{curve:?}");
+    assert!(curve.iter().all(|c| c.rmse.is_finite() && c.rmse > 0.0 && c.secs > 0.0), "{curve:?}");
+    assert!(curve[1].secs > curve[0].secs, "{curve:?}");
     let img = p.snapshot(false).unwrap();
     assert!(lit(&img) > (W * H / 3) as usize, "the traced Cornell box is lit: {}", lit(&img));
     // A new camera restarts the accumulation.
@@ -346,6 +357,7 @@ fn the_image_layer_refines_progressively_with_the_cpu_tracer() {
     p.set_camera(c).unwrap();
     assert!(p.idle().unwrap());
     assert!(p.report().iter().any(|r| r.contains("1 samples per pixel")), "{:?}", p.report());
+    assert!(p.layers()[0].component.convergence().is_empty(), "a new camera starts a new curve");
     assert!(p.layer_mut(id).is_ok());
 }
 
@@ -411,4 +423,46 @@ fn the_ray_layer_loads_what_its_filters_select_in_sql() {
             assert!(want > 0, "{s:?} selects rays");
         }
     }
+}
+
+/// A cancelled load stops at its first batch, keeps what it has (nothing here), says so, and the
+/// next load after `reset` loads everything.
+#[test]
+fn a_cancelled_ray_load_keeps_what_it_has_and_says_so() {
+    use rtvtk_viz::Component;
+    use rtvtk_viz::component::Progress;
+    use rtvtk_viz::components::rays::Rays;
+    let gpu = Gpu::headless().expect("these tests need a GPU adapter (lavapipe: apt-get install mesa-vulkan-drivers)");
+    let sources = Sources::open(dataset()).unwrap();
+    let mut rays = Rays::new(ComponentId(1), &sources, &Value::Null).unwrap();
+    let progress = Progress::default();
+    progress.cancel();
+    rays.load_with(&gpu, &sources, sources.frame(), &progress).unwrap();
+    assert_eq!(rays.segment_count(), 0);
+    assert!(rays.report().iter().any(|r| r.contains("cancelled")), "{:?}", rays.report());
+    assert!(progress.get().is_none(), "the load ended");
+    progress.reset();
+    rays.load_with(&gpu, &sources, sources.frame(), &progress).unwrap();
+    let ds = store::Dataset::open(dataset()).unwrap();
+    assert_eq!(rays.segment_count(), ds.ray_count());
+    assert!(!rays.report().iter().any(|r| r.contains("cancelled")), "{:?}", rays.report());
+}
+
+/// While the camera moves the viewer asks for a preview: the ray layer draws every k-th segment
+/// (at most the budget), other layers are not drawn again, and clearing it draws all again.
+#[test]
+fn a_preview_thins_the_ray_layer_only() {
+    let mut p = pipeline(&[("composition", Value::Null), ("rays", json!({"max_rays": null, "line_width": 1.0}))]);
+    p.resize(4 * W, 4 * H).unwrap();
+    let full = lit(&p.snapshot(false).unwrap());
+    let renders = |p: &Pipeline| p.layers().iter().map(|l| l.renders).collect::<Vec<_>>();
+    assert_eq!(renders(&p), [1, 1]);
+    p.preview = Some(300);
+    let thin = lit(&p.snapshot(false).unwrap());
+    assert_eq!(renders(&p), [1, 2], "only the ray layer draws the preview");
+    assert!(thin * 2 < full, "a 300-segment preview lights fewer pixels: {thin} of {full}");
+    assert!(thin > 0, "but some");
+    p.preview = None;
+    assert_eq!(lit(&p.snapshot(false).unwrap()), full, "all segments again");
+    assert_eq!(renders(&p), [1, 3]);
 }

@@ -204,6 +204,7 @@ impl Component for Geometry {
 pub struct Composition {
     id: ComponentId,
     gpu: Option<Gpus>,
+    pick_pipeline: Option<wgpu::RenderPipeline>,
 }
 
 impl Composition {
@@ -214,7 +215,7 @@ impl Composition {
                 message: "the dataset has no triangles table, so there is no scene depth to compose with".into(),
             });
         }
-        Ok(Composition { id, gpu: None })
+        Ok(Composition { id, gpu: None, pick_pipeline: None })
     }
 }
 
@@ -249,5 +250,26 @@ impl Component for Composition {
         let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, 1.0, 1.0, 0.0);
         draw(ctx.gpu, ctx, g, &g.depth_only, view, false);
         Ok(())
+    }
+    /// The scene's depth into the pick target: segments and boxes of the layers above are then
+    /// picked only where they are seen, not through the tall box.
+    fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
+        let Some(g) = &self.gpu else { return Ok(false) };
+        let gpu = ctx.gpu;
+        let p = self.pick_pipeline.get_or_insert_with(|| {
+            let m = shader(gpu, "surface", include_str!("../shaders/surface.wgsl"));
+            crate::draw::pick_depth_pipeline(gpu, &m, "vs", "fs_pick_depth")
+        });
+        let ubuf = uniform(gpu, "pick view", &ctx.view(1.0));
+        let group = bind_view_storage(gpu, p, &ubuf, &g.mesh.buffer);
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = ctx.target.pass(&mut enc);
+            pass.set_pipeline(p);
+            pass.set_bind_group(0, &group, &[]);
+            pass.draw(0..g.mesh.count * 3, 0..1);
+        }
+        gpu.queue.submit([enc.finish()]);
+        Ok(false)
     }
 }

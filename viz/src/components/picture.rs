@@ -124,7 +124,11 @@ impl Default for ImageSettings {
 struct Progressive {
     bvh: Arc<renderers::Bvh>,
     sum: Vec<glam::Vec3A>,
+    /// The sum of the even-numbered samples only (the odd ones are `sum - even`).
+    even: Vec<glam::Vec3A>,
     spp: u32,
+    secs: f64,
+    curve: Vec<crate::component::ConvergencePoint>,
     key: Option<(crate::camera::ViewCamera, u32, u32)>,
 }
 
@@ -182,6 +186,34 @@ impl Image {
     }
 }
 
+/// The estimated RMSE of the mean of `n` samples, from the sums of all samples and of the even
+/// ones: the two half means differ by noise of variance σ²(1/ne + 1/no) per value, the whole
+/// mean has σ²/n. `None` before there are two samples. Non-finite values (fireflies gone wrong)
+/// are left out.
+pub fn half_difference_rmse(sum: &[glam::Vec3A], even: &[glam::Vec3A], n: u32) -> Option<f64> {
+    if n < 2 {
+        return None;
+    }
+    let ne = f64::from(n.div_ceil(2));
+    let no = f64::from(n / 2);
+    let (mut se, mut count) = (0.0f64, 0u64);
+    for (s, e) in sum.iter().zip(even) {
+        for c in 0..3 {
+            let (s, e) = (f64::from(s[c]), f64::from(e[c]));
+            let d = e / ne - (s - e) / no;
+            if d.is_finite() {
+                se += d * d;
+                count += 1;
+            }
+        }
+    }
+    if count == 0 {
+        return None;
+    }
+    let diff_ms = se / count as f64;
+    Some((diff_ms / f64::from(n) / (1.0 / ne + 1.0 / no)).sqrt())
+}
+
 impl Component for Image {
     fn id(&self) -> ComponentId {
         self.id
@@ -224,13 +256,19 @@ impl Component for Image {
         let p = self.progressive.get_or_insert_with(|| Progressive {
             bvh: Arc::new(renderers::Bvh::build(&scene.tris)),
             sum: Vec::new(),
+            even: Vec::new(),
             spp: 0,
+            secs: 0.0,
+            curve: Vec::new(),
             key: None,
         });
         if p.key != Some(key) {
             p.key = Some(key);
             p.sum = vec![glam::Vec3A::ZERO; ctx.width as usize * ctx.height as usize];
+            p.even = p.sum.clone();
             p.spp = 0;
+            p.secs = 0.0;
+            p.curve.clear();
         }
         if p.spp >= self.settings.max_spp {
             return Ok(false);
@@ -247,11 +285,21 @@ impl Component for Image {
             seed: u64::from(p.spp),
             ..Default::default()
         };
+        let t0 = std::time::Instant::now();
         let (film, _) = renderers::render(&s, &p.bvh, &opts, None, &|_| {})?;
         for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
             *a += *b;
         }
+        if p.spp.is_multiple_of(2) {
+            for (a, b) in p.even.iter_mut().zip(&film.pixels) {
+                *a += *b;
+            }
+        }
         p.spp += 1;
+        p.secs += t0.elapsed().as_secs_f64();
+        if let Some(rmse) = half_difference_rmse(&p.sum, &p.even, p.spp) {
+            p.curve.push(crate::component::ConvergencePoint { secs: p.secs, spp: p.spp, rmse });
+        }
         let n = p.spp as f32;
         let avg =
             renderers::Film { width: ctx.width, height: ctx.height, pixels: p.sum.iter().map(|v| *v / n).collect() };
@@ -277,6 +325,9 @@ impl Component for Image {
     }
     fn resize(&mut self, width: u32, height: u32) {
         self.size = [width, height];
+    }
+    fn convergence(&self) -> Vec<crate::component::ConvergencePoint> {
+        self.progressive.as_ref().map_or_else(Vec::new, |p| p.curve.clone())
     }
     fn report(&self) -> Vec<String> {
         match self.settings.source {
@@ -438,5 +489,46 @@ impl Component for Heatmap {
             }
             None => Vec::new(),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::half_difference_rmse;
+
+    #[test]
+    fn the_half_difference_estimates_the_error_of_the_mean() {
+        // Values 0.5 ± 0.2 uniform noise (σ = 0.2/√3) per sample: the mean of n samples has an
+        // error of σ/√n, which the estimate must find within 10 % over 20k values.
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut rnd = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f32 / (1u64 << 53) as f32
+        };
+        let sigma = 0.2 / 3f64.sqrt(); // uniform on [-0.2, 0.2)
+        for n in [2u32, 3, 8, 33] {
+            let px = 7000;
+            let mut sum = vec![glam::Vec3A::ZERO; px];
+            let mut even = vec![glam::Vec3A::ZERO; px];
+            for k in 0..n {
+                for i in 0..px {
+                    let v = glam::Vec3A::new(rnd(), rnd(), rnd()) * 0.4 + glam::Vec3A::splat(0.3);
+                    sum[i] += v;
+                    if k % 2 == 0 {
+                        even[i] += v;
+                    }
+                }
+            }
+            let want = sigma / f64::from(n).sqrt();
+            let got = half_difference_rmse(&sum, &even, n).unwrap();
+            assert!((got / want - 1.0).abs() < 0.1, "n = {n}: estimated {got}, true {want}");
+        }
+        assert_eq!(half_difference_rmse(&[glam::Vec3A::ONE], &[glam::Vec3A::ONE], 1), None);
+        // Non-finite values are left out, not spread over the estimate.
+        let sum = [glam::Vec3A::new(f32::NAN, 1.0, 1.0), glam::Vec3A::ONE];
+        let even = [glam::Vec3A::new(f32::INFINITY, 0.5, 0.5), glam::Vec3A::splat(0.5)];
+        assert_eq!(half_difference_rmse(&sum, &even, 2), Some(0.0));
     }
 }

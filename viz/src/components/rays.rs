@@ -233,6 +233,8 @@ pub struct Rays {
     traced_ids: Vec<([u32; 2], u64, u32)>,
     pick_pipeline: Option<wgpu::RenderPipeline>,
     bvh: Option<std::sync::Arc<renderers::Bvh>>,
+    /// The last load was cancelled after this many segments (kept, drawn).
+    cancelled_after: Option<u64>,
 }
 
 impl Rays {
@@ -258,6 +260,7 @@ impl Rays {
             traced_ids: Vec::new(),
             pick_pipeline: None,
             bvh: None,
+            cancelled_after: None,
         };
         if !settings.is_null() {
             r.set_settings(settings)?;
@@ -280,7 +283,20 @@ impl Rays {
     /// index, so only the pages holding their rows are read; kinds, depths and `ray_upto` are
     /// applied to the decoded columns batch by batch, and no copy of the whole trace is kept.
     pub fn load(&mut self, gpu: &Gpu, sources: &Sources, frame: Frame) -> Result<()> {
+        self.load_with(gpu, sources, frame, &crate::component::Progress::default())
+    }
+
+    /// [`Rays::load`], reporting the rows read to `progress`; when it is cancelled the layer keeps
+    /// the rays loaded so far (and says so in its report) until its filters change.
+    pub fn load_with(
+        &mut self,
+        gpu: &Gpu,
+        sources: &Sources,
+        frame: Frame,
+        progress: &crate::component::Progress,
+    ) -> Result<()> {
         let t0 = std::time::Instant::now();
+        self.cancelled_after = None;
         let s = self.settings.clone();
         s.predicate()?;
         let mut bufs = SegmentBuffers::new(gpu);
@@ -294,6 +310,18 @@ impl Rays {
             return Ok(());
         };
         let rows = tree_rows(ds, &s)?;
+        let total = rows
+            .as_ref()
+            .map_or(ds.ray_count(), |per| per.values().flat_map(|r| r.iter().map(|r| r.end - r.start)).sum::<u64>());
+        progress.start("loading rays", total);
+        // Ends the progress however the load ends (an error, a cancel, done).
+        struct Finish<'a>(&'a crate::component::Progress);
+        impl Drop for Finish<'_> {
+            fn drop(&mut self) {
+                self.0.finish();
+            }
+        }
+        let _finish = Finish(progress);
         let names: Vec<String> =
             ["tree_id", "ray", "depth", "kind", "origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"]
                 .map(String::from)
@@ -309,6 +337,10 @@ impl Rays {
             };
             for b in ds.segment_columns_in(i, &names, ranges)? {
                 let b = b?;
+                if !progress.advance(b.num_rows() as u64) {
+                    self.cancelled_after = Some(pick_trees.len() as u64);
+                    break 'segments;
+                }
                 let [ox, oy, oz, dx, dy, dz, t] =
                     f32_columns(&b, ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"])?;
                 let tree = b
@@ -442,6 +474,9 @@ impl Component for Rays {
     fn role(&self) -> LayerRole {
         LayerRole::Scene
     }
+    fn previews(&self) -> bool {
+        true
+    }
     fn generation(&self) -> u64 {
         self.generation
     }
@@ -458,7 +493,7 @@ impl Component for Rays {
     fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
         let key = (ctx.frame, self.settings.data_key());
         if self.loaded.as_ref() != Some(&key) {
-            self.load(ctx.gpu, ctx.sources, ctx.frame)?;
+            self.load_with(ctx.gpu, ctx.sources, ctx.frame, ctx.progress)?;
         }
         if self.pipeline.is_none() {
             let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
@@ -474,7 +509,7 @@ impl Component for Rays {
             s.opacity,
             if s.gradient { 1.0 } else { 0.0 },
         );
-        segs.draw(ctx.gpu, ctx, p, &view, 6, true);
+        segs.draw_strided(ctx.gpu, ctx, p, &view, 6, true, segs.stride_for(ctx.preview));
         if let Some(t) = &self.traced {
             t.draw(ctx.gpu, ctx, p, &view, 6, false);
         }
@@ -579,6 +614,9 @@ impl Component for Rays {
         )];
         if self.skipped > 0 {
             r.push(format!("rays: skipped {} rays with NaN or infinite origin/direction", self.skipped));
+        }
+        if let Some(n) = self.cancelled_after {
+            r.push(format!("rays: loading was cancelled after {n} segments; change a filter to load again"));
         }
         r
     }

@@ -77,16 +77,20 @@ fn line_vertex(pa: vec3<f32>, pb: vec3<f32>, corner: u32, width: f32, color: vec
     return o;
 }
 
+// Segments: view.params.y is the stride of a preview (every stride-th segment is drawn; 1 or
+// less: all). Picking draws with params.y < 2, so ids are always segment indices.
 @vertex
 fn vs_seg(@builtin(vertex_index) vi: u32, @builtin(instance_index) first: u32) -> LOut {
-    let s = segs[vi / 6u];
+    let stride = max(u32(view.params.y), 1u);
+    let k = (vi / 6u) * stride;
+    let s = segs[k];
     var width = view.viewport.z;
     var color = unpack4x8unorm(s.color);
     if (s.flags & 1u) != 0u {
         width = width * 2.5;
     }
     var o = line_vertex(s.a, s.b, vi % 6u, width, color);
-    o.id = first + vi / 6u;
+    o.id = first + k;
     return o;
 }
 

@@ -60,3 +60,10 @@ fn fs(v: VOut) -> @location(0) vec4<f32> {
     }
     return vec4<f32>(v.color * opacity, opacity);
 }
+
+// Picking: the scene's depth only, no id (the composition layer), so the ids of the layers
+// above it hide behind geometry as their pixels do.
+@fragment
+fn fs_pick_depth(v: VOut) -> @location(0) vec2<u32> {
+    return vec2<u32>(0u, 0u);
+}

@@ -471,7 +471,7 @@ impl Viewer {
             self.worker.send(c);
         }
         self.screenshot(&ctx);
-        if self.worker.busy() || self.queries.connecting {
+        if self.worker.busy() || self.queries.connecting || self.worker.progress.get().is_some() {
             ctx.request_repaint_after(std::time::Duration::from_millis(100));
         }
     }
@@ -594,6 +594,17 @@ fn status_bar(ui: &mut Ui, s: &State, w: &Worker) {
     ui.horizontal(|ui| {
         if w.busy() {
             ui.spinner();
+        }
+        // A long load (millions of rays): how far it got, and a way out that keeps what it has.
+        if let Some((what, done, total)) = w.progress.get() {
+            let f = done as f32 / total as f32;
+            ui.add(
+                egui::ProgressBar::new(f).desired_width(160.0).text(format!("{what}: {:.0} % of {total}", f * 100.0)),
+            );
+            if ui.button("Cancel load").on_hover_text("stop loading; the rays loaded so far stay").clicked() {
+                w.progress.cancel();
+            }
+            ui.separator();
         }
         if let Some(sh) = &s.shown {
             ui.label(format!("{}x{} · last frame {:.0} ms · {} frames", sh.size[0], sh.size[1], sh.ms, sh.frames));

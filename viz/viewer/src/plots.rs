@@ -1,7 +1,8 @@
-//! Plots of the selection: how the rays a ray layer shows split by kind and by depth.
+//! Plots: the convergence of the progressive image (estimated error against render time), and
+//! how the rays a ray layer shows split by kind and by depth.
 
 use egui::{Color32, Ui};
-use egui_plot::{Bar, BarChart, Legend, Plot};
+use egui_plot::{Bar, BarChart, Legend, Line, LineStyle, Plot, PlotPoints};
 
 use crate::app::State;
 use crate::query_service::{QueryService, Tag};
@@ -18,10 +19,56 @@ fn counts_sql(s: &State) -> Option<(serde_json::Value, String)> {
     ))
 }
 
+/// Log-log plot of the first traced image layer's estimated RMSE against render time, with a
+/// line of slope −1/2 (Monte Carlo) through its first point. Returns whether it drew one.
+fn convergence_ui(ui: &mut Ui, s: &State, height: f32) -> bool {
+    let Some(l) = s.layers.iter().find(|l| l.enabled && l.convergence.len() >= 2) else { return false };
+    let pts: Vec<[f64; 2]> = l
+        .convergence
+        .iter()
+        .filter(|c| c.rmse > 0.0 && c.secs > 0.0)
+        .map(|c| [c.secs.log10(), c.rmse.log10()])
+        .collect();
+    let (Some(first), Some(last)) = (pts.first().copied(), l.convergence.last()) else { return false };
+    ui.label(format!(
+        "Convergence of the progressive image: {} samples per pixel in {:.2} s; error estimated from the \
+         even- and odd-sample halves (no reference), log–log.",
+        last.spp, last.secs
+    ));
+    let x_end = pts.last().map_or(first[0], |p| p[0]);
+    let slope = vec![first, [x_end, first[1] - 0.5 * (x_end - first[0])]];
+    let decimal = |v: f64| renderers::converge::tick(10f64.powf(v));
+    Plot::new("convergence")
+        .height(height)
+        .legend(Legend::default())
+        .x_axis_label("render time, s")
+        .y_axis_label("estimated RMSE")
+        .x_axis_formatter(move |m, _| decimal(m.value))
+        .y_axis_formatter(move |m, _| decimal(m.value))
+        .show(ui, |p| {
+            p.line(Line::new("estimated RMSE", PlotPoints::from(pts)).color(Color32::from_rgb(90, 150, 255)));
+            p.line(
+                Line::new("slope −1/2 (Monte Carlo)", PlotPoints::from(slope))
+                    .color(Color32::GRAY)
+                    .style(LineStyle::dashed_loose()),
+            );
+        });
+    true
+}
+
 pub fn ui(ui: &mut Ui, s: &mut State, q: &mut QueryService) {
     let has_dataset = s.opened.as_ref().is_some_and(|o| o.has_dataset);
+    let converging = s.layers.iter().any(|l| l.enabled && l.convergence.len() >= 2);
+    let parts: f32 = if has_dataset { 2.0 } else { 0.0 } + if converging { 1.0 } else { 0.0 };
+    let plot_h = (ui.available_height() / parts.max(1.0) - 24.0).max(80.0);
+    let drew = convergence_ui(ui, s, plot_h);
     if !has_dataset {
-        ui.label("Plots need a dataset.");
+        if !drew {
+            ui.label(
+                "Plots need a dataset (rays by kind and depth) or an image layer tracing progressively \
+                 (its convergence curve).",
+            );
+        }
         return;
     }
     let wanted = counts_sql(s);
@@ -50,7 +97,7 @@ pub fn ui(ui: &mut Ui, s: &mut State, q: &mut QueryService) {
         *by_kind.entry(c.value(r, "kind").unwrap_or_default()).or_default() += n;
         *by_depth.entry(c.int(r, "depth").unwrap_or(0)).or_default() += n;
     }
-    let h = (ui.available_height() / 2.0 - 10.0).max(80.0);
+    let h = plot_h;
     let kind_bars: Vec<Bar> = by_kind
         .iter()
         .enumerate()

@@ -111,6 +111,38 @@ pub struct QueryService {
     pub target: Target,
     /// Set while the backend is being opened or connected.
     pub connecting: bool,
+    /// A service's tables and functions, asked for through its `information_schema` on connecting.
+    remote_catalog: Arc<std::sync::Mutex<(Vec<String>, Vec<String>)>>,
+}
+
+/// A service's tables (schema-qualified outside `public`) and functions, from its
+/// `information_schema`; empty lists where it does not answer.
+async fn remote_catalog(client: &mut FlightSqlServiceClient<Channel>) -> (Vec<String>, Vec<String>) {
+    let column = |r: &std::result::Result<(SchemaRef, Vec<RecordBatch>, bool), String>, names: &[&str]| {
+        let Ok((schema, batches, _)) = r else { return Vec::new() };
+        let q = QueryResult::new(String::new(), schema.clone(), batches.clone(), 0.0, false);
+        let mut out: Vec<String> = (0..q.rows)
+            .filter_map(|i| {
+                let v: Vec<String> = names.iter().filter_map(|n| q.value(i, n)).collect();
+                match v.as_slice() {
+                    [sch, t] if sch == "public" => Some(t.clone()),
+                    [sch, t] => Some(format!("{sch}.{t}")),
+                    [f] => Some(f.clone()),
+                    _ => None,
+                }
+            })
+            .collect();
+        out.sort();
+        out.dedup();
+        out
+    };
+    let t = run_flight(
+        client,
+        "SELECT table_schema, table_name FROM information_schema.tables WHERE table_schema <> 'information_schema'",
+    )
+    .await;
+    let f = run_flight(client, "SELECT DISTINCT routine_name FROM information_schema.routines").await;
+    (column(&t, &["table_schema", "table_name"]), column(&f, &["routine_name"]))
 }
 
 fn runtime() -> Result<tokio::runtime::Runtime> {
@@ -215,6 +247,7 @@ impl QueryService {
             wake,
             target: target.clone(),
             connecting: false,
+            remote_catalog: Arc::default(),
         };
         s.retarget(target);
         Ok(s)
@@ -226,9 +259,17 @@ impl QueryService {
         self.connecting = true;
         let backend = self.backend.clone();
         let (tx, wake) = (self.tx.clone(), self.wake.clone());
+        let catalog = self.remote_catalog.clone();
         self.runtime.spawn(async move {
             let mut b = backend.lock().await;
             *b = connect(&target).await;
+            let names = match &mut *b {
+                Backend::Flight(client) => remote_catalog(client).await,
+                _ => Default::default(),
+            };
+            if let Ok(mut c) = catalog.lock() {
+                *c = names;
+            }
             let result = match &*b {
                 Backend::None(why) => Err(why.clone()),
                 _ => Ok(QueryResult::new(
@@ -296,11 +337,13 @@ impl QueryService {
         replies
     }
 
-    /// Tables and functions of the local session, for the console's list (empty for a service:
-    /// ask it with `SHOW TABLES`).
+    /// Tables and functions, for the console's list: the local session's, or what a service's
+    /// `information_schema` said on connecting.
     pub fn catalog(&self) -> (Vec<String>, Vec<String>) {
         let Ok(b) = self.backend.try_lock() else { return (Vec::new(), Vec::new()) };
-        let Backend::Local(ctx) = &*b else { return (Vec::new(), Vec::new()) };
+        let Backend::Local(ctx) = &*b else {
+            return self.remote_catalog.lock().map(|c| c.clone()).unwrap_or_default();
+        };
         let mut tables = Vec::new();
         for cat in ctx.catalog_names() {
             let Some(c) = ctx.catalog(&cat) else { continue };

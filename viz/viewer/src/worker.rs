@@ -50,6 +50,8 @@ pub struct LayerInfo {
     pub legend: Vec<Legend>,
     pub report: Vec<String>,
     pub renders: u64,
+    /// A progressive layer's error against time (the Plots tab draws it).
+    pub convergence: Vec<viz::component::ConvergencePoint>,
 }
 
 impl LayerInfo {
@@ -140,6 +142,8 @@ pub struct Worker {
     thread: Option<std::thread::JoinHandle<()>>,
     /// Commands sent and not yet answered by a frame or event (for "rendering…" and tests).
     pending: Arc<std::sync::atomic::AtomicUsize>,
+    /// The running load's progress (every pipeline the thread opens reports to it); cancellable.
+    pub progress: Arc<viz::component::Progress>,
 }
 
 impl Worker {
@@ -149,8 +153,11 @@ impl Worker {
         let (etx, rx) = channel();
         let pending = Arc::new(std::sync::atomic::AtomicUsize::new(0));
         let p = pending.clone();
-        let thread = std::thread::Builder::new().name("rtvtk-render".into()).spawn(move || run(crx, etx, wake, p)).ok();
-        Worker { tx, rx, thread, pending }
+        let progress: Arc<viz::component::Progress> = Arc::default();
+        let pr = progress.clone();
+        let thread =
+            std::thread::Builder::new().name("rtvtk-render".into()).spawn(move || run(crx, etx, wake, p, pr)).ok();
+        Worker { tx, rx, thread, pending, progress }
     }
 
     pub fn send(&self, cmd: Cmd) {
@@ -215,11 +222,19 @@ struct State {
     pipeline: Pipeline,
 }
 
+/// Segments a ray layer draws per frame while the camera moves, when full frames are slow.
+const PREVIEW_SEGMENTS: u64 = 200_000;
+/// Full frames slower than this get previews while the camera moves.
+const PREVIEW_ABOVE_MS: f64 = 100.0;
+/// The camera counts as resting after this long without a camera command.
+const PREVIEW_REST: std::time::Duration = std::time::Duration::from_millis(250);
+
 fn run(
     rx: Receiver<Cmd>,
     tx: Sender<Event>,
     wake: Arc<dyn Fn() + Send + Sync>,
     pending: Arc<std::sync::atomic::AtomicUsize>,
+    progress: Arc<viz::component::Progress>,
 ) {
     let send = |e: Event| {
         let _ = tx.send(e);
@@ -228,6 +243,10 @@ fn run(
     let mut state: Option<State> = None;
     let mut dirty = false;
     let mut refining = false;
+    // A preview frame was drawn while the camera moved: draw in full once it rests.
+    let mut full_pending = false;
+    // How long the last full frame took: previews only where full frames are slow.
+    let mut last_full_ms = 0.0f64;
     loop {
         let mut cmds = Vec::new();
         if dirty || refining {
@@ -238,6 +257,15 @@ fn run(
                     Err(TryRecvError::Disconnected) => return,
                 }
             }
+        } else if full_pending {
+            match rx.recv_timeout(PREVIEW_REST) {
+                Ok(c) => {
+                    cmds.push(c);
+                    cmds.extend(rx.try_iter());
+                }
+                Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {}
+                Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => return,
+            }
         } else {
             match rx.recv() {
                 Ok(c) => cmds.push(c),
@@ -246,6 +274,10 @@ fn run(
             cmds.extend(rx.try_iter());
         }
         let n = cmds.len();
+        if n > 0 {
+            // A cancel was for the load that ran before these commands.
+            progress.reset();
+        }
         // Only the last camera and size count.
         let last_camera = cmds.iter().rposition(|c| matches!(c, Cmd::Camera(_)));
         let last_size = cmds.iter().rposition(|c| matches!(c, Cmd::Resize(_)));
@@ -255,7 +287,7 @@ fn run(
                 Cmd::Camera(_) if Some(i) != last_camera => {}
                 Cmd::Resize(_) if Some(i) != last_size => {}
                 cmd => {
-                    if let Some(e) = apply(&mut state, cmd) {
+                    if let Some(e) = apply(&mut state, cmd, &progress) {
                         send(e);
                     }
                     dirty = true;
@@ -263,6 +295,15 @@ fn run(
             }
         }
         if let Some(s) = &mut state {
+            // While the camera moves and full frames are slow (millions of rays on a CPU
+            // rasterizer), the ray layers draw an evenly thinned preview; once no camera command
+            // came for PREVIEW_REST, everything again.
+            let preview = (last_camera.is_some() && last_full_ms > PREVIEW_ABOVE_MS).then_some(PREVIEW_SEGMENTS);
+            if s.pipeline.preview != preview {
+                s.pipeline.preview = preview;
+                dirty = true;
+            }
+            full_pending = preview.is_some();
             match s.pipeline.idle() {
                 Ok(changed) => {
                     refining = changed;
@@ -281,6 +322,9 @@ fn run(
                     Ok(img) => {
                         let size = [img.width(), img.height()];
                         let ms = t0.elapsed().as_secs_f64() * 1e3;
+                        if s.pipeline.preview.is_none() {
+                            last_full_ms = ms;
+                        }
                         let camera = s.pipeline.camera();
                         send(Event::Frame(Rendered { size, rgba: img.into_raw(), ms, camera }));
                     }
@@ -307,6 +351,7 @@ fn layers(p: &Pipeline) -> Vec<LayerInfo> {
             legend: l.component.legend(),
             report: l.component.report(),
             renders: l.renders,
+            convergence: l.component.convergence(),
         })
         .collect()
 }
@@ -318,7 +363,7 @@ fn make(p: &mut Pipeline, spec: &LayerSpec) -> viz::Result<()> {
     Ok(())
 }
 
-fn apply(state: &mut Option<State>, cmd: Cmd) -> Option<Event> {
+fn apply(state: &mut Option<State>, cmd: Cmd, progress: &Arc<viz::component::Progress>) -> Option<Event> {
     let err = |layer, e: viz::Error| Some(Event::Error { layer, message: e.to_string() });
     if let Cmd::Open(source, specs) = cmd {
         let sources = match open(&source) {
@@ -341,6 +386,7 @@ fn apply(state: &mut Option<State>, cmd: Cmd) -> Option<Event> {
         let has_dataset = sources.dataset.is_some();
         let size = sources.image_size;
         let mut pipeline = Pipeline::new(gpu, sources);
+        pipeline.progress = progress.clone();
         let specs = if specs.is_empty() { default_layers(has_dataset, size) } else { specs };
         let mut failed = Vec::new();
         for spec in &specs {

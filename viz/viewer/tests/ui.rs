@@ -269,6 +269,10 @@ fn ctrl_click_traces_a_pixel_with_no_dataset() {
     assert_eq!(pixel, [px, py]);
     assert!(rays >= 2, "a camera ray and at least a shadow ray, got {rays}");
     assert!(errors(h.state()).is_empty(), "{:?}", errors(h.state()));
+    // The image layer path-traces progressively: the Plots tab draws its convergence curve.
+    wait(&mut h, "a convergence curve", |v| v.state.layers.iter().any(|l| l.convergence.len() >= 3));
+    click(&mut h, "Plots");
+    h.get_by_label_contains("Convergence of the progressive image");
 }
 
 #[test]
@@ -355,6 +359,12 @@ fn the_console_runs_against_a_flight_sql_service_and_survives_losing_it() {
         .build_ui_state(|ui, v: &mut Viewer| v.ui(ui), v);
     wait(&mut h, "the dataset and the connection", ready);
     assert!(matches!(h.state().queries.target, rtvtk_viewer::query_service::Target::Flight { .. }));
+    // The console lists the service's tables and functions (asked through information_schema).
+    let (tables, functions) = h.state().queries.catalog();
+    for t in ["rays", "trees", "bvh_nodes"] {
+        assert!(tables.iter().any(|n| n == t), "{t} in {tables:?}");
+    }
+    assert!(functions.iter().any(|f| f == "aims_at_light"), "{functions:?}");
     h.state_mut().state.console.sql = "SELECT count(*) AS n FROM rays".into();
     h.run_steps(2);
     click(&mut h, "Run");
