@@ -2,25 +2,21 @@
 
 #[cfg(feature = "sql")]
 mod analyze;
+mod args;
 #[cfg(feature = "sql")]
 mod bench;
-#[cfg(feature = "sql")]
-mod bench_query;
-#[cfg(feature = "sql")]
-mod bench_record;
-#[cfg(feature = "sql")]
-mod bench_trace;
-#[cfg(feature = "sql")]
-mod bench_viz;
-mod commands;
-#[cfg(feature = "embree")]
-mod embree;
+mod check;
+mod converge;
+mod demo;
+mod export;
+mod info;
 mod record;
 mod render;
 #[cfg(feature = "sql")]
 mod serve;
 #[cfg(feature = "sql")]
 mod sql;
+mod tree;
 #[cfg(feature = "sql")]
 mod view;
 
@@ -46,7 +42,7 @@ enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
         /// Image size, WxH.
-        #[arg(long, default_value = "128x128", value_parser = commands::parse_size)]
+        #[arg(long, default_value = "128x128", value_parser = args::parse_size)]
         size: (u32, u32),
         /// Samples per pixel.
         #[arg(long, default_value_t = 8)]
@@ -65,7 +61,7 @@ enum Command {
     Converge {
         #[arg(long, default_value = "cornell")]
         scene: String,
-        #[arg(long, default_value = "96x96", value_parser = commands::parse_size)]
+        #[arg(long, default_value = "96x96", value_parser = args::parse_size)]
         size: (u32, u32),
         /// Samples per pixel of the reference image.
         #[arg(long, default_value_t = 1024)]
@@ -89,7 +85,7 @@ enum Command {
     Tree {
         dataset: PathBuf,
         /// The pixel whose trees to print, X,Y.
-        #[arg(long, value_parser = commands::parse_pixel, conflicts_with = "tree", required_unless_present = "tree")]
+        #[arg(long, value_parser = args::parse_pixel, conflicts_with = "tree", required_unless_present = "tree")]
         pixel: Option<(u32, u32)>,
         /// Only this sample of the pixel.
         #[arg(long, requires = "pixel")]
@@ -182,20 +178,20 @@ fn main() {
         keep_freed_memory();
     }
     let result: Result<i32> = match cli.command {
-        Command::Demo { out, size, spp, threads } => commands::demo(out, size, spp, threads).map(|_| 0),
+        Command::Demo { out, size, spp, threads } => demo::run(out, size, spp, threads).map(|_| 0),
         Command::Converge { scene, size, reference_spp, spp, out, threads } => {
-            commands::converge(&scene, size, reference_spp, &spp, &out, threads).map(|_| 0)
+            converge::run(&scene, size, reference_spp, &spp, &out, threads).map(|_| 0)
         }
         Command::Record(args) => record::run(&args).map(|_| 0),
         Command::Render(args) => render::run(&args).map(|_| 0),
         #[cfg(feature = "sql")]
         Command::View(args) => view::run(&args).map(|_| 0),
-        Command::Info { dataset, json } => commands::info(&dataset, json).map(|_| 0),
+        Command::Info { dataset, json } => info::run(&dataset, json).map(|_| 0),
         Command::Tree { dataset, pixel, sample, tree, json } => {
-            commands::tree(&dataset, pixel, sample, tree, json).map(|_| 0)
+            tree::run(&dataset, pixel, sample, tree, json).map(|_| 0)
         }
-        Command::Check { dataset, json } => commands::check(&dataset, json),
-        Command::Export { dataset, out } => commands::export(&dataset, &out).map(|_| 0),
+        Command::Check { dataset, json } => check::run(&dataset, json),
+        Command::Export { dataset, out } => export::run(&dataset, &out).map(|_| 0),
         #[cfg(feature = "sql")]
         Command::Sql(args) => sql::run(&args).map(|_| 0),
         #[cfg(feature = "sql")]

@@ -29,7 +29,7 @@ pub struct RecordArgs {
     #[arg(long, default_value_t = 16)]
     pub spp: u32,
     /// Image size, WxH.
-    #[arg(long, default_value = "256x256", value_parser = crate::commands::parse_size)]
+    #[arg(long, default_value = "256x256", value_parser = crate::args::parse_size)]
     pub size: (u32, u32),
     /// Dataset directory to write (required unless --no-record).
     #[arg(long, required_unless_present = "no_record")]
@@ -40,7 +40,7 @@ pub struct RecordArgs {
     #[arg(long, value_parser = parse_window)]
     pub window: Option<[u32; 4]>,
     /// Only this pixel, X,Y (with --sample: only that sample, traced exactly as in a full render).
-    #[arg(long, value_parser = crate::commands::parse_pixel, conflicts_with = "window")]
+    #[arg(long, value_parser = crate::args::parse_pixel, conflicts_with = "window")]
     pub pixel: Option<(u32, u32)>,
     #[arg(long, requires = "pixel")]
     pub sample: Option<u32>,

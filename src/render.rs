@@ -25,7 +25,7 @@ pub struct RenderArgs {
     #[arg(long, conflicts_with = "pixel")]
     pub tree: Option<u64>,
     /// Rays of the trees of this pixel only, X,Y.
-    #[arg(long, value_parser = crate::commands::parse_pixel)]
+    #[arg(long, value_parser = crate::args::parse_pixel)]
     pub pixel: Option<(u32, u32)>,
     /// Rays of this sample only.
     #[arg(long)]
@@ -52,7 +52,7 @@ pub struct RenderArgs {
     #[arg(long, value_parser = parse_camera)]
     pub camera: Option<ViewCamera>,
     /// Picture size WxH (default: the dataset's image size).
-    #[arg(long, value_parser = crate::commands::parse_size)]
+    #[arg(long, value_parser = crate::args::parse_size)]
     pub size: Option<(u32, u32)>,
     /// Ray line width in pixels.
     #[arg(long, default_value_t = 1.5)]

@@ -115,7 +115,9 @@ async fn prompt(ctx: &datafusion::prelude::SessionContext, a: &SqlArgs) -> Resul
     if let Some(h) = &history {
         let _ = rl.load_history(h);
     }
-    eprintln!("rtvtk sql: statements end with ';'. \\d lists tables, \\d TABLE its columns, \\q quits.");
+    eprintln!(
+        "rtvtk sql: statements end with ';'. \\d lists tables, \\d TABLE its columns, \\df the ray functions, \\df NAME any function, \\q quits."
+    );
     let mut buffer = String::new();
     loop {
         let line = match rl.readline(if buffer.is_empty() { "rtvtk> " } else { "   ... " }) {
@@ -145,8 +147,9 @@ async fn prompt(ctx: &datafusion::prelude::SessionContext, a: &SqlArgs) -> Resul
                         table.replace('\'', "''")
                     )
                 }
+                (Some("\\df"), name) => df_query(name),
                 _ => {
-                    eprintln!("unknown command {trimmed:?}: \\d, \\d TABLE or \\q");
+                    eprintln!("unknown command {trimmed:?}: \\d, \\d TABLE, \\df, \\df NAME or \\q");
                     continue;
                 }
             };
@@ -225,4 +228,21 @@ fn write(batches: &[RecordBatch], format: Format, out: Option<&std::path::Path>)
         }
     }
     Ok(())
+}
+
+/// The query behind `\df` (the ray functions, with their descriptions) and `\df NAME` (any
+/// function): DataFusion's `information_schema.routines`, which carries each function's
+/// documentation.
+fn df_query(name: Option<&str>) -> String {
+    let filter = match name {
+        Some(n) => format!("routine_name = '{}'", n.replace('\'', "''")),
+        None => {
+            let names: Vec<String> = query::RAY_FUNCTIONS.iter().map(|f| format!("'{}'", f.name)).collect();
+            format!("routine_name IN ({})", names.join(", "))
+        }
+    };
+    format!(
+        "SELECT DISTINCT routine_name AS function, function_type, syntax_example, description \
+         FROM information_schema.routines WHERE {filter} ORDER BY function"
+    )
 }

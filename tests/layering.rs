@@ -1,7 +1,9 @@
 #![allow(clippy::unwrap_used)]
-//! The dependency direction of the workspace, checked over `cargo metadata`:
-//! store <- rl <- renderers; store <- query; viz may use all; nothing below viz pulls in
-//! wgpu/egui; rl and store never pull in datafusion; no cycles.
+//! The dependency direction of the workspace, checked over `cargo metadata` (tests'
+//! dev-dependencies included): store <- rl <- renderers; store <- query; viz may use all;
+//! nothing below viz pulls in wgpu/egui; rl and store never pull in datafusion; the demo's build
+//! (`--no-default-features`) pulls in no SQL engine and no GUI; and inside each crate no two
+//! modules import each other, directly or around a circle.
 
 use std::collections::{BTreeSet, HashMap};
 use std::process::Command;
@@ -13,6 +15,8 @@ struct Graph {
     names: HashMap<String, String>,
     /// Normal (non-dev) dependencies by package id.
     deps: HashMap<String, Vec<String>>,
+    /// Dev-dependencies by package id.
+    dev: HashMap<String, Vec<String>>,
 }
 
 fn graph() -> Graph {
@@ -29,7 +33,16 @@ fn graph() -> Graph {
         names.insert(p["id"].as_str().unwrap().to_string(), p["name"].as_str().unwrap().to_string());
     }
     let mut deps = HashMap::new();
+    let mut dev = HashMap::new();
     for n in v["resolve"]["nodes"].as_array().unwrap() {
+        let dev_only: Vec<String> = n["deps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|d| d["dep_kinds"].as_array().unwrap().iter().any(|k| k["kind"] == "dev"))
+            .map(|d| d["pkg"].as_str().unwrap().to_string())
+            .collect();
+        dev.insert(n["id"].as_str().unwrap().to_string(), dev_only);
         let normal: Vec<String> = n["deps"]
             .as_array()
             .unwrap()
@@ -39,7 +52,7 @@ fn graph() -> Graph {
             .collect();
         deps.insert(n["id"].as_str().unwrap().to_string(), normal);
     }
-    Graph { names, deps }
+    Graph { names, deps, dev }
 }
 
 impl Graph {
@@ -49,8 +62,22 @@ impl Graph {
 
     /// Every package `name` pulls in (transitively, normal and build dependencies).
     fn closure(&self, name: &str) -> BTreeSet<String> {
+        self.closure_from(vec![self.id(name)])
+    }
+
+    /// Every package `name`'s tests pull in: its dev-dependencies and everything they need.
+    fn test_closure(&self, name: &str) -> BTreeSet<String> {
+        let id = self.id(name);
+        let mut start = self.dev.get(&id).cloned().unwrap_or_default();
+        start.push(id);
+        let mut c = self.closure_from(start.clone());
+        c.extend(start.iter().map(|i| self.names[i].clone()).filter(|n| n != name));
+        c
+    }
+
+    fn closure_from(&self, start: Vec<String>) -> BTreeSet<String> {
         let mut seen = BTreeSet::new();
-        let mut stack = vec![self.id(name)];
+        let mut stack = start;
         while let Some(id) = stack.pop() {
             for d in self.deps.get(&id).into_iter().flatten() {
                 if seen.insert(d.clone()) {
@@ -63,10 +90,11 @@ impl Graph {
 }
 
 fn forbid(g: &Graph, krate: &str, banned: &[&str]) {
-    let c = g.closure(krate);
-    for b in banned {
-        let hits: Vec<_> = c.iter().filter(|n| n == b || n.starts_with(&format!("{b}-"))).collect();
-        assert!(hits.is_empty(), "{krate} must not depend on {b}, but pulls in {hits:?}");
+    for (what, c) in [("", g.closure(krate)), (" (in its tests)", g.test_closure(krate))] {
+        for b in banned {
+            let hits: Vec<_> = c.iter().filter(|n| n == b || n.starts_with(&format!("{b}-"))).collect();
+            assert!(hits.is_empty(), "{krate} must not depend on {b}{what}, but pulls in {hits:?}");
+        }
     }
 }
 
@@ -91,10 +119,131 @@ fn dependency_direction_holds() {
     assert!(g.closure("rtvtk-query").contains("rtvtk-store"));
 }
 
+/// The packages `cargo build -p PACKAGE --no-default-features` builds (normal and build
+/// dependencies, as `cargo tree` resolves them).
+fn minimal_build(package: &str) -> BTreeSet<String> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(cargo)
+        .args(["tree", "--offline", "-p", package, "--no-default-features", "-e", "normal,build"])
+        .args(["--prefix", "none", "-f", "{p}"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .filter_map(|l| l.split_whitespace().next().map(str::to_string))
+        .collect()
+}
+
 #[test]
-fn no_workspace_cycles() {
-    let g = graph();
-    for krate in ["rtvtk-store", "rl", "rtvtk-query", "rtvtk-renderers", "rtvtk-viz", "rtvtk-viewer", "rtvtk"] {
-        assert!(!g.closure(krate).contains(krate), "{krate} depends on itself");
+fn the_demo_build_has_no_sql_engine_and_no_gui() {
+    // `cargo run --no-default-features -- demo`, the README's first command (issue 29).
+    for package in ["rtvtk", "rtvtk-viz"] {
+        let c = minimal_build(package);
+        assert!(c.contains("wgpu") && c.contains("parquet"), "{package}: {c:?}");
+        for banned in ["datafusion", "tonic", "arrow-flight", "egui", "eframe", "winit", "rtvtk-query", "rtvtk-viewer"]
+        {
+            assert!(!c.contains(banned), "{package} --no-default-features must not build {banned}");
+        }
     }
+}
+
+/// The modules of the crate under `src` and the modules each one names as `crate::NAME` (test
+/// modules left out): top-level modules only, `lib.rs`/`main.rs` being the root.
+fn module_graph(src: &std::path::Path) -> std::collections::BTreeMap<String, BTreeSet<String>> {
+    let mut g: std::collections::BTreeMap<String, BTreeSet<String>> = Default::default();
+    let mut dirs = vec![src.to_path_buf()];
+    while let Some(d) = dirs.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                dirs.push(p);
+                continue;
+            }
+            if p.extension().is_none_or(|x| x != "rs") {
+                continue;
+            }
+            let rel = p.strip_prefix(src).unwrap();
+            let first = rel.components().next().unwrap().as_os_str().to_string_lossy().to_string();
+            let module = first.trim_end_matches(".rs").to_string();
+            if module == "lib" || module == "main" {
+                continue;
+            }
+            let text = std::fs::read_to_string(&p).unwrap();
+            let code = text.split("#[cfg(test)]").next().unwrap_or("");
+            let uses = g.entry(module.clone()).or_default();
+            for (i, _) in code.match_indices("crate::") {
+                let name: String =
+                    code[i + 7..].chars().take_while(|c| c.is_ascii_alphanumeric() || *c == '_').collect();
+                if !name.is_empty() && name != module {
+                    uses.insert(name);
+                }
+            }
+        }
+    }
+    let known: BTreeSet<String> = g.keys().cloned().collect();
+    for uses in g.values_mut() {
+        uses.retain(|u| known.contains(u));
+    }
+    g
+}
+
+/// A circle of modules, if there is one (depth-first search).
+fn circle(g: &std::collections::BTreeMap<String, BTreeSet<String>>) -> Option<Vec<String>> {
+    fn visit(
+        g: &std::collections::BTreeMap<String, BTreeSet<String>>,
+        m: &str,
+        state: &mut HashMap<String, bool>,
+        path: &mut Vec<String>,
+    ) -> Option<Vec<String>> {
+        state.insert(m.to_string(), false);
+        path.push(m.to_string());
+        for n in g.get(m).into_iter().flatten() {
+            match state.get(n) {
+                Some(false) => {
+                    let start = path.iter().position(|p| p == n).unwrap();
+                    let mut c = path[start..].to_vec();
+                    c.push(n.clone());
+                    return Some(c);
+                }
+                Some(true) => {}
+                None => {
+                    if let Some(c) = visit(g, n, state, path) {
+                        return Some(c);
+                    }
+                }
+            }
+        }
+        path.pop();
+        state.insert(m.to_string(), true);
+        None
+    }
+    let mut state = HashMap::new();
+    for m in g.keys() {
+        if !state.contains_key(m)
+            && let Some(c) = visit(g, m, &mut state, &mut Vec::new())
+        {
+            return Some(c);
+        }
+    }
+    None
+}
+
+#[test]
+fn no_module_imports_itself_around_a_circle() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    for dir in ["store/src", "rl-writer/src", "query/src", "renderers/src", "viz/src", "viz/viewer/src", "src"] {
+        let g = module_graph(&root.join(dir));
+        assert!(g.len() > 3, "{dir}: modules found {g:?}");
+        if let Some(c) = circle(&g) {
+            panic!("{dir}: modules import each other around a circle: {}", c.join(" -> "));
+        }
+    }
+    // The check can fail: a circle is found where there is one.
+    let mut g: std::collections::BTreeMap<String, BTreeSet<String>> = Default::default();
+    g.insert("a".into(), ["b".to_string()].into());
+    g.insert("b".into(), ["c".to_string()].into());
+    g.insert("c".into(), ["a".to_string()].into());
+    assert_eq!(circle(&g).unwrap(), ["a", "b", "c", "a"]);
 }

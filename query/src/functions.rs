@@ -44,6 +44,146 @@ use store::Dataset;
 
 use crate::Result;
 
+/// A ray function's documentation.
+#[derive(Clone, Copy, Debug)]
+pub struct RayFunction {
+    pub name: &'static str,
+    pub description: &'static str,
+    pub example: &'static str,
+    /// (argument, meaning)
+    pub args: &'static [(&'static str, &'static str)],
+}
+
+const fn f(
+    name: &'static str,
+    description: &'static str,
+    example: &'static str,
+    args: &'static [(&'static str, &'static str)],
+) -> RayFunction {
+    RayFunction { name, description, example, args }
+}
+
+/// What each ray function is, for `SHOW FUNCTIONS`, `information_schema.routines` and
+/// `rtvtk sql`'s `\df`.
+pub const RAY_FUNCTIONS: [RayFunction; 9] = [
+    f(
+        "octant",
+        "Octant of a direction: bit 0 set for dx < 0, bit 1 for dy < 0, bit 2 for dz < 0 (UInt8); NULL for NULL, NaN or infinite components.",
+        "octant(dir_x, dir_y, dir_z)",
+        &[("dx, dy, dz", "the direction")],
+    ),
+    f(
+        "angle_between",
+        "Angle between two directions in radians (Float64, 0..pi); NULL when either is zero, NaN or infinite.",
+        "angle_between(dir_x, dir_y, dir_z, 0, -1, 0)",
+        &[("ax, ay, az", "the first direction"), ("bx, by, bz", "the second direction")],
+    ),
+    f(
+        "dir_bin",
+        "Cell of a direction on an n x n octahedral map (UInt32, 0..n*n); NULL for a zero direction or n outside 1..=65535.",
+        "dir_bin(dir_x, dir_y, dir_z, 16)",
+        &[("dx, dy, dz", "the direction"), ("n", "cells per side of the map")],
+    ),
+    f(
+        "ray_aabb_hit",
+        "Whether the ray (t >= 0) enters the axis-aligned box (Boolean, slab test).",
+        "ray_aabb_hit(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, min_x, min_y, min_z, max_x, max_y, max_z)",
+        &[("ox, oy, oz", "the origin"), ("dx, dy, dz", "the direction"), ("min_*, max_*", "the box corners")],
+    ),
+    f(
+        "morton3",
+        "Morton code (UInt64) of a point's cell over the scene bounds (origins and hit points of the session's first dataset), `bits` per axis.",
+        "morton3(origin_x, origin_y, origin_z, 10)",
+        &[("x, y, z", "the point"), ("bits", "bits per axis, 1..=21")],
+    ),
+    f(
+        "aims_at_light",
+        "Whether the ray's line hits an emitter triangle of the scene (its `lights` table) in front of its origin (Boolean, watertight test): false for a shadow ray that points at no light, the paper's bug.",
+        "aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)",
+        &[("ox, oy, oz", "the origin"), ("dx, dy, dz", "the direction")],
+    ),
+    f(
+        "ray_point",
+        "The point o + t*d as a struct {x, y, z} of Float64 (`ray_point(..)['x']`); NULL for a miss (NULL t).",
+        "ray_point(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t)['x']",
+        &[("ox, oy, oz", "the origin"), ("dx, dy, dz", "the direction"), ("t", "the distance along it")],
+    ),
+    f(
+        "dir_coherence",
+        "Aggregate: mean resultant length of the normalized directions (Float64): 1 when all are parallel, near 0 for directions spread over the sphere.",
+        "dir_coherence(dir_x, dir_y, dir_z)",
+        &[("dx, dy, dz", "the directions")],
+    ),
+    f(
+        "origin_spread",
+        "Aggregate: root-mean-square distance of the points from their centroid (Float64), numerically stable far from the origin.",
+        "origin_spread(origin_x, origin_y, origin_z)",
+        &[("x, y, z", "the points")],
+    ),
+];
+
+/// The documentation of ray function `name` (from [`RAY_FUNCTIONS`]).
+fn documentation_of(name: &str) -> Option<datafusion::logical_expr::Documentation> {
+    let RayFunction { description, example, args, .. } = RAY_FUNCTIONS.iter().find(|f| f.name == name)?;
+    let section = datafusion::logical_expr::DocSection {
+        include: true,
+        label: "Ray functions (rtvtk)",
+        description: Some("functions over the rays of a trace"),
+    };
+    let mut b = datafusion::logical_expr::Documentation::builder(section, *description, *example);
+    for (arg, what) in args.iter() {
+        b = b.with_argument(*arg, *what);
+    }
+    Some(b.build())
+}
+
+/// A ray function with its documentation: a `ScalarUDFImpl` over the function's kernel, so
+/// `SHOW FUNCTIONS` and `information_schema.routines` describe it.
+#[derive(Debug, PartialEq, Eq, Hash)]
+struct Documented {
+    inner: ScalarUDF,
+    doc: Option<datafusion::logical_expr::Documentation>,
+}
+
+impl datafusion::logical_expr::ScalarUDFImpl for Documented {
+    fn name(&self) -> &str {
+        self.inner.name()
+    }
+    fn aliases(&self) -> &[String] {
+        self.inner.aliases()
+    }
+    fn signature(&self) -> &Signature {
+        self.inner.signature()
+    }
+    fn return_type(&self, arg_types: &[DataType]) -> datafusion::error::Result<DataType> {
+        self.inner.return_type(arg_types)
+    }
+    fn return_field_from_args(
+        &self,
+        args: datafusion::logical_expr::ReturnFieldArgs,
+    ) -> datafusion::error::Result<FieldRef> {
+        self.inner.return_field_from_args(args)
+    }
+    fn invoke_with_args(
+        &self,
+        args: datafusion::logical_expr::ScalarFunctionArgs,
+    ) -> datafusion::error::Result<ColumnarValue> {
+        self.inner.invoke_with_args(args)
+    }
+    fn coerce_types(&self, arg_types: &[DataType]) -> datafusion::error::Result<Vec<DataType>> {
+        self.inner.coerce_types(arg_types)
+    }
+    fn documentation(&self) -> Option<&datafusion::logical_expr::Documentation> {
+        self.doc.as_ref()
+    }
+}
+
+/// `udf` with its entry of [`RAY_FUNCTIONS`] as documentation.
+fn documented(udf: ScalarUDF) -> ScalarUDF {
+    let doc = documentation_of(udf.name());
+    ScalarUDF::new_from_impl(Documented { inner: udf, doc })
+}
+
 /// What scene-dependent functions know about the scene.
 #[derive(Clone, Debug, Default)]
 pub struct SceneContext {
@@ -604,6 +744,7 @@ impl<S: XyzStat> GroupsAccumulator for XyzGroups<S> {
 #[derive(Debug)]
 struct XyzUdaf<S> {
     signature: Signature,
+    doc: Option<datafusion::logical_expr::Documentation>,
     stat: PhantomData<fn() -> S>,
 }
 
@@ -622,6 +763,9 @@ impl<S> std::hash::Hash for XyzUdaf<S> {
 }
 
 impl<S: XyzStat> AggregateUDFImpl for XyzUdaf<S> {
+    fn documentation(&self) -> Option<&datafusion::logical_expr::Documentation> {
+        self.doc.as_ref()
+    }
     fn name(&self) -> &str {
         S::NAME
     }
@@ -659,7 +803,11 @@ impl<S: XyzStat> AggregateUDFImpl for XyzUdaf<S> {
 }
 
 fn xyz_aggregate<S: XyzStat>() -> AggregateUDF {
-    AggregateUDF::from(XyzUdaf::<S> { signature: float_signature(3, false), stat: PhantomData })
+    AggregateUDF::from(XyzUdaf::<S> {
+        signature: float_signature(3, false),
+        doc: documentation_of(S::NAME),
+        stat: PhantomData,
+    })
 }
 
 /// Float64 state columns (`N` of them, from `first`).
@@ -801,30 +949,65 @@ impl XyzStat for Spread {
 
 /// Registers every ray function in `ctx`, scene-dependent ones over `scene`.
 pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
-    ctx.register_udf(ray_point_udf());
+    ctx.register_udf(documented(ray_point_udf()));
     ctx.register_udaf(xyz_aggregate::<Coherence>());
     ctx.register_udaf(xyz_aggregate::<Spread>());
-    ctx.register_udf(octant_udf());
-    ctx.register_udf(rowwise::<6, _, Float64Array>("angle_between", false, DataType::Float64, |v, _| {
+    ctx.register_udf(documented(octant_udf()));
+    ctx.register_udf(documented(rowwise::<6, _, Float64Array>("angle_between", false, DataType::Float64, |v, _| {
         angle([v[0], v[1], v[2]], [v[3], v[4], v[5]])
-    }));
-    ctx.register_udf(rowwise::<3, _, UInt32Array>("dir_bin", true, DataType::UInt32, |d, n| {
+    })));
+    ctx.register_udf(documented(rowwise::<3, _, UInt32Array>("dir_bin", true, DataType::UInt32, |d, n| {
         let n = n.filter(|n| (1..=65535).contains(n))? as u32;
         octahedral_bin(d, n)
-    }));
-    ctx.register_udf(rowwise::<12, _, BooleanArray>("ray_aabb_hit", false, DataType::Boolean, |v, _| {
+    })));
+    ctx.register_udf(documented(rowwise::<12, _, BooleanArray>("ray_aabb_hit", false, DataType::Boolean, |v, _| {
         Some(slab_hit([v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]], [v[9], v[10], v[11]]))
-    }));
-    ctx.register_udf(morton_udf(scene.bounds));
-    ctx.register_udf(rowwise::<6, _, BooleanArray>("aims_at_light", false, DataType::Boolean, move |v, _| {
-        let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
-        Some(scene.lights.iter().any(|t| hits_triangle(o, d, t)))
-    }));
+    })));
+    ctx.register_udf(documented(morton_udf(scene.bounds)));
+    ctx.register_udf(documented(rowwise::<6, _, BooleanArray>(
+        "aims_at_light",
+        false,
+        DataType::Boolean,
+        move |v, _| {
+            let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
+            Some(scene.lights.iter().any(|t| hits_triangle(o, d, t)))
+        },
+    )));
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_ray_function_is_documented_in_the_session() {
+        let ctx =
+            SessionContext::new_with_config(datafusion::prelude::SessionConfig::new().with_information_schema(true));
+        register_functions(&ctx, Arc::new(SceneContext::default()));
+        let rt = tokio::runtime::Builder::new_current_thread().build().unwrap();
+        let batches = rt
+            .block_on(async {
+                ctx.sql("SELECT routine_name, description, syntax_example FROM information_schema.routines")
+                    .await?
+                    .collect()
+                    .await
+            })
+            .unwrap();
+        let mut found = std::collections::BTreeMap::new();
+        for b in &batches {
+            let text = |i: usize| arrow::compute::cast(b.column(i), &DataType::Utf8).unwrap();
+            let (n, d, e) = (text(0), text(1), text(2));
+            let (n, d, e) = (n.as_string::<i32>(), d.as_string::<i32>(), e.as_string::<i32>());
+            for r in 0..b.num_rows() {
+                found.insert(n.value(r).to_string(), (d.value(r).to_string(), e.value(r).to_string()));
+            }
+        }
+        for RayFunction { name, description, example, .. } in RAY_FUNCTIONS {
+            let (d, e) = found.get(name).unwrap_or_else(|| panic!("{name} is not in information_schema.routines"));
+            assert_eq!((d.as_str(), e.as_str()), (description, example), "{name}");
+            assert!(example.starts_with(name), "{name}: {example}");
+        }
+    }
 
     #[test]
     fn spread_is_exact_far_from_the_origin_and_merges() {

@@ -12,6 +12,6 @@ mod tables;
 
 pub use count_by_key::{CountByKey, CountByKeyExec};
 pub use error::{Error, Result};
-pub use functions::{SceneContext, register_functions};
+pub use functions::{RAY_FUNCTIONS, RayFunction, SceneContext, register_functions};
 pub use small_groups::{SmallGroups, SmallGroupsExec};
 pub use tables::{SessionOptions, TraceSource, physical_optimizer_rules, register_dataset, session, session_with};

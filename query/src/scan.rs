@@ -671,8 +671,27 @@ impl ExecutionPlan for RaysScanExec {
         partition: usize,
         _context: Arc<TaskContext>,
     ) -> datafusion::error::Result<SendableRecordBatchStream> {
-        Ok(crate::tables::stream(&self.schema, self.batches(partition)))
+        Ok(stream(&self.schema, self.batches(partition)))
     }
+}
+
+/// A record-batch stream of the batches a store call yields (or of its error).
+pub(crate) fn stream<I>(
+    schema: &arrow::datatypes::SchemaRef,
+    batches: store::Result<I>,
+) -> datafusion::execution::SendableRecordBatchStream
+where
+    I: Iterator<Item = store::Result<arrow::array::RecordBatch>> + Send + 'static,
+{
+    let external = |e: store::Error| datafusion::error::DataFusionError::External(Box::new(e));
+    let batches: Box<dyn Iterator<Item = datafusion::error::Result<arrow::array::RecordBatch>> + Send> = match batches {
+        Ok(it) => Box::new(it.map(move |b| b.map_err(external))),
+        Err(e) => Box::new(std::iter::once(Err(external(e)))),
+    };
+    Box::pin(datafusion::physical_plan::stream::RecordBatchStreamAdapter::new(
+        schema.clone(),
+        futures::stream::iter(batches),
+    ))
 }
 
 #[cfg(test)]

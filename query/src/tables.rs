@@ -19,20 +19,18 @@ use datafusion::common::TableReference;
 use datafusion::datasource::TableProvider;
 use datafusion::datasource::file_format::parquet::ParquetFormat;
 use datafusion::datasource::listing::{ListingOptions, ListingTable, ListingTableConfig, ListingTableUrl};
-use datafusion::error::DataFusionError;
 use datafusion::execution::TaskContext;
 use datafusion::execution::session_state::SessionStateBuilder;
 use datafusion::physical_optimizer::PhysicalOptimizerRule;
 use datafusion::physical_optimizer::optimizer::PhysicalOptimizer;
 use datafusion::physical_plan::SendableRecordBatchStream;
-use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
 use datafusion::physical_plan::streaming::PartitionStream;
 use datafusion::prelude::{SessionConfig, SessionContext};
 use store::Dataset;
 
 use crate::count_by_key::CountByKey;
 use crate::functions::{SceneContext, register_functions};
-use crate::scan::RaysTable;
+use crate::scan::{RaysTable, stream};
 use crate::small_groups::SmallGroups;
 use crate::{Error, Result};
 
@@ -310,17 +308,4 @@ fn ray_paths_table(ds: &Arc<Dataset>) -> Result<Arc<dyn TableProvider>> {
         })
         .collect();
     Ok(Arc::new(StreamingTable::try_new(schema, partitions)?))
-}
-
-/// A record-batch stream of the batches a store call yields (or of its error).
-pub(crate) fn stream<I>(schema: &SchemaRef, batches: store::Result<I>) -> SendableRecordBatchStream
-where
-    I: Iterator<Item = store::Result<RecordBatch>> + Send + 'static,
-{
-    let external = |e: store::Error| DataFusionError::External(Box::new(e));
-    let batches: Box<dyn Iterator<Item = datafusion::error::Result<RecordBatch>> + Send> = match batches {
-        Ok(it) => Box::new(it.map(move |b| b.map_err(external))),
-        Err(e) => Box::new(std::iter::once(Err(external(e)))),
-    };
-    Box::pin(RecordBatchStreamAdapter::new(schema.clone(), futures::stream::iter(batches)))
 }

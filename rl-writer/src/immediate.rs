@@ -8,7 +8,7 @@ use std::sync::{Arc, RwLock};
 use arrow::array::RecordBatch;
 use store::{Kind, KindTable, PayloadSchema, RayRows, RowLayout, Stats, Tree, TreeId, TreeInfo, TreeRow};
 
-use crate::recorder::{Sink, Summary};
+use crate::sink::{Sink, Summary};
 use crate::{Error, Result};
 
 struct MemChunk {

@@ -7,13 +7,15 @@ mod error;
 mod immediate;
 mod reader;
 mod recorder;
+mod sink;
 mod write;
 
 pub use arrow::datatypes::DataType;
 pub use error::{Error, Result};
 pub use immediate::MemoryTrace;
 pub use reader::{Reader, TraceSource};
-pub use recorder::{Payload, RayId, Recorder, RecorderOptions, Sink, Summary, TreeBuilder};
+pub use recorder::{Mode, Payload, RayId, Recorder, TreeBuilder};
+pub use sink::{RecorderOptions, Summary};
 pub use store::{
     BytesPayload, Dataset, Kind, ListValue, PayloadField, PayloadSchema, Ray, RayFields, Stats, Tree, TreeId, TreeInfo,
     Value, WriteOptions,

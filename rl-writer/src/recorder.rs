@@ -5,13 +5,12 @@ use std::cell::Cell;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, RwLock};
-use std::time::Duration;
 
-use store::{
-    KindTable, PayloadMismatch, PayloadSchema, RayFields, RayRows, RowLayout, TreeId, TreeRow, Value, WriteOptions,
-};
+use store::{KindTable, PayloadMismatch, PayloadSchema, RayFields, RayRows, RowLayout, TreeId, TreeRow, Value};
 
 use crate::immediate::{ImmediateSink, MemoryTrace};
+use crate::sink::Sink;
+pub use crate::sink::{RecorderOptions, Summary};
 use crate::write::WriteSink;
 use crate::{Error, Result};
 
@@ -38,77 +37,6 @@ impl<'a> Payload<'a> {
     /// Opaque bytes only.
     pub fn bytes(bytes: &'a [u8]) -> Self {
         Self { values: &[], bytes: Some(bytes) }
-    }
-}
-
-/// How a recorder records.
-#[derive(Clone, Debug)]
-pub struct RecorderOptions {
-    /// Typed payload columns and the optional bytes column.
-    pub payload: PayloadSchema,
-    /// Kinds registered by name up front (more may be registered while recording).
-    pub kinds: Vec<String>,
-    /// Bytes of sealed rays that may wait for the workers before `end_tree` blocks.
-    pub memory_budget: usize,
-    /// Rays gathered from the tracing threads before a chunk goes to a worker.
-    pub chunk_rays: usize,
-    /// Rays per segment file before it is sealed.
-    pub segment_rays: u64,
-    /// A segment holding rays is sealed at least this often, bounding what a crash can lose.
-    pub seal_interval: Duration,
-    /// Background threads that encode and write segments.
-    pub workers: usize,
-    /// Parquet settings of the segments.
-    pub write: WriteOptions,
-}
-
-impl Default for RecorderOptions {
-    fn default() -> Self {
-        Self {
-            payload: PayloadSchema::default(),
-            kinds: Vec::new(),
-            memory_budget: 256 << 20,
-            chunk_rays: 16 * 1024,
-            segment_rays: 4 << 20,
-            seal_interval: Duration::from_secs(2),
-            workers: 1,
-            write: WriteOptions::default(),
-        }
-    }
-}
-
-/// What a sink did, reported by `finish`.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
-pub struct Summary {
-    pub trees: u64,
-    pub rays: u64,
-    /// Segments sealed (write mode).
-    pub segments: u64,
-    /// Bytes of the sealed segment files (write mode).
-    pub bytes: u64,
-    /// Trees evicted from memory to stay under the budget (immediate mode).
-    pub evicted_trees: u64,
-    /// The most bytes of sealed rays waiting for the workers at once (write mode).
-    pub peak_buffered_bytes: u64,
-}
-
-/// Where sealed chunks of whole trees go: the one interface behind write and immediate mode.
-pub trait Sink: Send + Sync {
-    /// Takes a chunk of whole trees (as the tracing threads recorded them: rows); may block to
-    /// stay within the memory budget.
-    fn submit(&self, chunk: RayRows, kinds: &Arc<KindTable>);
-    /// Makes every submitted tree durable (write mode) or visible (immediate mode).
-    fn flush(&self, kinds: &Arc<KindTable>) -> Result<()>;
-    /// Flushes, stops background work and reports what was recorded.
-    fn finish(&self, kinds: &Arc<KindTable>) -> Result<Summary>;
-    /// Stores an optional whole-recording table (`bvh_nodes`, `lights`, ...).
-    fn write_table(&self, name: &str, batch: arrow::array::RecordBatch) -> Result<()>;
-    /// Records free-form facts about the recording (scene, tracer, seed, ...).
-    fn set_attributes(&self, attributes: Vec<(String, String)>) -> Result<()>;
-    /// An emptied chunk buffer handed back by the sink once it was done with it, for the next
-    /// chunk (so that the tracing threads refill memory already faulted in instead of fresh pages).
-    fn spare(&self) -> Option<RayRows> {
-        None
     }
 }
 
@@ -141,7 +69,7 @@ pub(crate) struct Inner {
     chunk_rays: usize,
     sink: Box<dyn Sink>,
     mistakes: Mutex<Mistakes>,
-    mode: &'static str,
+    mode: Mode,
 }
 
 impl Inner {
@@ -198,6 +126,24 @@ impl Inner {
     }
 }
 
+/// Where a recorder's trees go.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mode {
+    /// Into a dataset directory, by background workers (`Recorder::create`).
+    Write,
+    /// Into memory, readable while recording (`Recorder::immediate`).
+    Immediate,
+}
+
+impl Mode {
+    pub fn name(self) -> &'static str {
+        match self {
+            Mode::Write => "write",
+            Mode::Immediate => "immediate",
+        }
+    }
+}
+
 /// Records ray trees from any number of threads. Cheap to clone (shared handle).
 #[derive(Clone)]
 pub struct Recorder {
@@ -214,7 +160,7 @@ impl Recorder {
     pub fn create(dir: impl AsRef<Path>, options: RecorderOptions) -> Result<Recorder> {
         let kinds = registry(&options.kinds)?;
         let sink = WriteSink::start(dir.as_ref(), &options)?;
-        Ok(Self::with_sink(Box::new(sink), options, kinds, "write"))
+        Ok(Self::with_sink(Box::new(sink), options, kinds, Mode::Write))
     }
 
     /// Immediate mode: records into memory; the returned [`MemoryTrace`] reads it from any thread
@@ -224,11 +170,11 @@ impl Recorder {
         let kinds = registry(&options.kinds)?;
         let (sink, trace) = ImmediateSink::new(options.payload.clone(), options.memory_budget);
         options.chunk_rays = 0;
-        Ok((Self::with_sink(Box::new(sink), options, kinds, "immediate"), trace))
+        Ok((Self::with_sink(Box::new(sink), options, kinds, Mode::Immediate), trace))
     }
 
     /// A recorder over any sink.
-    pub fn with_sink(sink: Box<dyn Sink>, options: RecorderOptions, kinds: KindTable, mode: &'static str) -> Recorder {
+    fn with_sink(sink: Box<dyn Sink>, options: RecorderOptions, kinds: KindTable, mode: Mode) -> Recorder {
         let shards = (0..8)
             .map(|_| Padded(Mutex::new(Shard { cols: RayRows::new(&options.payload), pool: Vec::new(), open: 0 })))
             .collect();
@@ -247,8 +193,8 @@ impl Recorder {
         }
     }
 
-    /// `"write"` or `"immediate"`.
-    pub fn mode(&self) -> &'static str {
+    /// Where this recorder's trees go.
+    pub fn mode(&self) -> Mode {
         self.inner.mode
     }
 

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use store::{DatasetWriter, KindTable, RayRows, RowLayout, SegmentWriter};
 
 use crate::budget::Budget;
-use crate::recorder::{RecorderOptions, Sink, Summary};
+use crate::sink::{RecorderOptions, Sink, Summary};
 use crate::{Error, Result};
 
 /// Chunks that may wait for each writer thread before `end_tree` blocks (besides the byte budget).

@@ -3,12 +3,62 @@
 use std::collections::{BTreeMap, HashSet};
 use std::fs;
 
-use crate::dataset::{CheckReport, Dataset, crc_of, listed_files};
+use std::fs::File;
+use std::io::Read;
+use std::path::Path;
+
+use crate::dataset::Dataset;
+use crate::manifest::Manifest;
 use crate::stats::Stats;
 
 const MAX_PER_SEGMENT: usize = 20;
 
-pub(crate) fn check(ds: &Dataset) -> CheckReport {
+/// What `check` found.
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct CheckReport {
+    pub segments: usize,
+    pub trees: u64,
+    pub rays: u64,
+    /// Broken invariants: the dataset is not as its manifest says.
+    pub errors: Vec<String>,
+    /// Harmless leftovers (for example temporary files of an interrupted recording).
+    pub warnings: Vec<String>,
+}
+
+impl CheckReport {
+    pub fn is_ok(&self) -> bool {
+        self.errors.is_empty()
+    }
+}
+
+fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
+    let mut f = File::open(path)?;
+    let mut h = crc32fast::Hasher::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut n = 0u64;
+    loop {
+        let k = f.read(&mut buf)?;
+        if k == 0 {
+            break;
+        }
+        h.update(&buf[..k]);
+        n += k as u64;
+    }
+    Ok((h.finalize(), n))
+}
+
+fn listed_files(m: &Manifest) -> HashSet<String> {
+    m.segments.iter().flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()]).collect()
+}
+
+impl Dataset {
+    /// Verifies every invariant of the dataset; problems are collected, not returned as errors.
+    pub fn check(&self) -> CheckReport {
+        check(self)
+    }
+}
+
+fn check(ds: &Dataset) -> CheckReport {
     let m = ds.manifest();
     let mut r = CheckReport { segments: m.segments.len(), ..Default::default() };
     let mut all_ids: HashSet<u64> = HashSet::new();

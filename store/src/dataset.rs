@@ -1,9 +1,8 @@
 //! Reading a dataset: the manifest, the tree index, one tree by id or pixel, every tree in order,
 //! and `check`.
 
-use std::collections::{BTreeSet, HashMap, HashSet};
+use std::collections::{BTreeSet, HashMap};
 use std::fs::{self, File};
-use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
@@ -712,11 +711,6 @@ impl Dataset {
         }
     }
 
-    /// Verifies every invariant of the dataset; problems are collected, not returned as errors.
-    pub fn check(&self) -> CheckReport {
-        crate::check::check(self)
-    }
-
     /// Every tree of segment `i` in file order, given its tree table.
     pub(crate) fn trees_of_segment(&self, i: usize, entries: Vec<TreeEntry>) -> TreeIter<'_> {
         TreeIter {
@@ -927,44 +921,6 @@ fn check_schema(found: &SchemaRef, expected: &SchemaRef, path: &Path) -> Result<
         });
     }
     Ok(())
-}
-
-/// What `check` found.
-#[derive(Clone, Debug, Default, serde::Serialize)]
-pub struct CheckReport {
-    pub segments: usize,
-    pub trees: u64,
-    pub rays: u64,
-    /// Broken invariants: the dataset is not as its manifest says.
-    pub errors: Vec<String>,
-    /// Harmless leftovers (for example temporary files of an interrupted recording).
-    pub warnings: Vec<String>,
-}
-
-impl CheckReport {
-    pub fn is_ok(&self) -> bool {
-        self.errors.is_empty()
-    }
-}
-
-pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
-    let mut f = File::open(path)?;
-    let mut h = crc32fast::Hasher::new();
-    let mut buf = vec![0u8; 1 << 20];
-    let mut n = 0u64;
-    loop {
-        let k = f.read(&mut buf)?;
-        if k == 0 {
-            break;
-        }
-        h.update(&buf[..k]);
-        n += k as u64;
-    }
-    Ok((h.finalize(), n))
-}
-
-pub(crate) fn listed_files(m: &Manifest) -> HashSet<String> {
-    m.segments.iter().flat_map(|s| [s.rays.path.clone(), s.trees.path.clone()]).collect()
 }
 
 /// The first row of each row group of a file.

@@ -156,6 +156,21 @@ impl ViewUniform {
     }
 }
 
+/// Where the scene sits: positions on the GPU are relative to `anchor`; `radius` bounds the
+/// scene around it (for the depth range).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Frame {
+    pub anchor: [f64; 3],
+    pub radius: f64,
+}
+
+impl Frame {
+    /// A scene-space point as the f32 the GPU draws (subtracted in f64).
+    pub fn local(&self, p: [f64; 3]) -> [f32; 3] {
+        [(p[0] - self.anchor[0]) as f32, (p[1] - self.anchor[1]) as f32, (p[2] - self.anchor[2]) as f32]
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

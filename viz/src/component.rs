@@ -48,20 +48,7 @@ impl LayerTarget {
     }
 }
 
-/// Where the scene sits: positions on the GPU are relative to `anchor`; `radius` bounds the
-/// scene around it (for the depth range).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Frame {
-    pub anchor: [f64; 3],
-    pub radius: f64,
-}
-
-impl Frame {
-    /// A scene-space point as the f32 the GPU draws (subtracted in f64).
-    pub fn local(&self, p: [f64; 3]) -> [f32; 3] {
-        [(p[0] - self.anchor[0]) as f32, (p[1] - self.anchor[1]) as f32, (p[2] - self.anchor[2]) as f32]
-    }
-}
+pub use crate::camera::Frame;
 
 /// Arguments of [`Component::render`].
 pub struct RenderCtx<'a> {
@@ -158,7 +145,7 @@ pub struct TraceCtx<'a> {
     pub height: u32,
 }
 
-/// The small target a pick draws into: ids ([`crate::draw::PICK_FORMAT`]) and depth, `size`
+/// The small target a pick draws into: ids ([`crate::gpu::PICK_FORMAT`]) and depth, `size`
 /// pixels square around the cursor, shared by every pickable layer so the nearest item wins.
 pub struct PickTarget {
     pub ids: wgpu::Texture,
@@ -169,7 +156,7 @@ pub struct PickTarget {
 
 impl PickTarget {
     pub fn new(gpu: &Gpu, size: u32) -> PickTarget {
-        let ids = gpu.target("pick ids", crate::draw::PICK_FORMAT, size, size);
+        let ids = gpu.target("pick ids", crate::gpu::PICK_FORMAT, size, size);
         let depth = gpu.target("pick depth", crate::gpu::DEPTH_FORMAT, size, size);
         PickTarget {
             ids_view: ids.create_view(&Default::default()),

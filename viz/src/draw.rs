@@ -72,7 +72,7 @@ pub fn scene_pipeline(
 }
 
 /// Format of the picking target: (layer slot, item index + 1) per pixel.
-pub const PICK_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rg32Uint;
+pub use crate::gpu::PICK_FORMAT;
 
 /// A picking pipeline: the ids of `vs`'s items into a [`PICK_FORMAT`] target, depth tested, so
 /// the nearest item wins (`fs_pick` of `lines.wgsl`).

@@ -9,8 +9,8 @@ use renderers::{Camera, Scene};
 use store::Dataset;
 use store::scene::{BVH_NODES_TABLE, CameraAttrs, RAY_NODES_TABLE, TRIANGLES_TABLE, attr};
 
+use crate::camera::Frame;
 use crate::camera::ViewCamera;
-use crate::component::Frame;
 use crate::{Error, Result};
 
 /// The path-traced picture of a dataset, tone mapped (RGBA8, rows top to bottom).

@@ -6,14 +6,13 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use egui::{Color32, RichText, Ui};
-use serde::{Deserialize, Serialize};
-use viz::component::Picked;
-use viz::{ComponentId, Legend, ViewCamera};
+use viz::{Legend, ViewCamera};
 
-use crate::camera_ctl::Mode;
-use crate::query_service::{QueryResult, QueryService, Tag, Target};
-use crate::timers::Timer;
-use crate::worker::{Cmd, Event, LayerInfo, LayerSpec, Opened, Source, Worker};
+use crate::query_service::{QueryService, Tag, Target};
+pub use crate::state::{
+    ConsoleState, InspectorState, Pane, PlotState, Resolution, STORAGE_KEY, Saved, Selection, Shown, State, select,
+};
+use crate::worker::{Cmd, Event, LayerInfo, LayerSpec, Source, Worker};
 
 /// How the viewer starts.
 #[derive(Clone, Debug, Default)]
@@ -27,152 +26,6 @@ pub struct ViewerOptions {
     pub reset_layout: bool,
     /// Take a screenshot of the window once everything is drawn, write it here, and close.
     pub screenshot: Option<PathBuf>,
-}
-
-/// A tab of the layout.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Pane {
-    Render,
-    Pipeline,
-    Component(u64),
-    Console,
-    Inspector,
-    Plots,
-    Timers,
-}
-
-/// How big the pipeline renders, relative to the render window.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
-pub enum Resolution {
-    /// The window's pixels times a scale (0.25 ... 1).
-    Fit(f32),
-    /// The dataset's image size.
-    Dataset,
-}
-
-impl Default for Resolution {
-    fn default() -> Self {
-        Resolution::Fit(0.5)
-    }
-}
-
-/// What is saved between runs (eframe storage).
-#[derive(Clone, Default, Serialize, Deserialize)]
-#[serde(default)]
-pub struct Saved {
-    pub layout: Option<egui_tiles::Tree<Pane>>,
-    pub source: Option<Source>,
-    pub layers: Vec<LayerSpec>,
-    pub camera: Option<ViewCamera>,
-    pub history: Vec<String>,
-    pub timers: Vec<Timer>,
-    pub resolution: Resolution,
-    pub mode: Mode,
-}
-
-/// The storage key of [`Saved`].
-pub const STORAGE_KEY: &str = "rtvtk-viewer";
-
-/// The selected ray (from the console, the inspector's tree or a pick).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Selection {
-    pub tree: u64,
-    pub ray: u32,
-}
-
-#[derive(Default)]
-pub struct ConsoleState {
-    pub sql: String,
-    pub history: Vec<String>,
-    pub result: Option<QueryResult>,
-    pub error: Option<String>,
-    pub selected_row: Option<usize>,
-    pub tables: Vec<String>,
-    pub functions: Vec<String>,
-}
-
-#[derive(Default)]
-pub struct InspectorState {
-    pub fields: Option<QueryResult>,
-    pub tree: Option<QueryResult>,
-    pub note: Option<String>,
-    pub error: Option<String>,
-}
-
-#[derive(Default)]
-pub struct PlotState {
-    pub counts: Option<QueryResult>,
-    pub error: Option<String>,
-    pub for_settings: Option<serde_json::Value>,
-}
-
-/// The last frame the worker delivered.
-pub struct Shown {
-    pub texture: egui::TextureHandle,
-    pub size: [u32; 2],
-    pub ms: f64,
-    pub frames: u64,
-}
-
-/// Everything the panes read and change (the tile tree is kept apart, to be drawn with it).
-pub struct State {
-    pub sources: Vec<Source>,
-    pub opened: Option<Opened>,
-    pub opening: Option<Source>,
-    pub layers: Vec<LayerInfo>,
-    /// Settings as edited in the component tabs (sent on change).
-    pub edits: HashMap<u64, serde_json::Value>,
-    pub layer_errors: HashMap<u64, String>,
-    pub messages: Vec<(bool, String)>,
-    pub shown: Option<Shown>,
-    pub camera: ViewCamera,
-    pub mode: Mode,
-    pub resolution: Resolution,
-    pub requested_size: [u32; 2],
-    pub console: ConsoleState,
-    pub inspector: InspectorState,
-    pub plots: PlotState,
-    pub timers: Vec<Timer>,
-    pub selection: Option<Selection>,
-    pub picked: Option<Picked>,
-    pub tree_rays: HashMap<u64, u32>,
-    pub traced: Option<([u32; 2], usize)>,
-    pub next_id: u64,
-    pub open_path: String,
-    pub cmds: Vec<Cmd>,
-    pub saved_layers: Option<Vec<LayerSpec>>,
-    pub saved_camera: Option<ViewCamera>,
-    /// Where the last frame was drawn and its size (pointer to pixel).
-    pub image_rect: Option<(egui::Rect, [u32; 2])>,
-    pub status_rect: Option<egui::Rect>,
-    pub top_rect: Option<egui::Rect>,
-}
-
-impl State {
-    pub fn error(&mut self, m: impl Into<String>) {
-        self.messages.push((true, m.into()));
-    }
-    pub fn info(&mut self, m: impl Into<String>) {
-        self.messages.push((false, m.into()));
-    }
-    fn rays_layers(&self) -> Vec<u64> {
-        self.layers.iter().filter(|l| l.kind == "rays").map(|l| l.id.0).collect()
-    }
-    fn settings_of(&self, id: u64) -> Option<serde_json::Value> {
-        self.edits.get(&id).cloned().or_else(|| self.layers.iter().find(|l| l.id.0 == id).map(|l| l.settings.clone()))
-    }
-    /// Changes some fields of a component's settings and sends them.
-    pub fn patch(&mut self, id: u64, f: impl FnOnce(&mut serde_json::Map<String, serde_json::Value>)) {
-        let Some(mut v) = self.settings_of(id) else { return };
-        if let serde_json::Value::Object(m) = &mut v {
-            f(m);
-        }
-        self.edits.insert(id, v.clone());
-        self.cmds.push(Cmd::Settings(ComponentId(id), v));
-    }
-    fn has_dataset(&self) -> bool {
-        self.opened.as_ref().is_some_and(|o| o.has_dataset)
-    }
 }
 
 /// Wakes the UI from other threads (set once the UI's context is known).
@@ -625,24 +478,6 @@ fn status_bar(ui: &mut Ui, s: &State, w: &Worker) {
             });
         }
     });
-}
-
-/// Selects a ray: highlights its tree in the ray layers and loads it into the inspector.
-pub fn select(s: &mut State, q: &mut QueryService, sel: Selection) {
-    s.selection = Some(sel);
-    for id in s.rays_layers() {
-        s.patch(id, |m| {
-            m.insert("selected_tree".into(), sel.tree.into());
-        });
-    }
-    s.inspector.note = Some(format!("ray {} of tree {}", sel.ray, sel.tree));
-    if s.has_dataset() {
-        q.submit(Tag::Inspect, format!("SELECT * FROM rays WHERE tree_id = {} AND ray = {}", sel.tree, sel.ray));
-        q.submit(
-            Tag::InspectTree,
-            format!("SELECT ray, parent, depth, kind, t FROM rays WHERE tree_id = {} ORDER BY ray", sel.tree),
-        );
-    }
 }
 
 /// The tile behaviour: one function per pane.

@@ -4,8 +4,8 @@
 use egui::{Color32, RichText, Ui};
 use egui_extras::{Column, TableBuilder};
 
-use crate::app::{Selection, State, select};
 use crate::query_service::{QueryResult, QueryService, Tag};
+use crate::state::{Selection, State, select};
 use crate::worker::{Cmd, LayerSpec};
 
 const HISTORY: usize = 200;

@@ -11,6 +11,7 @@ pub mod plots;
 pub mod query_service;
 pub mod render_pane;
 pub mod settings_ui;
+pub mod state;
 pub mod timers;
 pub mod worker;
 

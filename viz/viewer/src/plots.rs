@@ -4,8 +4,8 @@
 use egui::{Color32, Ui};
 use egui_plot::{Bar, BarChart, Legend, Line, LineStyle, Plot, PlotPoints};
 
-use crate::app::State;
 use crate::query_service::{QueryService, Tag};
+use crate::state::State;
 
 /// The SQL behind the histograms: the first shown ray layer's filters.
 fn counts_sql(s: &State) -> Option<(serde_json::Value, String)> {

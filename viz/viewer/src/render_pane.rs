@@ -3,9 +3,9 @@
 
 use egui::{Color32, Ui};
 
-use crate::app::{Resolution, State};
 use crate::camera_ctl::{self, Mode};
 use crate::query_service::QueryService;
+use crate::state::{Resolution, State};
 use crate::worker::Cmd;
 
 fn toolbar(ui: &mut Ui, s: &mut State) {

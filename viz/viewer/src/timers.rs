@@ -3,44 +3,10 @@
 //! N ms).
 
 use egui::Ui;
-use serde::{Deserialize, Serialize};
 
-use crate::app::State;
 use crate::query_service::{QueryService, Tag};
-
-/// An action a timer (or a button) performs on a ray layer.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Action {
-    NextTree,
-    PreviousTree,
-    /// One more ray of the shown tree (back to the first after the last).
-    NextRay,
-}
-
-impl Action {
-    pub const ALL: [Action; 3] = [Action::NextTree, Action::PreviousTree, Action::NextRay];
-    pub fn label(self) -> &'static str {
-        match self {
-            Action::NextTree => "advance tree",
-            Action::PreviousTree => "previous tree",
-            Action::NextRay => "advance ray",
-        }
-    }
-}
-
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Timer {
-    pub every_ms: u64,
-    pub action: Action,
-    /// The ray component it drives.
-    pub component: u64,
-    pub running: bool,
-    /// Times it fired.
-    #[serde(skip)]
-    pub fired: u64,
-    #[serde(skip)]
-    pub last: Option<f64>,
-}
+use crate::state::State;
+pub use crate::state::{Action, Timer};
 
 fn current(s: &State, id: u64) -> (Option<u64>, Option<u32>) {
     let v = s.edits.get(&id).cloned().or_else(|| s.layers.iter().find(|l| l.id.0 == id).map(|l| l.settings.clone()));

@@ -9,7 +9,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 
 use crate::bench::dir_bytes;
-use crate::bench_query::median;
+use crate::bench::query::median;
 
 /// Wall seconds of `rtvtk record ARGS --out OUT --quiet [--no-record]`. Both runs write the same
 /// PNG and EXR beside OUT (a recording writes them into OUT by default, `--no-record` writes none

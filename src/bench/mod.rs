@@ -1,5 +1,12 @@
 //! `rtvtk bench`: whole-system benchmarks, each beside a baseline in the same run.
 
+#[cfg(feature = "embree")]
+mod embree;
+mod query;
+mod record;
+mod trace;
+mod viz;
+
 use std::fs::File;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -114,7 +121,7 @@ pub enum BenchCommand {
         #[arg(long, value_delimiter = ',', default_value = "1000000")]
         rays: Vec<u64>,
         /// Frame size WxH.
-        #[arg(long, default_value = "1920x1080", value_parser = crate::commands::parse_size)]
+        #[arg(long, default_value = "1920x1080", value_parser = crate::args::parse_size)]
         size: (u32, u32),
         /// Timed frames per ray count.
         #[arg(long, default_value_t = 20)]
@@ -136,18 +143,18 @@ pub enum BenchCommand {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp, rounds } => {
-            crate::bench_trace::run(subdivide, rotate, width, spp, rounds.max(1))
+            crate::bench::trace::run(subdivide, rotate, width, spp, rounds.max(1))
         }
         BenchCommand::Viz { dataset, rays, size, frames, rounds } => {
-            crate::bench_viz::run(&dataset, &rays, size, frames.max(1), rounds.max(1))
+            crate::bench::viz::run(&dataset, &rays, size, frames.max(1), rounds.max(1))
         }
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
-        BenchCommand::Record { runs, args } => crate::bench_record::run(runs, &args),
+        BenchCommand::Record { runs, args } => crate::bench::record::run(runs, &args),
         BenchCommand::Query { dataset, plain, runs, memory_limit, no_duckdb } => {
             if let Some(m) = &memory_limit {
                 crate::sql::parse_bytes(m).map_err(anyhow::Error::msg)?;
             }
-            crate::bench_query::run(&dataset, plain, runs.max(1), memory_limit.as_deref(), !no_duckdb)
+            crate::bench::query::run(&dataset, plain, runs.max(1), memory_limit.as_deref(), !no_duckdb)
         }
         BenchCommand::Store {
             rays,
@@ -548,7 +555,7 @@ fn store_bench(
     let median_ratio = |ours: &[(f64, f64)], f: &dyn Fn((f64, f64), (f64, f64)) -> f64| {
         let mut r: Vec<f64> = base_runs.iter().zip(ours).map(|(&b, &o)| f(b, o)).collect();
         r.sort_by(f64::total_cmp);
-        (crate::bench_query::median(&r), r)
+        (crate::bench::query::median(&r), r)
     };
 
     println!("## rtvtk bench store ({} rays, {} trees of {source})", trace.rays, trace.trees.len());
