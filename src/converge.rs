@@ -14,7 +14,7 @@ pub fn run(
     threads: Option<usize>,
 ) -> Result<()> {
     use renderers::converge::{convergence, log_log_slope, write_plot};
-    let scene = crate::record::load_scene(scene, None)?;
+    let scene = renderers::load_scene(scene, None, 1)?;
     let bvh = renderers::Bvh::build(&scene.tris);
     let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let base = renderers::RenderOptions { width: w, height: h, threads, ..Default::default() };

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use renderers::{Bug, Bvh, Camera, RenderOptions, Scene, TracerKind};
+use renderers::{Bug, Bvh, Camera, RenderOptions, TracerKind};
 use rl::{Kind, Recorder, RecorderOptions};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -123,10 +123,6 @@ fn parse_vec3(s: &str) -> Result<[f32; 3], String> {
 
 fn kind_by_name(name: &str) -> Option<Kind> {
     store::KindTable::default().lookup(name)
-}
-
-pub fn load_scene(name: &str, camera: Option<Camera>) -> Result<Scene> {
-    Ok(renderers::load_scene(name, camera, 1)?)
 }
 
 pub fn run(a: &RecordArgs) -> Result<()> {

@@ -17,6 +17,7 @@
 use std::collections::{BTreeMap, BTreeSet};
 use std::ops::Range;
 use std::sync::Arc;
+use store::scene::col;
 
 use arrow::array::{Array, AsArray, RecordBatch, RecordBatchOptions, UInt32Array};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef, UInt64Type};
@@ -38,9 +39,9 @@ use store::{Dataset, TreeEntry};
 const TREE_COLUMNS: [&str; 3] = ["pixel_x", "pixel_y", "sample"];
 
 /// Integer columns whose filters prune trees or segments.
-const RANGE_COLUMNS: [&str; 5] = ["tree_id", "pixel_x", "pixel_y", "sample", "depth"];
+const RANGE_COLUMNS: [&str; 5] = [col::TREE_ID, col::PIXEL_X, col::PIXEL_Y, col::SAMPLE, col::DEPTH];
 /// Range columns answered by the tree table alone.
-const TREE_FILTER_COLUMNS: [&str; 4] = ["tree_id", "pixel_x", "pixel_y", "sample"];
+const TREE_FILTER_COLUMNS: [&str; 4] = [col::TREE_ID, col::PIXEL_X, col::PIXEL_Y, col::SAMPLE];
 
 /// The `rays` table of a dataset (any encoding).
 pub(crate) struct RaysTable {
@@ -377,7 +378,7 @@ impl Pushdown {
         let mut out = Vec::new();
         let depths = self.ranges.get("depth");
         for (i, seg) in ds.manifest().segments.iter().enumerate() {
-            if !overlaps(self.ranges.get("tree_id"), seg.tree_id_min, seg.tree_id_max) {
+            if !overlaps(self.ranges.get(col::TREE_ID), seg.tree_id_min, seg.tree_id_max) {
                 continue;
             }
             let by_kind = &seg.stats.rays_by_kind_depth;
@@ -402,14 +403,14 @@ impl Pushdown {
             }
             let min_depth = self.min_depth();
             let keep = |e: &TreeEntry| {
-                contains(self.ranges.get("tree_id"), e.info.id.0)
+                contains(self.ranges.get(col::TREE_ID), e.info.id.0)
                     && contains(self.ranges.get("pixel_x"), u64::from(e.info.pixel[0]))
                     && contains(self.ranges.get("pixel_y"), u64::from(e.info.pixel[1]))
                     && contains(self.ranges.get("sample"), u64::from(e.info.sample))
                     && u64::from(e.info.max_depth) >= min_depth
             };
             // A narrow tree-id filter reads only its trees (and keeps the kept ones for the scan).
-            let narrow = self.ranges.get("tree_id").filter(|r| {
+            let narrow = self.ranges.get(col::TREE_ID).filter(|r| {
                 r.iter().map(|&(lo, hi)| hi.saturating_sub(lo).saturating_add(1)).fold(0u64, u64::saturating_add)
                     <= NARROW_TREE_IDS
             });
@@ -552,8 +553,8 @@ impl RaysScanExec {
         let virtual_cols: Vec<&str> =
             TREE_COLUMNS.into_iter().filter(|c| names.iter().any(|n| n == c) && base.index_of(c).is_err()).collect();
         let mut read: Vec<String> = names.iter().filter(|n| !virtual_cols.contains(&n.as_str())).cloned().collect();
-        if !virtual_cols.is_empty() && !read.iter().any(|n| n == "tree_id") {
-            read.push("tree_id".into());
+        if !virtual_cols.is_empty() && !read.iter().any(|n| n == col::TREE_ID) {
+            read.push(col::TREE_ID.into());
         }
         let it = self.ds.segment_columns_in(part.segment, &read, part.rows.as_deref().map(|v| v.as_slice()))?;
         if virtual_cols.is_empty() {
@@ -568,7 +569,7 @@ impl RaysScanExec {
         Ok(Box::new(it.map(move |b| {
             let b = b?;
             let ids = b
-                .column_by_name("tree_id")
+                .column_by_name(col::TREE_ID)
                 .and_then(|c| c.as_primitive_opt::<UInt64Type>())
                 .ok_or_else(|| corrupt(&path, "no tree_id column".into()))?;
             let (mut px, mut py, mut ps) =

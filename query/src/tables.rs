@@ -189,7 +189,7 @@ async fn listing(
 fn ray_paths_schema() -> SchemaRef {
     use arrow::datatypes::{DataType, Field, Schema};
     Arc::new(Schema::new(vec![
-        Field::new("tree_id", DataType::UInt64, false),
+        Field::new(store::scene::col::TREE_ID, DataType::UInt64, false),
         Field::new("ray", DataType::UInt32, false),
         Field::new("depth", DataType::UInt16, false),
         Field::new("path", DataType::Utf8, false),

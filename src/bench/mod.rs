@@ -195,7 +195,7 @@ struct Trace {
 /// Ray trees of the path tracer on `scene` (core fields only), traced up front.
 fn path_traced(scene_name: &str, min_rays: u64) -> Result<Trace> {
     use renderers::tracer::{SampleRecord, TraceCtx, path_sample};
-    let scene = crate::record::load_scene(scene_name, None)?;
+    let scene = renderers::load_scene(scene_name, None, 1)?;
     let bvh = renderers::Bvh::build(&scene.tris);
     let ctx = TraceCtx { scene: &scene, bvh: &bvh, max_depth: 8, bug: None, record_visits: false };
     let (w, h) = (1024u32, 768u32);

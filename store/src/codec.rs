@@ -521,7 +521,7 @@ impl Decoder {
         let n = batch.num_rows();
         // The tree structure, when origins are asked for (also names rows in errors).
         let structure = if origins {
-            let tree = file_column(batch, "tree_id", path)?
+            let tree = file_column(batch, crate::schema::col::TREE_ID, path)?
                 .as_primitive_opt::<UInt64Type>()
                 .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
             let t = match batch.column_by_name(ENC_T) {

@@ -21,33 +21,7 @@ pub const BVH_NODES_TABLE: &str = "bvh_nodes";
 /// Name of the visited-nodes table (one row per node a ray visited, in visit order).
 pub const RAY_NODES_TABLE: &str = "ray_nodes";
 
-/// Column names shared by the tables (and the ray table).
-pub mod col {
-    pub const TREE_ID: &str = "tree_id";
-    pub const RAY: &str = "ray";
-    pub const PRIM: &str = "prim";
-    pub const LIGHT_ID: &str = "light_id";
-    pub const NODE_ID: &str = "node_id";
-    pub const PARENT: &str = "parent";
-    pub const LEVEL: &str = "level";
-    pub const IS_LEAF: &str = "is_leaf";
-    pub const PRIMS: &str = "prims";
-    pub const STEP: &str = "step";
-    pub const LEAF_HIT: &str = "leaf_hit";
-    pub const AREA: &str = "area";
-    pub const MATERIAL: &str = "material";
-    pub const MATERIAL_NAME: &str = "material_name";
-    pub const MATERIAL_KIND: &str = "material_kind";
-    pub const EXPONENT: &str = "exponent";
-    pub const IOR: &str = "ior";
-    /// Vertex `v` (0..3), axis `a` (0..3): `v0_x` ... `v2_z`.
-    pub const VERTEX: [[&str; 3]; 3] = [["v0_x", "v0_y", "v0_z"], ["v1_x", "v1_y", "v1_z"], ["v2_x", "v2_y", "v2_z"]];
-    pub const BOX_MIN: [&str; 3] = ["min_x", "min_y", "min_z"];
-    pub const BOX_MAX: [&str; 3] = ["max_x", "max_y", "max_z"];
-    pub const EMISSION: [&str; 3] = ["emission_r", "emission_g", "emission_b"];
-    pub const DIFFUSE: [&str; 3] = ["diffuse_r", "diffuse_g", "diffuse_b"];
-    pub const SPECULAR: [&str; 3] = ["specular_r", "specular_g", "specular_b"];
-}
+pub use crate::schema::col;
 
 fn f32s(names: &[&str]) -> impl Iterator<Item = Field> {
     names.iter().map(|n| Field::new(*n, DataType::Float32, false)).collect::<Vec<_>>().into_iter()

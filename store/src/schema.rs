@@ -214,8 +214,20 @@ pub struct PayloadField {
 
 /// Column names the core ray table uses: payload fields may not take them.
 pub const CORE_RAY_COLUMNS: [&str; 14] = [
-    "tree_id", "ray", "parent", "depth", "kind", "origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t",
-    "prim", "payload",
+    col::TREE_ID,
+    col::RAY,
+    col::PARENT,
+    col::DEPTH,
+    col::KIND,
+    col::ORIGIN[0],
+    col::ORIGIN[1],
+    col::ORIGIN[2],
+    col::DIR[0],
+    col::DIR[1],
+    col::DIR[2],
+    col::T,
+    col::PRIM,
+    col::PAYLOAD,
 ];
 
 impl PayloadField {
@@ -347,6 +359,48 @@ fn meta(field: Field, pairs: &[(&str, &str)]) -> Field {
     field.with_metadata(pairs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect())
 }
 
+/// Column names of every table of a dataset: the ray and tree tables and the scene tables
+/// (`triangles`, `lights`, `bvh_nodes`, `ray_nodes`), one constant per name.
+pub mod col {
+    pub const TREE_ID: &str = "tree_id";
+    pub const RAY: &str = "ray";
+    pub const DEPTH: &str = "depth";
+    pub const KIND: &str = "kind";
+    pub const ORIGIN: [&str; 3] = ["origin_x", "origin_y", "origin_z"];
+    pub const DIR: [&str; 3] = ["dir_x", "dir_y", "dir_z"];
+    pub const T: &str = "t";
+    pub const PAYLOAD: &str = "payload";
+    pub const PIXEL_X: &str = "pixel_x";
+    pub const PIXEL_Y: &str = "pixel_y";
+    pub const SAMPLE: &str = "sample";
+    pub const RAY_COUNT: &str = "ray_count";
+    pub const MAX_DEPTH: &str = "max_depth";
+    pub const SEGMENT: &str = "segment";
+    pub const FIRST_ROW: &str = "first_row";
+    pub const PRIM: &str = "prim";
+    pub const LIGHT_ID: &str = "light_id";
+    pub const NODE_ID: &str = "node_id";
+    pub const PARENT: &str = "parent";
+    pub const LEVEL: &str = "level";
+    pub const IS_LEAF: &str = "is_leaf";
+    pub const PRIMS: &str = "prims";
+    pub const STEP: &str = "step";
+    pub const LEAF_HIT: &str = "leaf_hit";
+    pub const AREA: &str = "area";
+    pub const MATERIAL: &str = "material";
+    pub const MATERIAL_NAME: &str = "material_name";
+    pub const MATERIAL_KIND: &str = "material_kind";
+    pub const EXPONENT: &str = "exponent";
+    pub const IOR: &str = "ior";
+    /// Vertex `v` (0..3), axis `a` (0..3): `v0_x` ... `v2_z`.
+    pub const VERTEX: [[&str; 3]; 3] = [["v0_x", "v0_y", "v0_z"], ["v1_x", "v1_y", "v1_z"], ["v2_x", "v2_y", "v2_z"]];
+    pub const BOX_MIN: [&str; 3] = ["min_x", "min_y", "min_z"];
+    pub const BOX_MAX: [&str; 3] = ["max_x", "max_y", "max_z"];
+    pub const EMISSION: [&str; 3] = ["emission_r", "emission_g", "emission_b"];
+    pub const DIFFUSE: [&str; 3] = ["diffuse_r", "diffuse_g", "diffuse_b"];
+    pub const SPECULAR: [&str; 3] = ["specular_r", "specular_g", "specular_b"];
+}
+
 /// The kind column type: dictionary-encoded names, so plain Parquet readers see `'shadow'`.
 pub fn kind_data_type() -> DataType {
     DataType::Dictionary(Box::new(DataType::UInt8), Box::new(DataType::Utf8))
@@ -356,32 +410,32 @@ pub fn kind_data_type() -> DataType {
 pub fn ray_schema(payload: &PayloadSchema) -> SchemaRef {
     let world = [("space", "world")];
     let mut fields = vec![
-        meta(Field::new("tree_id", DataType::UInt64, false), &[("description", "id of the ray tree")]),
+        meta(Field::new(col::TREE_ID, DataType::UInt64, false), &[("description", "id of the ray tree")]),
         meta(
-            Field::new("ray", DataType::UInt32, false),
+            Field::new(col::RAY, DataType::UInt32, false),
             &[("description", "index of the ray within its tree, in recording order")],
         ),
         meta(
-            Field::new("parent", DataType::UInt32, true),
+            Field::new(col::PARENT, DataType::UInt32, true),
             &[("description", "index of the parent ray within the tree; null for a root ray")],
         ),
-        meta(Field::new("depth", DataType::UInt16, false), &[("description", "0 for root rays")]),
-        meta(Field::new("kind", kind_data_type(), false), &[("description", "ray kind name")]),
-        meta(Field::new("origin_x", DataType::Float32, false), &world),
-        meta(Field::new("origin_y", DataType::Float32, false), &world),
-        meta(Field::new("origin_z", DataType::Float32, false), &world),
-        meta(Field::new("dir_x", DataType::Float32, false), &world),
-        meta(Field::new("dir_y", DataType::Float32, false), &world),
-        meta(Field::new("dir_z", DataType::Float32, false), &world),
+        meta(Field::new(col::DEPTH, DataType::UInt16, false), &[("description", "0 for root rays")]),
+        meta(Field::new(col::KIND, kind_data_type(), false), &[("description", "ray kind name")]),
+        meta(Field::new(col::ORIGIN[0], DataType::Float32, false), &world),
+        meta(Field::new(col::ORIGIN[1], DataType::Float32, false), &world),
+        meta(Field::new(col::ORIGIN[2], DataType::Float32, false), &world),
+        meta(Field::new(col::DIR[0], DataType::Float32, false), &world),
+        meta(Field::new(col::DIR[1], DataType::Float32, false), &world),
+        meta(Field::new(col::DIR[2], DataType::Float32, false), &world),
         meta(
-            Field::new("t", DataType::Float32, true),
+            Field::new(col::T, DataType::Float32, true),
             &[
                 ("unit", "multiples of the direction vector (world distance when it is unit length)"),
                 ("description", "hit distance; null when the ray missed"),
             ],
         ),
         meta(
-            Field::new("prim", DataType::UInt32, true),
+            Field::new(col::PRIM, DataType::UInt32, true),
             &[("description", "hit primitive; null when the ray missed or hit no primitive")],
         ),
     ];
@@ -404,18 +458,18 @@ pub fn ray_schema(payload: &PayloadSchema) -> SchemaRef {
 /// The Arrow schema of the tree table.
 pub fn tree_schema() -> SchemaRef {
     Arc::new(Schema::new(vec![
-        Field::new("tree_id", DataType::UInt64, false),
-        Field::new("pixel_x", DataType::UInt32, false),
-        Field::new("pixel_y", DataType::UInt32, false),
-        Field::new("sample", DataType::UInt32, false),
-        Field::new("ray_count", DataType::UInt32, false),
-        Field::new("max_depth", DataType::UInt16, false),
+        Field::new(col::TREE_ID, DataType::UInt64, false),
+        Field::new(col::PIXEL_X, DataType::UInt32, false),
+        Field::new(col::PIXEL_Y, DataType::UInt32, false),
+        Field::new(col::SAMPLE, DataType::UInt32, false),
+        Field::new(col::RAY_COUNT, DataType::UInt32, false),
+        Field::new(col::MAX_DEPTH, DataType::UInt16, false),
         meta(
-            Field::new("segment", DataType::UInt32, false),
+            Field::new(col::SEGMENT, DataType::UInt32, false),
             &[("description", "id of the segment whose ray file holds the tree")],
         ),
         meta(
-            Field::new("first_row", DataType::UInt64, false),
+            Field::new(col::FIRST_ROW, DataType::UInt64, false),
             &[("description", "row of the tree's first ray in that segment's ray file")],
         ),
     ]))

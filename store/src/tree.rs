@@ -178,7 +178,7 @@ pub fn rays_from_batch(batch: &RecordBatch, kinds: &HashMap<String, Kind>, path:
 
 /// Tree ids of ray-table rows.
 pub fn tree_ids_of(batch: &RecordBatch, path: &Path) -> Result<Vec<u64>> {
-    Ok(typed!(batch, "tree_id", path, UInt64Type, DataType::UInt64).values().to_vec())
+    Ok(typed!(batch, crate::schema::col::TREE_ID, path, UInt64Type, DataType::UInt64).values().to_vec())
 }
 
 /// Checks that `rays` form the tree `info`: ids, order, parents one level up.

@@ -453,7 +453,7 @@ fn column_plan(field: &arrow::datatypes::Field, encoding: Encoding) -> Plan {
         t => t == &DataType::Float32,
     };
     match field.name().as_str() {
-        "tree_id" => Plan::Delta,
+        crate::schema::col::TREE_ID => Plan::Delta,
         n if n == ENC_T || ENCODED_COLUMNS.contains(&n) => Plan::Split { stats: false },
         _ if float => Plan::Plain { stats: true },
         _ => Plan::Split { stats: true },
@@ -503,10 +503,11 @@ fn write_small_table(
     if table == "trees" {
         // Sorted ids and rows: deltas of +1 and of the tree sizes; pixels, samples and the
         // segment: runs and steps of +1. Tree sizes and depths: small values, one byte plane.
-        for name in ["tree_id", "first_row", "pixel_x", "pixel_y", "sample", "segment"] {
+        use crate::schema::col;
+        for name in [col::TREE_ID, col::FIRST_ROW, col::PIXEL_X, col::PIXEL_Y, col::SAMPLE, col::SEGMENT] {
             props = props.set_column_encoding(ColumnPath::from(name), Encoding_::DELTA_BINARY_PACKED);
         }
-        for name in ["ray_count", "max_depth"] {
+        for name in [col::RAY_COUNT, col::MAX_DEPTH] {
             props = props.set_column_encoding(ColumnPath::from(name), Encoding_::BYTE_STREAM_SPLIT);
         }
     }

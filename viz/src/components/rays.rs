@@ -322,10 +322,11 @@ impl Rays {
             }
         }
         let _finish = Finish(progress);
+        use store::scene::col;
+        let [ox, oy, oz] = col::ORIGIN;
+        let [dx, dy, dz] = col::DIR;
         let names: Vec<String> =
-            ["tree_id", "ray", "depth", "kind", "origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"]
-                .map(String::from)
-                .to_vec();
+            [col::TREE_ID, col::RAY, col::DEPTH, col::KIND, ox, oy, oz, dx, dy, dz, col::T].map(String::from).to_vec();
         let mut left = s.max_rays.unwrap_or(u64::MAX);
         'segments: for i in 0..ds.manifest().segments.len() {
             let ranges = match &rows {
@@ -341,8 +342,7 @@ impl Rays {
                     self.cancelled_after = Some(pick_trees.len() as u64);
                     break 'segments;
                 }
-                let [ox, oy, oz, dx, dy, dz, t] =
-                    f32_columns(&b, ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z", "t"])?;
+                let [ox, oy, oz, dx, dy, dz, t] = f32_columns(&b, [ox, oy, oz, dx, dy, dz, col::T])?;
                 let tree = b
                     .column(0)
                     .as_primitive_opt::<UInt64Type>()

@@ -1,0 +1,303 @@
+//! The tree index: every tree's pixel, sample, size and place, from the tree tables (loaded
+//! whole on first need, or only the pages of the ids asked for), and the lookups on it.
+
+use super::*;
+
+impl Dataset {
+    /// Reads the tree table of segment `i`, sorted by id.
+    pub(super) fn read_tree_table(&self, i: usize) -> Result<Vec<TreeEntry>> {
+        let seg = self.segment(i);
+        let path = self.dir.join(&seg.trees.path);
+        let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
+        let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path))?;
+        check_schema(builder.schema(), &tree_schema(), &path)?;
+        let reader = builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?;
+        let mut out = Vec::with_capacity(seg.trees.rows as usize);
+        for batch in reader {
+            let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+            push_tree_entries(&b, i, &mut out, &path)?;
+        }
+        if out.len() as u64 != seg.trees.rows {
+            return Err(Error::Corrupt {
+                path,
+                what: "tree file".into(),
+                message: format!("manifest lists {} trees, file holds {}", seg.trees.rows, out.len()),
+            });
+        }
+        if !out.is_sorted_by_key(|e| e.info.id) {
+            out.sort_unstable_by_key(|e| e.info.id);
+        }
+        Ok(out)
+    }
+
+    /// The trees of segment `i` whose ids fall in `ranges` (inclusive bounds), sorted by id. Reads
+    /// only the tree-table pages whose id range (the file's page index) overlaps `ranges`, so a
+    /// lookup of a few trees does not decode the whole table; uses the table when already loaded.
+    pub fn segment_tree_entries_in(&self, i: usize, ranges: &[(u64, u64)]) -> Result<Vec<TreeEntry>> {
+        let wanted = |id: u64| ranges.iter().any(|&(lo, hi)| lo <= id && id <= hi);
+        if let Some(all) = self.segment_trees.get(i).and_then(|c| c.get()) {
+            return Ok(all.iter().filter(|e| wanted(e.info.id.0)).copied().collect());
+        }
+        let path = self.dir.join(&self.segment(i).trees.path);
+        let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
+        let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
+        let meta = ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path))?;
+        check_schema(meta.schema(), &tree_schema(), &path)?;
+        let Some(rows) = tree_id_pages(&meta, ranges) else {
+            // No page index (not written by this store): the whole table.
+            return Ok(self.segment_tree_entries(i)?.iter().filter(|e| wanted(e.info.id.0)).copied().collect());
+        };
+        let mut out = Vec::new();
+        if rows.is_empty() {
+            return Ok(out);
+        }
+        let (groups, selection) = select_rows(&row_group_starts(&meta), &meta, &rows);
+        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta)
+            .with_row_groups(groups)
+            .with_row_selection(selection)
+            .with_batch_size(64 * 1024)
+            .build()
+            .map_err(pq_err(&path))?;
+        for batch in reader {
+            let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+            push_tree_entries(&b, i, &mut out, &path)?;
+        }
+        out.retain(|e| wanted(e.info.id.0));
+        out.sort_unstable_by_key(|e| e.info.id);
+        Ok(out)
+    }
+
+    pub(super) fn index(&self) -> Result<Arc<TreeIndex>> {
+        if let Some(ix) = self.index.get() {
+            return Ok(ix.clone());
+        }
+        // Tree tables are read on up to 4 threads; each is sorted by id already (sorted here if
+        // not), and the runs are merged (a sort of the whole index took ~1 s at 24M trees).
+        let n = self.manifest.segments.len();
+        let threads = cores().clamp(1, 4).min(n.max(1));
+        let parts: Vec<Result<Vec<Vec<TreeEntry>>>> = std::thread::scope(|s| {
+            let handles: Vec<_> = (0..threads)
+                .map(|t| s.spawn(move || (t..n).step_by(threads).map(|i| self.read_tree_table(i)).collect()))
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|_| Err(Error::Encoding("index thread panicked".into()))))
+                .collect()
+        });
+        let runs: Vec<Vec<TreeEntry>> = parts.into_iter().collect::<Result<Vec<_>>>()?.into_iter().flatten().collect();
+        let mut by_id = Vec::with_capacity(runs.iter().map(Vec::len).sum());
+        by_id.extend(crate::columns::RunMerge::new(&runs, |e: &TreeEntry| e.info.id.0).copied());
+        drop(runs);
+        // Pixel order: (y, x, sample) packed into one key when they fit (a stable sort keeps id
+        // order among equal keys); the general comparison otherwise.
+        let fits =
+            by_id.iter().all(|e| e.info.pixel[0] < 1 << 20 && e.info.pixel[1] < 1 << 20 && e.info.sample < 1 << 24);
+        let by_pixel: Vec<u32> = if fits {
+            let mut keyed: Vec<(u64, u32)> = by_id
+                .iter()
+                .enumerate()
+                .map(|(k, e)| {
+                    let i = &e.info;
+                    ((u64::from(i.pixel[1]) << 44) | (u64::from(i.pixel[0]) << 24) | u64::from(i.sample), k as u32)
+                })
+                .collect();
+            // Trees are traced pass after pass over the image: in id order the keys are a few
+            // long sorted runs, which the run-adaptive stable sort merges.
+            keyed.sort();
+            keyed.into_iter().map(|(_, k)| k).collect()
+        } else {
+            let mut v: Vec<u32> = (0..by_id.len() as u32).collect();
+            v.sort_unstable_by_key(|&k| {
+                let i = &by_id[k as usize].info;
+                (i.pixel[1], i.pixel[0], i.sample, i.id)
+            });
+            v
+        };
+        let ix = Arc::new(TreeIndex { by_id, by_pixel });
+        let _ = self.index.set(ix.clone());
+        Ok(ix)
+    }
+
+    /// Number of trees.
+    pub fn tree_count(&self) -> u64 {
+        self.manifest.stats.trees
+    }
+
+    /// Number of rays.
+    pub fn ray_count(&self) -> u64 {
+        self.manifest.stats.rays
+    }
+
+    /// Every tree's metadata and location, sorted by id (loads the index on first use).
+    pub fn tree_entries(&self) -> Result<Vec<TreeEntry>> {
+        Ok(self.index()?.by_id.clone())
+    }
+
+    /// The `n`-th tree in id order.
+    pub fn tree_entry_at(&self, n: usize) -> Result<Option<TreeEntry>> {
+        Ok(self.index()?.by_id.get(n).copied())
+    }
+
+    /// Position of a tree in id order.
+    pub fn position_of(&self, id: TreeId) -> Result<Option<usize>> {
+        Ok(self.index()?.by_id.binary_search_by_key(&id, |e| e.info.id).ok())
+    }
+
+    /// Metadata of one tree.
+    pub fn tree_info(&self, id: TreeId) -> Result<TreeInfo> {
+        Ok(self.entry_of(id)?.info)
+    }
+
+    /// One whole tree by id; reads only the pages that hold its rays.
+    pub fn tree(&self, id: TreeId) -> Result<Tree> {
+        self.load_tree(&self.entry_of(id)?)
+    }
+
+    /// Where tree `id` is: from the whole index when it is loaded, otherwise from the tree tables
+    /// of only the segments whose id range holds `id` (each loaded once), so a first lookup on a
+    /// large trace does not read every tree table.
+    pub fn entry_of(&self, id: TreeId) -> Result<TreeEntry> {
+        if let Some(ix) = self.index.get() {
+            let pos = ix.by_id.binary_search_by_key(&id, |e| e.info.id).map_err(|_| Error::NoSuchTree(id.0))?;
+            return Ok(ix.by_id[pos]);
+        }
+        for (i, seg) in self.manifest.segments.iter().enumerate() {
+            if id.0 < seg.tree_id_min || id.0 > seg.tree_id_max {
+                continue;
+            }
+            let entries = self.segment_tree_entries(i)?;
+            if let Ok(pos) = entries.binary_search_by_key(&id, |e| e.info.id) {
+                return Ok(entries[pos]);
+            }
+        }
+        Err(Error::NoSuchTree(id.0))
+    }
+
+    /// The trees of segment `i`, sorted by id (its tree table, loaded once and kept).
+    pub fn segment_tree_entries(&self, i: usize) -> Result<Arc<Vec<TreeEntry>>> {
+        if let Some(e) = self.segment_trees.get(i).and_then(|c| c.get()) {
+            return Ok(e.clone());
+        }
+        let e = Arc::new(self.read_tree_table(i)?);
+        if let Some(cell) = self.segment_trees.get(i) {
+            let _ = cell.set(e.clone());
+        }
+        Ok(e)
+    }
+
+    /// Every tree of a pixel (of one sample, or of all samples), ordered by sample then id.
+    pub fn trees_at_pixel(&self, x: u32, y: u32, sample: Option<u32>) -> Result<Vec<Tree>> {
+        self.tree_entries_at_pixel(x, y, sample)?.iter().map(|e| self.load_tree(e)).collect()
+    }
+
+    /// Where the trees of a pixel are (of one sample, or of all), ordered by sample then id;
+    /// reads no rays.
+    pub fn tree_entries_at_pixel(&self, x: u32, y: u32, sample: Option<u32>) -> Result<Vec<TreeEntry>> {
+        let ix = self.index()?;
+        let key = |k: &u32| {
+            let i = &ix.by_id[*k as usize].info;
+            (i.pixel[1], i.pixel[0])
+        };
+        let start = ix.by_pixel.partition_point(|k| key(k) < (y, x));
+        let mut out = Vec::new();
+        for k in &ix.by_pixel[start..] {
+            if key(k) != (y, x) {
+                break;
+            }
+            let e = &ix.by_id[*k as usize];
+            if sample.is_none_or(|s| s == e.info.sample) {
+                out.push(*e);
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// Where one tree's rays are.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct TreeEntry {
+    pub info: TreeInfo,
+    /// Index of the segment in the manifest's list.
+    pub segment: u32,
+    /// Row of the first ray in that segment's ray file.
+    pub first_row: u64,
+}
+
+/// The in-memory tree index: every tree, sorted by id, plus a pixel order.
+pub(super) struct TreeIndex {
+    pub(super) by_id: Vec<TreeEntry>,
+    /// Positions in `by_id`, sorted by (pixel y, pixel x, sample, id).
+    pub(super) by_pixel: Vec<u32>,
+}
+
+/// Appends the tree entries of one tree-table batch, its columns found by name (a file whose
+/// table lacks one, or holds it with another type, is corrupt: named in the error).
+pub(super) fn push_tree_entries(b: &RecordBatch, segment: usize, out: &mut Vec<TreeEntry>, path: &Path) -> Result<()> {
+    use crate::schema::col;
+    pub(super) fn get<'a, T: arrow::datatypes::ArrowPrimitiveType>(
+        b: &'a RecordBatch,
+        name: &str,
+        path: &Path,
+    ) -> Result<&'a arrow::array::PrimitiveArray<T>> {
+        b.column_by_name(name).and_then(|c| c.as_primitive_opt::<T>()).ok_or_else(|| Error::Schema {
+            path: path.to_path_buf(),
+            field: name.to_string(),
+            expected: format!("a {} column of the tree table", T::DATA_TYPE),
+            found: b.column_by_name(name).map_or("no such column".into(), |c| c.data_type().to_string()),
+        })
+    }
+    let id = get::<UInt64Type>(b, col::TREE_ID, path)?;
+    let (px, py) = (get::<UInt32Type>(b, col::PIXEL_X, path)?, get::<UInt32Type>(b, col::PIXEL_Y, path)?);
+    let s = get::<UInt32Type>(b, col::SAMPLE, path)?;
+    let n = get::<UInt32Type>(b, col::RAY_COUNT, path)?;
+    let d = get::<UInt16Type>(b, col::MAX_DEPTH, path)?;
+    let first = get::<UInt64Type>(b, col::FIRST_ROW, path)?;
+    for r in 0..b.num_rows() {
+        out.push(TreeEntry {
+            info: TreeInfo {
+                id: TreeId(id.value(r)),
+                pixel: [px.value(r), py.value(r)],
+                sample: s.value(r),
+                ray_count: n.value(r),
+                max_depth: d.value(r),
+            },
+            segment: segment as u32,
+            first_row: first.value(r),
+        });
+    }
+    Ok(())
+}
+
+/// The rows (file-wide, sorted, merged) of the tree-table pages whose `tree_id` min/max overlaps
+/// `ranges`; None when the file has no page index for the column.
+pub(super) fn tree_id_pages(meta: &ArrowReaderMetadata, ranges: &[(u64, u64)]) -> Option<Vec<std::ops::Range<u64>>> {
+    use parquet::file::page_index::column_index::ColumnIndexMetaData;
+    let md = meta.metadata();
+    let (columns, offsets) = (md.column_index()?, md.offset_index()?);
+    let mut rows: Vec<std::ops::Range<u64>> = Vec::new();
+    let mut group_start = 0u64;
+    for (g, rg) in md.row_groups().iter().enumerate() {
+        let group_rows = rg.num_rows() as u64;
+        let ColumnIndexMetaData::INT64(index) = columns.get(g)?.first()? else { return None };
+        let pages = offsets.get(g)?.first()?.page_locations();
+        for (p, loc) in pages.iter().enumerate() {
+            let first = loc.first_row_index as u64;
+            let end = pages.get(p + 1).map_or(group_rows, |n| n.first_row_index as u64);
+            // Ids are stored as INT64 bit patterns of u64; below 2^63 the orders agree, above it
+            // the page is kept (no pruning rather than a wrong one).
+            let (lo, hi) = match (index.min_value(p), index.max_value(p)) {
+                (Some(&lo), Some(&hi)) if lo >= 0 && hi >= lo => (lo as u64, hi as u64),
+                _ => (0, u64::MAX),
+            };
+            if ranges.iter().any(|&(a, b)| a <= hi && lo <= b) {
+                let r = group_start + first..group_start + end;
+                match rows.last_mut() {
+                    Some(last) if last.end == r.start => last.end = r.end,
+                    _ => rows.push(r),
+                }
+            }
+        }
+        group_start += group_rows;
+    }
+    Some(rows)
+}

@@ -1,0 +1,303 @@
+//! Reading a dataset: opening and validating it (the manifest, the files' schemas), its
+//! accessors and segment metadata; the tree index (`index`), random access and projected reads
+//! (`read`) and the sequential scan (`scan`) live in the child modules. `check` sits on top.
+
+mod index;
+mod read;
+mod scan;
+
+pub use index::TreeEntry;
+use index::TreeIndex;
+use read::{cores, select_rows};
+pub use scan::TreeIter;
+
+use std::collections::{BTreeSet, HashMap};
+use std::fs::{self, File};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+use arrow::array::{AsArray, RecordBatch};
+use arrow::compute::concat_batches;
+use arrow::datatypes::{SchemaRef, UInt16Type, UInt32Type, UInt64Type};
+use parquet::arrow::arrow_reader::{
+    ArrowReaderMetadata, ArrowReaderOptions, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector,
+};
+use parquet::file::metadata::PageIndexPolicy;
+
+use crate::codec::{Decoder, ENC_T, Encoding, file_schema};
+use crate::error::{arrow_err, io_err, pq_err};
+use crate::manifest::{MANIFEST_FILE, Manifest, SegmentEntry};
+use crate::planes::{PLANES_KEY, Planes};
+use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
+use crate::stats::Stats;
+use crate::tree::{Tree, TreeId, TreeInfo, rays_from_batch, tree_ids_of, validate_tree};
+use crate::{Error, Kind, Result};
+
+struct SegmentMeta {
+    meta: ArrowReaderMetadata,
+    /// First row of each row group.
+    row_group_starts: Vec<u64>,
+    /// The planes hit distances are predicted from (format version 3; empty before).
+    planes: Arc<Planes>,
+}
+
+/// A trace dataset opened for reading.
+pub struct Dataset {
+    dir: PathBuf,
+    manifest: Manifest,
+    payload: PayloadSchema,
+    kinds: KindTable,
+    kinds_by_name: HashMap<String, Kind>,
+    schema: SchemaRef,
+    /// Schema of the ray files (differs from `schema` when origins and directions are encoded).
+    file_schema: SchemaRef,
+    metas: Vec<OnceLock<Arc<SegmentMeta>>>,
+    index: OnceLock<Arc<TreeIndex>>,
+    /// Each segment's tree table (sorted by id), loaded on the first lookup by id that needs it.
+    segment_trees: Vec<OnceLock<Arc<Vec<TreeEntry>>>>,
+}
+
+impl Dataset {
+    /// Opens the dataset at `dir`: reads the manifest and checks every listed file is there
+    /// with the size the manifest records.
+    pub fn open(dir: impl AsRef<Path>) -> Result<Self> {
+        let dir = dir.as_ref().to_path_buf();
+        let manifest = Manifest::load(&dir)?;
+        let payload = manifest.payload_schema(&dir.join(MANIFEST_FILE))?;
+        for seg in &manifest.segments {
+            for file in [&seg.rays, &seg.trees] {
+                let path = dir.join(&file.path);
+                let len = match fs::metadata(&path) {
+                    Ok(m) => m.len(),
+                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                        return Err(Error::MissingFile { segment: seg.id, path });
+                    }
+                    Err(e) => {
+                        return Err(Error::Io { action: "reading segment file metadata", path, source: e });
+                    }
+                };
+                if len != file.bytes {
+                    return Err(Error::SizeMismatch { segment: seg.id, path, expected: file.bytes, found: len });
+                }
+            }
+        }
+        for (name, file) in &manifest.tables {
+            let path = dir.join(&file.path);
+            let message = match fs::metadata(&path) {
+                Ok(m) if m.len() == file.bytes => continue,
+                Ok(m) => format!(
+                    "expected {} bytes as the manifest records, found {}: truncated or changed",
+                    file.bytes,
+                    m.len()
+                ),
+                Err(e) => format!("listed in the manifest but cannot be read: {e}"),
+            };
+            return Err(Error::Table { name: name.clone(), path, message });
+        }
+        let kinds = manifest.kind_table();
+        let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();
+        let metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
+        let segment_trees = manifest.segments.iter().map(|_| OnceLock::new()).collect();
+        let schema = ray_schema(&payload);
+        Ok(Self {
+            file_schema: file_schema(&schema, manifest.encoding, manifest.format_version),
+            schema,
+            dir,
+            manifest,
+            payload,
+            kinds,
+            kinds_by_name,
+            metas,
+            index: OnceLock::new(),
+            segment_trees,
+        })
+    }
+
+    pub fn dir(&self) -> &Path {
+        &self.dir
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    pub fn stats(&self) -> &Stats {
+        &self.manifest.stats
+    }
+
+    pub fn payload_schema(&self) -> &PayloadSchema {
+        &self.payload
+    }
+
+    /// The Arrow schema of the ray table.
+    pub fn ray_schema(&self) -> SchemaRef {
+        self.schema.clone()
+    }
+
+    pub fn kinds(&self) -> &KindTable {
+        &self.kinds
+    }
+
+    /// Paths of the ray files, in segment order (for engines that read the Parquet directly).
+    pub fn ray_files(&self) -> Vec<PathBuf> {
+        self.manifest.segments.iter().map(|s| self.dir.join(&s.rays.path)).collect()
+    }
+
+    /// Paths of the tree files, in segment order.
+    pub fn tree_files(&self) -> Vec<PathBuf> {
+        self.manifest.segments.iter().map(|s| self.dir.join(&s.trees.path)).collect()
+    }
+
+    /// An optional whole-dataset table (`bvh_nodes`, `lights`, ...), if the recording wrote it.
+    pub fn table(&self, name: &str) -> Result<Option<RecordBatch>> {
+        let Some(file) = self.manifest.tables.get(name) else { return Ok(None) };
+        let path = self.dir.join(&file.path);
+        let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
+        let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
+        let schema = builder.schema().clone();
+        crate::scene::check_table(name, &schema).map_err(|message| Error::Table {
+            name: name.into(),
+            path: path.clone(),
+            message,
+        })?;
+        let reader = builder.build().map_err(pq_err(&path))?;
+        let mut batches = Vec::new();
+        for b in reader {
+            batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
+        }
+        concat_batches(&schema, &batches).map(Some).map_err(arrow_err(path.display().to_string()))
+    }
+
+    /// Path of an optional table's Parquet file, if the recording wrote it.
+    pub fn table_path(&self, name: &str) -> Option<PathBuf> {
+        self.manifest.tables.get(name).map(|f| self.dir.join(&f.path))
+    }
+
+    fn segment(&self, i: usize) -> &SegmentEntry {
+        &self.manifest.segments[i]
+    }
+
+    fn segment_meta(&self, i: usize) -> Result<Arc<SegmentMeta>> {
+        if let Some(m) = self.metas[i].get() {
+            return Ok(m.clone());
+        }
+        let path = self.dir.join(&self.segment(i).rays.path);
+        let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
+        let meta = ArrowReaderMetadata::load(
+            &file,
+            ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required),
+        )
+        .map_err(pq_err(&path))?;
+        check_schema(meta.schema(), &self.file_schema, &path)?;
+        let starts = row_group_starts(&meta);
+        let row: u64 = meta.metadata().row_groups().iter().map(|g| g.num_rows() as u64).sum();
+        if row != self.segment(i).rays.rows {
+            return Err(Error::Corrupt {
+                path,
+                what: "ray file".into(),
+                message: format!("manifest lists {} rows, file holds {row}", self.segment(i).rays.rows),
+            });
+        }
+        let planes = match meta
+            .metadata()
+            .file_metadata()
+            .key_value_metadata()
+            .and_then(|kv| kv.iter().find(|e| e.key == PLANES_KEY).and_then(|e| e.value.as_deref()))
+        {
+            Some(v) => Planes::from_metadata(v).map_err(|message| Error::Corrupt {
+                path: path.clone(),
+                what: "ray file metadata".into(),
+                message,
+            })?,
+            None => Planes::default(),
+        };
+        let m = Arc::new(SegmentMeta { meta, row_group_starts: starts, planes: Arc::new(planes) });
+        let _ = self.metas[i].set(m.clone());
+        Ok(m)
+    }
+
+    /// How the ray files store origins and directions.
+    pub fn encoding(&self) -> Encoding {
+        self.manifest.encoding
+    }
+
+    /// The schema of the ray files as stored (the ray table schema for `plain` datasets).
+    pub fn file_schema(&self) -> SchemaRef {
+        self.file_schema.clone()
+    }
+
+    /// A decoder from segment `i`'s ray-file batches (starting at a tree) to ray-table batches.
+    pub fn decoder(&self, i: usize) -> Result<Decoder> {
+        let planes = if self.manifest.encoding == Encoding::Plain {
+            Arc::default()
+        } else {
+            self.segment_meta(i)?.planes.clone()
+        };
+        Ok(Decoder::new(self.manifest.encoding, self.schema.clone(), self.kinds.clone()).with_planes(planes))
+    }
+
+    pub(crate) fn segment_entries(&self, i: usize) -> Result<Vec<TreeEntry>> {
+        self.read_tree_table(i)
+    }
+
+    pub(crate) fn segment_meta_checked(&self, i: usize) -> Result<()> {
+        self.segment_meta(i).map(|_| ())
+    }
+
+    /// First row of each row group of segment `i`'s ray file.
+    pub(crate) fn row_group_starts(&self, i: usize) -> Result<Vec<u64>> {
+        Ok(self.segment_meta(i)?.row_group_starts.clone())
+    }
+}
+
+fn check_schema(found: &SchemaRef, expected: &SchemaRef, path: &Path) -> Result<()> {
+    for f in expected.fields() {
+        match found.field_with_name(f.name()) {
+            Ok(g) if g.data_type() == f.data_type() => {}
+            Ok(g) => {
+                return Err(Error::Schema {
+                    path: path.to_path_buf(),
+                    field: f.name().clone(),
+                    expected: f.data_type().to_string(),
+                    found: g.data_type().to_string(),
+                });
+            }
+            Err(_) => {
+                return Err(Error::Schema {
+                    path: path.to_path_buf(),
+                    field: f.name().clone(),
+                    expected: f.data_type().to_string(),
+                    found: "no such column".into(),
+                });
+            }
+        }
+    }
+    if found.fields().len() != expected.fields().len() {
+        let extra: Vec<_> = found
+            .fields()
+            .iter()
+            .filter(|f| expected.field_with_name(f.name()).is_err())
+            .map(|f| f.name().clone())
+            .collect();
+        return Err(Error::Schema {
+            path: path.to_path_buf(),
+            field: extra.join(", "),
+            expected: "only the columns the manifest declares".into(),
+            found: "undeclared columns".into(),
+        });
+    }
+    Ok(())
+}
+
+/// The first row of each row group of a file.
+fn row_group_starts(meta: &ArrowReaderMetadata) -> Vec<u64> {
+    meta.metadata()
+        .row_groups()
+        .iter()
+        .scan(0u64, |row, g| {
+            let start = *row;
+            *row += g.num_rows() as u64;
+            Some(start)
+        })
+        .collect()
+}
