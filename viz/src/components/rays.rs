@@ -336,7 +336,7 @@ impl Rays {
                 },
                 None => None,
             };
-            for b in ds.segment_columns_in(i, &names, ranges)? {
+            for b in read_ahead(ds.segment_columns_in(i, &names, ranges)?) {
                 let b = b?;
                 if !progress.advance(b.num_rows() as u64) {
                     self.cancelled_after = Some(pick_trees.len() as u64);
@@ -405,6 +405,30 @@ impl Rays {
         self.loaded = Some((frame, self.settings.data_key()));
         self.load_secs = t0.elapsed().as_secs_f64();
         Ok(())
+    }
+}
+
+/// The batches of `it`, decoded on a thread of their own up to two ahead of the consumer, so
+/// decoding and building segments run on two cores at once. Dropping the iterator early (a
+/// cancel, `max_rays`) ends the thread after at most one more batch.
+fn read_ahead(
+    it: Box<dyn Iterator<Item = store::Result<RecordBatch>> + Send>,
+) -> Box<dyn Iterator<Item = store::Result<RecordBatch>>> {
+    let (tx, rx) = std::sync::mpsc::sync_channel(2);
+    let spawned = std::thread::Builder::new().name("rtvtk-rays-read".into()).spawn(move || {
+        for b in it {
+            if tx.send(b).is_err() {
+                break;
+            }
+        }
+    });
+    match spawned {
+        Ok(_) => Box::new(rx.into_iter()),
+        Err(e) => Box::new(std::iter::once(Err(store::Error::Io {
+            action: "starting the thread that reads rays",
+            path: std::path::PathBuf::new(),
+            source: e,
+        }))),
     }
 }
 
