@@ -110,6 +110,9 @@ fn dependency_direction_holds() {
     forbid(&g, "rtvtk-query", &gpu);
     forbid(&g, "rtvtk-renderers", &["rtvtk-query", "rtvtk-viz", "datafusion"]);
     forbid(&g, "rtvtk-renderers", &["egui", "eframe", "winit"]);
+    // The GPU tracer: wgpu over the renderers' scenes, nothing of the SQL engine, viz or GUI.
+    forbid(&g, "rtvtk-gpu-tracer", &["datafusion", "rtvtk-query", "rtvtk-viz", "egui", "eframe", "winit"]);
+    assert!(g.closure("rtvtk-gpu-tracer").contains("rtvtk-renderers"));
     // The visualizer's GPU layer knows no egui; only the viewer on top of it does.
     forbid(&g, "rtvtk-viz", &["egui", "eframe", "winit", "rtvtk-viewer"]);
     assert!(g.closure("rtvtk-viewer").contains("rtvtk-viz"));

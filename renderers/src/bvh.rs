@@ -524,6 +524,18 @@ impl Bvh {
         self.depth
     }
 
+    /// The binary tree as a GPU tracer flattens it: per node (min, max, first, count), the root
+    /// first; an inner node (count 0) has its children at `first` and `first + 1`, a leaf its
+    /// `count` triangles at slots `first..` of [`Bvh::leaf_slots`].
+    pub fn binary_nodes(&self) -> Vec<([f32; 3], [f32; 3], u32, u32)> {
+        self.nodes.iter().map(|n| (n.min.to_array(), n.max.to_array(), n.first, n.count)).collect()
+    }
+
+    /// Per leaf slot: the scene triangle's index and its vertices.
+    pub fn leaf_slots(&self) -> impl Iterator<Item = (u32, [Vec3A; 3])> + '_ {
+        self.prims.iter().copied().zip(self.verts.iter().copied())
+    }
+
     /// What traversal reads, for benchmark reports: wide nodes, leaf blocks, their bytes, and
     /// the mean number of triangles per leaf.
     pub fn layout(&self) -> BvhLayout {

@@ -2,6 +2,7 @@
 
 #[cfg(feature = "embree")]
 mod embree;
+mod gpu;
 mod query;
 mod record;
 mod trace;
@@ -130,6 +131,19 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 3)]
         rounds: usize,
     },
+    /// The GPU traversal's primary rays per second beside the CPU BVH on every core (same rays,
+    /// same run; the hits are compared).
+    Gpu {
+        #[arg(long, default_value = "cornell")]
+        scene: String,
+        /// Subdivide every triangle into n² (a larger scene from the same geometry).
+        #[arg(long, default_value_t = 1)]
+        subdivide: u32,
+        #[arg(long, default_value = "1920x1080", value_parser = crate::args::parse_size)]
+        size: (u32, u32),
+        #[arg(long, default_value_t = 5)]
+        rounds: usize,
+    },
     /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
     Fetch {
         dataset: PathBuf,
@@ -147,6 +161,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         }
         BenchCommand::Viz { dataset, rays, size, frames, rounds } => {
             crate::bench::viz::run(&dataset, &rays, size, frames.max(1), rounds.max(1))
+        }
+        BenchCommand::Gpu { scene, subdivide, size, rounds } => {
+            crate::bench::gpu::run(&scene, subdivide, size, rounds.max(1))
         }
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
         BenchCommand::Record { runs, args } => crate::bench::record::run(runs, &args),
