@@ -54,6 +54,47 @@ struct GpuCamera {
     params: [f32; 4],
 }
 
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+struct GpuMaterial {
+    kind: u32,
+    exponent: f32,
+    ior: f32,
+    pad: f32,
+    diffuse: [f32; 4],
+    specular: [f32; 4],
+    emission: [f32; 4],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+struct GpuLight {
+    v0: [f32; 4],
+    v1: [f32; 4],
+    v2: [f32; 4],
+    normal: [f32; 4],
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+struct GpuFrame {
+    /// sample index, seed, max depth, light count
+    counts: [u32; 4],
+    /// total emitter area
+    area: [f32; 4],
+}
+
+/// A progressive image on the GPU: the sum of the samples traced so far, per pixel.
+pub struct Progressive {
+    width: u32,
+    height: u32,
+    accum: wgpu::Buffer,
+    /// Samples per pixel added so far.
+    pub spp: u32,
+    pub seed: u32,
+    pub max_depth: u32,
+}
+
 /// The closest hit of one pixel's primary ray.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PrimaryHit {
@@ -71,6 +112,13 @@ pub struct GpuTracer {
     nodes: wgpu::Buffer,
     tris: wgpu::Buffer,
     primary: wgpu::ComputePipeline,
+    path: wgpu::ComputePipeline,
+    normals: wgpu::Buffer,
+    materials: wgpu::Buffer,
+    lights: wgpu::Buffer,
+    light_cdf: wgpu::Buffer,
+    light_count: u32,
+    light_area: f32,
     camera: renderers::Camera,
 }
 
@@ -102,6 +150,12 @@ impl GpuTracer {
         };
         let (device, queue) =
             pollster::block_on(adapter.request_device(&desc)).map_err(|e| Error::Device(e.to_string()))?;
+        // Validation errors (a shader the driver refuses) come back as errors, not panics.
+        let errors: std::sync::Arc<std::sync::Mutex<Vec<String>>> = Default::default();
+        let sink = errors.clone();
+        device.on_uncaptured_error(std::sync::Arc::new(move |e: wgpu::Error| {
+            sink.lock().unwrap_or_else(|p| p.into_inner()).push(e.to_string());
+        }));
         let mut nodes: Vec<GpuNode> =
             bvh.binary_nodes().into_iter().map(|(min, max, first, count)| GpuNode { min, first, max, count }).collect();
         let mut tris: Vec<GpuTri> = bvh
@@ -127,7 +181,73 @@ impl GpuTracer {
                 usage: wgpu::BufferUsages::STORAGE,
             })
         };
+        let v4 = |v: glam::Vec3A, w: f32| [v.x, v.y, v.z, w];
+        let mut normals: Vec<[f32; 4]> =
+            scene.normals.iter().zip(&scene.tri_material).map(|(n, &m)| v4(*n, f32::from_bits(m))).collect();
+        let mut materials: Vec<GpuMaterial> = scene
+            .materials
+            .iter()
+            .map(|m| GpuMaterial {
+                kind: match m.kind {
+                    renderers::MaterialKind::Diffuse => 0,
+                    renderers::MaterialKind::Glossy => 1,
+                    renderers::MaterialKind::Mirror => 2,
+                    renderers::MaterialKind::Dielectric => 3,
+                },
+                exponent: m.exponent,
+                ior: m.ior,
+                pad: 0.0,
+                diffuse: v4(m.diffuse, 0.0),
+                specular: v4(m.specular, 0.0),
+                emission: v4(m.emission, 0.0),
+            })
+            .collect();
+        let mut lights = Vec::with_capacity(scene.lights.len());
+        for &p in &scene.lights {
+            let (Some([a, b, c]), Some(n)) = (scene.tris.get(p as usize), scene.normals.get(p as usize)) else {
+                return Err(Error::Input(format!(
+                    "emitter triangle {p} is not among the scene's {} triangles",
+                    scene.tris.len()
+                )));
+            };
+            lights.push(GpuLight {
+                v0: v4(*a, 0.0),
+                v1: v4(*b, 0.0),
+                v2: v4(*c, 0.0),
+                normal: v4(*n, f32::from_bits(p)),
+            });
+        }
+        if scene.normals.len() != scene.tris.len() || scene.tri_material.len() != scene.tris.len() {
+            return Err(Error::Input(format!(
+                "the scene has {} triangles but {} normals and {} material indices",
+                scene.tris.len(),
+                scene.normals.len(),
+                scene.tri_material.len()
+            )));
+        }
+        if let Some(m) = scene.tri_material.iter().find(|&&m| m as usize >= scene.materials.len()) {
+            return Err(Error::Input(format!("material index {m}: the scene has {} materials", scene.materials.len())));
+        }
+        let mut light_cdf = scene.light_cdf.clone();
+        let (light_count, light_area) = (lights.len() as u32, scene.light_area);
+        // Storage buffers may not be empty.
+        if normals.is_empty() {
+            normals.push([0.0; 4]);
+        }
+        if materials.is_empty() {
+            materials.push(GpuMaterial::zeroed());
+        }
+        if lights.is_empty() {
+            lights.push(GpuLight::zeroed());
+        }
+        if light_cdf.is_empty() {
+            light_cdf.push(0.0);
+        }
         let nodes = storage("bvh nodes", bytemuck::cast_slice(&nodes));
+        let normals = storage("normals", bytemuck::cast_slice(&normals));
+        let materials = storage("materials", bytemuck::cast_slice(&materials));
+        let lights = storage("lights", bytemuck::cast_slice(&lights));
+        let light_cdf = storage("light cdf", bytemuck::cast_slice(&light_cdf));
         let tris = storage("leaf triangles", bytemuck::cast_slice(&tris));
         let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("trace"),
@@ -141,6 +261,17 @@ impl GpuTracer {
             compilation_options: Default::default(),
             cache: None,
         });
+        let path = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("path"),
+            layout: None,
+            module: &module,
+            entry_point: Some("path"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        if let Some(e) = errors.lock().unwrap_or_else(|p| p.into_inner()).first() {
+            return Err(Error::Gpu(format!("the tracing shaders: {e}")));
+        }
         Ok(GpuTracer {
             device,
             queue,
@@ -148,8 +279,136 @@ impl GpuTracer {
             nodes,
             tris,
             primary,
+            path,
+            normals,
+            materials,
+            lights,
+            light_cdf,
+            light_count,
+            light_area,
             camera: scene.camera,
         })
+    }
+
+    /// The camera as the shader reads it, for a `w` × `h` image.
+    fn camera_uniform(&self, w: u32, h: u32) -> wgpu::Buffer {
+        let c = &self.camera;
+        let forward = (c.target - c.position).normalize();
+        let right = forward.cross(c.up).normalize();
+        let up = right.cross(forward);
+        let v4 = |v: glam::Vec3A| [v.x, v.y, v.z, 0.0];
+        let cam = GpuCamera {
+            position: v4(c.position),
+            forward: v4(forward),
+            right: v4(right),
+            up: v4(up),
+            params: [(c.fov_y.to_radians() * 0.5).tan(), w as f32 / h as f32, w as f32, h as f32],
+        };
+        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("camera"),
+            contents: bytemuck::bytes_of(&cam),
+            usage: wgpu::BufferUsages::UNIFORM,
+        })
+    }
+
+    /// An empty progressive image of `w` × `h` pixels (`max_depth` bounces at most, as
+    /// `renderers::RenderOptions::max_depth`).
+    pub fn progressive(&self, w: u32, h: u32, seed: u32, max_depth: u32) -> Result<Progressive> {
+        if w == 0 || h == 0 || w > 16384 || h > 16384 {
+            return Err(Error::Input(format!("image size {w}x{h}: expected 1..=16384 on each side")));
+        }
+        let accum = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("accumulated radiance"),
+            contents: &vec![0u8; (u64::from(w) * u64::from(h) * 16) as usize],
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+        });
+        Ok(Progressive { width: w, height: h, accum, spp: 0, seed, max_depth })
+    }
+
+    /// Adds `samples` path-traced samples per pixel to `p` (one dispatch each).
+    pub fn trace(&self, p: &mut Progressive, samples: u32) -> Result<()> {
+        let cam = self.camera_uniform(p.width, p.height);
+        let frame = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("frame"),
+            size: std::mem::size_of::<GpuFrame>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &self.path.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: cam.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: self.nodes.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 2, resource: self.tris.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 4, resource: frame.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 5, resource: self.normals.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 6, resource: self.materials.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 7, resource: self.lights.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 8, resource: self.light_cdf.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 9, resource: p.accum.as_entire_binding() },
+            ],
+        });
+        for _ in 0..samples {
+            let f = GpuFrame {
+                counts: [p.spp, p.seed, p.max_depth, self.light_count],
+                area: [self.light_area, 0.0, 0.0, 0.0],
+            };
+            self.queue.write_buffer(&frame, 0, bytemuck::bytes_of(&f));
+            let mut enc = self.device.create_command_encoder(&Default::default());
+            {
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&self.path);
+                pass.set_bind_group(0, &group, &[]);
+                pass.dispatch_workgroups(p.width.div_ceil(8), p.height.div_ceil(8), 1);
+            }
+            self.queue.submit([enc.finish()]);
+            p.spp += 1;
+        }
+        self.device.poll(wgpu::PollType::wait_indefinitely()).map(|_| ()).map_err(|e| Error::Gpu(e.to_string()))
+    }
+
+    /// The mean of the samples so far, as the CPU tracer's film.
+    pub fn film(&self, p: &Progressive) -> Result<renderers::Film> {
+        let sums: Vec<[f32; 4]> = self.read_back(&p.accum)?;
+        let pixels = sums
+            .iter()
+            .map(|s| if s[3] > 0.0 { glam::Vec3A::new(s[0], s[1], s[2]) / s[3] } else { glam::Vec3A::ZERO })
+            .collect();
+        Ok(renderers::Film { width: p.width, height: p.height, pixels })
+    }
+
+    /// A path-traced image of `spp` samples per pixel.
+    pub fn render(&self, w: u32, h: u32, spp: u32, seed: u32, max_depth: u32) -> Result<renderers::Film> {
+        let mut p = self.progressive(w, h, seed, max_depth)?;
+        self.trace(&mut p, spp)?;
+        self.film(&p)
+    }
+
+    /// The contents of a storage buffer (made with `COPY_SRC`).
+    fn read_back<T: Pod>(&self, buf: &wgpu::Buffer) -> Result<Vec<T>> {
+        let bytes = buf.size();
+        let read = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("read back"),
+            size: bytes,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(buf, 0, &read, 0, bytes);
+        self.queue.submit([enc.finish()]);
+        let slice = read.slice(..);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.device.poll(wgpu::PollType::wait_indefinitely()).map(|_| ()).map_err(|e| Error::Gpu(e.to_string()))?;
+        rx.recv().map_err(|e| Error::Gpu(e.to_string()))?.map_err(|e| Error::Gpu(e.to_string()))?;
+        let data = slice.get_mapped_range().map_err(|e| Error::Gpu(e.to_string()))?;
+        let out = bytemuck::cast_slice::<u8, T>(&data).to_vec();
+        drop(data);
+        read.unmap();
+        Ok(out)
     }
 
     /// The adapter in words (`llvmpipe (Vulkan)`).
@@ -164,23 +423,7 @@ impl GpuTracer {
         if w == 0 || h == 0 || w > 16384 || h > 16384 {
             return Err(Error::Input(format!("image size {w}x{h}: expected 1..=16384 on each side")));
         }
-        let c = &self.camera;
-        let forward = (c.target - c.position).normalize();
-        let right = forward.cross(c.up).normalize();
-        let up = right.cross(forward);
-        let v4 = |v: glam::Vec3A| [v.x, v.y, v.z, 0.0];
-        let cam = GpuCamera {
-            position: v4(c.position),
-            forward: v4(forward),
-            right: v4(right),
-            up: v4(up),
-            params: [(c.fov_y.to_radians() * 0.5).tan(), w as f32 / h as f32, w as f32, h as f32],
-        };
-        let ubuf = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("camera"),
-            contents: bytemuck::bytes_of(&cam),
-            usage: wgpu::BufferUsages::UNIFORM,
-        });
+        let ubuf = self.camera_uniform(w, h);
         let bytes = u64::from(w) * u64::from(h) * 8;
         let out = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("hits"),

@@ -98,8 +98,8 @@ fn slab(r: Ray, lo: vec3<f32>, hi: vec3<f32>, tmax: f32) -> f32 {
     return -1.0;
 }
 
-// Hit distance of the watertight test in (0, tmax), or -1.
-fn triangle(r: Ray, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>, tmax: f32) -> f32 {
+// The watertight test: (hit distance in (0, tmax), or -1; barycentrics of vertices 1 and 2).
+fn triangle(r: Ray, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>, tmax: f32) -> vec3<f32> {
     let a = v0 - r.o;
     let b = v1 - r.o;
     let c = v2 - r.o;
@@ -113,29 +113,33 @@ fn triangle(r: Ray, v0: vec3<f32>, v1: vec3<f32>, v2: vec3<f32>, tmax: f32) -> f
     let v = ax * cy - ay * cx;
     let w = bx * ay - by * ax;
     if (u < 0.0 || v < 0.0 || w < 0.0) && (u > 0.0 || v > 0.0 || w > 0.0) {
-        return -1.0;
+        return vec3<f32>(-1.0, 0.0, 0.0);
     }
     let det = u + v + w;
     if det == 0.0 {
-        return -1.0;
+        return vec3<f32>(-1.0, 0.0, 0.0);
     }
     let az = r.s.z * component(a, r.k.z);
     let bz = r.s.z * component(b, r.k.z);
     let cz = r.s.z * component(c, r.k.z);
-    let t = (u * az + v * bz + w * cz) / det;
+    let inv = 1.0 / det;
+    let t = (u * az + v * bz + w * cz) * inv;
     if t > 0.0 && t < tmax {
-        return t;
+        return vec3<f32>(t, v * inv, w * inv);
     }
-    return -1.0;
+    return vec3<f32>(-1.0, 0.0, 0.0);
 }
 
 struct Hit {
     prim: u32,
     t: f32,
+    // the leaf slot hit (its vertices: tris[slot]) and the barycentrics of vertices 1 and 2
+    slot: u32,
+    b: vec2<f32>,
 };
 
 fn closest(r: Ray, tmax_in: f32) -> Hit {
-    var best = Hit(0xffffffffu, tmax_in);
+    var best = Hit(0xffffffffu, tmax_in, 0u, vec2<f32>(0.0));
     let root = nodes[0];
     if root.count == 0xffffffffu || slab(r, root.min, root.max, best.t) < 0.0 {
         return best;
@@ -149,8 +153,8 @@ fn closest(r: Ray, tmax_in: f32) -> Hit {
             for (var i = n.first; i < n.first + n.count; i++) {
                 let tri = tris[i];
                 let t = triangle(r, tri.v0.xyz, tri.v1.xyz, tri.v2.xyz, best.t);
-                if t > 0.0 {
-                    best = Hit(bitcast<u32>(tri.v0.w), t);
+                if t.x > 0.0 {
+                    best = Hit(bitcast<u32>(tri.v0.w), t.x, i, t.yz);
                 }
             }
         } else {
@@ -203,4 +207,350 @@ fn primary(@builtin(global_invocation_id) id: vec3<u32>) {
     let d = normalize(cam.forward.xyz + cam.right.xyz * sx + cam.up.xyz * sy);
     let hit = closest(make_ray(cam.position.xyz, d), 3.4028235e38);
     hits[id.y * w + id.x] = vec2<u32>(hit.prim, bitcast<u32>(hit.t));
+}
+
+// ---------------------------------------------------------------------------------------------
+// The progressive path tracer: renderers::tracer::path_sample on the GPU, one sample per pixel
+// per dispatch, added to an accumulation buffer. Same camera, materials (diffuse, glossy,
+// mirror, dielectric, emitters), next-event estimation on diffuse and glossy surfaces, Russian
+// roulette after three bounces, the same ray offsets; its own random numbers (a PCG hash per
+// pixel, sample and seed), so it agrees with the CPU in distribution, not bit for bit.
+
+struct Material {
+    // 0 diffuse, 1 glossy, 2 mirror, 3 dielectric
+    kind: u32,
+    exponent: f32,
+    ior: f32,
+    pad: f32,
+    diffuse: vec4<f32>,
+    specular: vec4<f32>,
+    emission: vec4<f32>,
+};
+
+struct Light {
+    v0: vec4<f32>,
+    v1: vec4<f32>,
+    v2: vec4<f32>,
+    // xyz: unit normal; w: the scene triangle's index (bits)
+    normal: vec4<f32>,
+};
+
+struct Frame {
+    // sample index, seed, max depth, light count
+    counts: vec4<u32>,
+    // total emitter area, 0, 0, 0
+    area: vec4<f32>,
+};
+
+@group(0) @binding(4) var<uniform> frame: Frame;
+// per scene triangle: unit geometric normal (xyz), material index (w, bits)
+@group(0) @binding(5) var<storage, read> normals: array<vec4<f32>>;
+@group(0) @binding(6) var<storage, read> materials: array<Material>;
+@group(0) @binding(7) var<storage, read> lights: array<Light>;
+// cumulative emitter areas, as renderers::Scene::light_cdf
+@group(0) @binding(8) var<storage, read> light_cdf: array<f32>;
+@group(0) @binding(9) var<storage, read_write> accum: array<vec4<f32>>;
+
+const PI: f32 = 3.14159265358979;
+
+var<private> rng_state: u32;
+
+fn pcg(v: u32) -> u32 {
+    let state = v * 747796405u + 2891336453u;
+    let word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
+    return (word >> 22u) ^ word;
+}
+
+fn rand() -> f32 {
+    rng_state = rng_state * 747796405u + 2891336453u;
+    let word = ((rng_state >> ((rng_state >> 28u) + 4u)) ^ rng_state) * 277803737u;
+    return f32(((word >> 22u) ^ word) >> 8u) * (1.0 / 16777216.0);
+}
+
+fn basis_t(n: vec3<f32>) -> vec3<f32> {
+    let sgn = select(-1.0, 1.0, n.z >= 0.0);
+    let a = -1.0 / (sgn + n.z);
+    let b = n.x * n.y * a;
+    return vec3<f32>(1.0 + sgn * n.x * n.x * a, sgn * b, -sgn * n.x);
+}
+
+fn basis_b(n: vec3<f32>) -> vec3<f32> {
+    let sgn = select(-1.0, 1.0, n.z >= 0.0);
+    let a = -1.0 / (sgn + n.z);
+    let b = n.x * n.y * a;
+    return vec3<f32>(b, sgn + n.y * n.y * a, -n.y);
+}
+
+fn cosine_hemisphere(n: vec3<f32>, u1: f32, u2: f32) -> vec3<f32> {
+    let r = sqrt(u1);
+    let phi = 2.0 * PI * u2;
+    let z = sqrt(max(1.0 - u1, 0.0));
+    return normalize(basis_t(n) * (r * cos(phi)) + basis_b(n) * (r * sin(phi)) + n * z);
+}
+
+fn phong_lobe(axis: vec3<f32>, e: f32, u1: f32, u2: f32) -> vec3<f32> {
+    let cos_t = pow(u1, 1.0 / (e + 1.0));
+    let sin_t = sqrt(max(1.0 - cos_t * cos_t, 0.0));
+    let phi = 2.0 * PI * u2;
+    return normalize(basis_t(axis) * (sin_t * cos(phi)) + basis_b(axis) * (sin_t * sin(phi)) + axis * cos_t);
+}
+
+fn reflect_dir(d: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    return d - n * (2.0 * dot(d, n));
+}
+
+fn luminance(c: vec3<f32>) -> f32 {
+    return 0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z;
+}
+
+fn eval_bsdf(m: Material, n: vec3<f32>, wo: vec3<f32>, wi: vec3<f32>) -> vec3<f32> {
+    if dot(n, wi) <= 0.0 {
+        return vec3<f32>(0.0);
+    }
+    if m.kind == 0u {
+        return m.diffuse.xyz / PI;
+    }
+    if m.kind == 1u {
+        let c = max(dot(reflect_dir(-wo, n), wi), 0.0);
+        return m.diffuse.xyz / PI + m.specular.xyz * ((m.exponent + 2.0) / (2.0 * PI) * pow(c, m.exponent));
+    }
+    return vec3<f32>(0.0);
+}
+
+// renderers::geometry::offset_point: a few ULPs along the normal, a fixed step near the origin.
+fn offset_point(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    var out = p;
+    for (var i = 0u; i < 3u; i++) {
+        let step = i32(16.0 * n[i]);
+        let bits = bitcast<i32>(p[i]);
+        var moved = bitcast<f32>(bits + step);
+        if p[i] < 0.0 {
+            moved = bitcast<f32>(bits - step);
+        }
+        out[i] = select(moved, p[i] + n[i] / 65536.0, abs(p[i]) < 1.0 / 32.0);
+    }
+    return out;
+}
+
+// Whether anything but triangle `skip` lies on the ray within (0, tmax).
+fn occluded(r: Ray, tmax: f32, skip: u32) -> bool {
+    let root = nodes[0];
+    if root.count == 0xffffffffu || slab(r, root.min, root.max, tmax) < 0.0 {
+        return false;
+    }
+    var stack: array<u32, 64>;
+    var sp = 0u;
+    var node = 0u;
+    loop {
+        let n = nodes[node];
+        if n.count > 0u {
+            for (var i = n.first; i < n.first + n.count; i++) {
+                let tri = tris[i];
+                if bitcast<u32>(tri.v0.w) != skip && triangle(r, tri.v0.xyz, tri.v1.xyz, tri.v2.xyz, tmax).x > 0.0 {
+                    return true;
+                }
+            }
+        } else {
+            let ta = slab(r, nodes[n.first].min, nodes[n.first].max, tmax);
+            let tb = slab(r, nodes[n.first + 1u].min, nodes[n.first + 1u].max, tmax);
+            if ta >= 0.0 && tb >= 0.0 {
+                node = n.first;
+                stack[sp] = n.first + 1u;
+                sp = min(sp + 1u, 63u);
+                continue;
+            }
+            if ta >= 0.0 {
+                node = n.first;
+                continue;
+            }
+            if tb >= 0.0 {
+                node = n.first + 1u;
+                continue;
+            }
+        }
+        if sp == 0u {
+            break;
+        }
+        sp -= 1u;
+        node = stack[sp];
+    }
+    return false;
+}
+
+// The hit point from the barycentrics (more accurate than o + t d far from the origin).
+fn hit_point(h: Hit) -> vec3<f32> {
+    let tri = tris[h.slot];
+    return tri.v0.xyz * (1.0 - h.b.x - h.b.y) + tri.v1.xyz * h.b.x + tri.v2.xyz * h.b.y;
+}
+
+fn pick_emitter(u: f32) -> u32 {
+    let count = frame.counts.w;
+    let goal = u * frame.area.x;
+    // the first cdf entry above the target (partition point of c <= target)
+    var lo = 0u;
+    var hi = count;
+    while lo < hi {
+        let mid = (lo + hi) / 2u;
+        if light_cdf[mid] <= goal {
+            lo = mid + 1u;
+        } else {
+            hi = mid;
+        }
+    }
+    return min(lo, count - 1u);
+}
+
+fn path_sample(px: f32, py: f32) -> vec3<f32> {
+    let w = u32(cam.params.z);
+    let h = u32(cam.params.w);
+    let sx = (2.0 * px / f32(w) - 1.0) * cam.params.x * cam.params.y;
+    let sy = (1.0 - 2.0 * py / f32(h)) * cam.params.x;
+    var ray = make_ray(cam.position.xyz, normalize(cam.forward.xyz + cam.right.xyz * sx + cam.up.xyz * sy));
+    var beta = vec3<f32>(1.0);
+    var l = vec3<f32>(0.0);
+    var count_emission = true;
+    var depth = 0u;
+    loop {
+        let hit = closest(ray, 3.4028235e38);
+        if hit.prim == 0xffffffffu {
+            break;
+        }
+        let nm = normals[hit.prim];
+        let m = materials[bitcast<u32>(nm.w)];
+        let ng = nm.xyz;
+        if count_emission && max(max(m.emission.x, m.emission.y), m.emission.z) > 0.0 {
+            l += beta * m.emission.xyz;
+        }
+        if depth >= frame.counts.z {
+            break;
+        }
+        let p = hit_point(hit);
+        let front = dot(ng, ray.d) < 0.0;
+        let n = select(-ng, ng, front);
+        if (m.kind == 0u || m.kind == 1u) && frame.counts.w > 0u && frame.area.x > 0.0 {
+            // next-event estimation: one shadow ray to a point on an emitter
+            let li = lights[pick_emitter(rand())];
+            let s1 = sqrt(rand());
+            let b1 = 1.0 - s1;
+            let b2 = rand() * s1;
+            let q = li.v0.xyz * (1.0 - b1 - b2) + li.v1.xyz * b1 + li.v2.xyz * b2;
+            let origin = offset_point(p, n);
+            let to = q - origin;
+            let dist2 = dot(to, to);
+            let dist = sqrt(dist2);
+            let wi = to / dist;
+            let cos_x = dot(n, wi);
+            let cos_l = abs(dot(li.normal.xyz, wi));
+            if cos_x > 0.0 && dist > 0.0 {
+                let lprim = bitcast<u32>(li.normal.w);
+                if !occluded(make_ray(origin, wi), dist * (1.0 - 1e-4), lprim) {
+                    let f = eval_bsdf(m, n, -ray.d, wi);
+                    let le = materials[bitcast<u32>(normals[lprim].w)].emission.xyz;
+                    l += beta * f * (cos_x * cos_l * frame.area.x / dist2) * le;
+                }
+            }
+        }
+        // sample the material (renderers::material::sample)
+        let d = ray.d;
+        let wo = -d;
+        var wi: vec3<f32>;
+        var weight: vec3<f32>;
+        var delta = false;
+        if m.kind == 0u {
+            wi = cosine_hemisphere(n, rand(), rand());
+            if dot(n, wi) <= 0.0 {
+                break;
+            }
+            weight = m.diffuse.xyz;
+        } else if m.kind == 1u {
+            let ld = luminance(m.diffuse.xyz);
+            let ls = luminance(m.specular.xyz);
+            let pd = select(1.0, ld / (ld + ls), ld + ls > 0.0);
+            let r = reflect_dir(d, n);
+            if rand() < pd {
+                wi = cosine_hemisphere(n, rand(), rand());
+            } else {
+                wi = phong_lobe(r, m.exponent, rand(), rand());
+            }
+            let cs = dot(n, wi);
+            if cs <= 0.0 {
+                break;
+            }
+            let c = max(dot(r, wi), 0.0);
+            let pdf = pd * cs / PI + (1.0 - pd) * (m.exponent + 1.0) / (2.0 * PI) * pow(c, m.exponent);
+            if pdf <= 0.0 {
+                break;
+            }
+            weight = eval_bsdf(m, n, wo, wi) * cs / pdf;
+        } else if m.kind == 2u {
+            wi = reflect_dir(d, n);
+            weight = m.specular.xyz;
+            delta = true;
+        } else {
+            let entering = dot(ng, wo) >= 0.0;
+            let nn = select(-ng, ng, entering);
+            var eta_i = m.ior;
+            var eta_t = 1.0;
+            if entering {
+                eta_i = 1.0;
+                eta_t = m.ior;
+            }
+            let cos_i = clamp(dot(nn, wo), 0.0, 1.0);
+            let eta = eta_i / eta_t;
+            let sin2_t = eta * eta * max(1.0 - cos_i * cos_i, 0.0);
+            var fr = 1.0;
+            var cos_t = 0.0;
+            if sin2_t < 1.0 {
+                cos_t = sqrt(1.0 - sin2_t);
+                let rs = (eta_i * cos_i - eta_t * cos_t) / (eta_i * cos_i + eta_t * cos_t);
+                let rp = (eta_t * cos_i - eta_i * cos_t) / (eta_t * cos_i + eta_i * cos_t);
+                fr = 0.5 * (rs * rs + rp * rp);
+            }
+            if rand() < fr {
+                wi = reflect_dir(d, nn);
+                weight = m.specular.xyz;
+            } else {
+                wi = normalize(d * eta + nn * (eta * cos_i - cos_t));
+                weight = m.specular.xyz * (eta * eta);
+            }
+            delta = true;
+        }
+        beta *= weight;
+        count_emission = delta;
+        if depth >= 3u {
+            let q = clamp(max(max(beta.x, beta.y), beta.z), 0.05, 0.95);
+            if rand() >= q {
+                break;
+            }
+            beta /= q;
+        }
+        let bmax = max(max(beta.x, beta.y), beta.z);
+        if !(bmax > 0.0) || bmax > 3.4e38 {
+            break;
+        }
+        let side = select(-ng, ng, dot(wi, ng) > 0.0);
+        ray = make_ray(offset_point(p, side), wi);
+        depth += 1u;
+    }
+    return l;
+}
+
+@compute @workgroup_size(8, 8)
+fn path(@builtin(global_invocation_id) id: vec3<u32>) {
+    let w = u32(cam.params.z);
+    let h = u32(cam.params.w);
+    if id.x >= w || id.y >= h {
+        return;
+    }
+    let pixel = id.y * w + id.x;
+    rng_state = pcg(pcg(pcg(frame.counts.y) + pixel) + frame.counts.x);
+    let fx = f32(id.x) + rand();
+    let fy = f32(id.y) + rand();
+    let c = path_sample(fx, fy);
+    // a non-finite sample (none expected) is dropped, as a NaN would poison the pixel
+    if all(c == c) && max(max(c.x, c.y), c.z) < 3.4e38 {
+        accum[pixel] += vec4<f32>(c, 1.0);
+    } else {
+        accum[pixel] += vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    }
 }

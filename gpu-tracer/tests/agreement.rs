@@ -86,9 +86,72 @@ fn bad_sizes_are_errors() {
     let s = BuiltinScene::Cornell.build(1).unwrap();
     let gpu = GpuTracer::new(&s, &Bvh::build(&s.tris)).unwrap();
     assert!(gpu.primary_hits(0, 10).unwrap_err().to_string().contains("image size 0x10"));
-    // A scene without triangles: every ray misses.
+    // A scene without triangles: every ray misses, every pixel is black.
+    // (`Scene::new` refuses one; a scene emptied field by field stands in for other loaders)
     let mut empty = s.clone();
     empty.tris.clear();
+    empty.normals.clear();
+    empty.tri_material.clear();
+    empty.lights.clear();
+    empty.light_cdf.clear();
+    empty.light_area = 0.0;
     let g = GpuTracer::new(&empty, &Bvh::build(&empty.tris)).unwrap();
     assert!(g.primary_hits(8, 8).unwrap().iter().all(|h| h.prim.is_none()));
+    assert!(g.render(8, 8, 2, 1, 8).unwrap().pixels.iter().all(|p| *p == Vec3A::ZERO));
+    // An inconsistent scene is an error naming what does not fit, not a panic.
+    let mut broken = s.clone();
+    broken.tris.truncate(3);
+    let e = GpuTracer::new(&broken, &Bvh::build(&broken.tris)).err().unwrap().to_string();
+    assert!(e.contains("not among the scene's 3 triangles") || e.contains("3 triangles but"), "{e}");
+}
+
+fn rmse(a: &renderers::Film, b: &renderers::Film) -> f64 {
+    let mut se = 0.0f64;
+    for (p, q) in a.pixels.iter().zip(&b.pixels) {
+        for c in 0..3 {
+            se += (f64::from(p[c]) - f64::from(q[c])).powi(2);
+        }
+    }
+    (se / (a.pixels.len() * 3) as f64).sqrt()
+}
+
+fn mean(a: &renderers::Film) -> f64 {
+    a.pixels.iter().map(|p| f64::from(p.x + p.y + p.z)).sum::<f64>() / a.pixels.len() as f64
+}
+
+fn cpu(scene: &Scene, bvh: &Bvh, w: u32, h: u32, spp: u32, seed: u64) -> renderers::Film {
+    let opts = renderers::RenderOptions { width: w, height: h, spp, seed, threads: 2, ..Default::default() };
+    renderers::render(scene, bvh, &opts, None, &|_| {}).unwrap().0
+}
+
+/// The GPU path tracer converges towards the CPU's image: the mean radiance of a 256-spp GPU
+/// image is the 1024-spp CPU reference's within 2 %, its error at 16 spp is the CPU's own at
+/// 16 spp within a half, and 16x the samples cut it by at least half. (Measured, not yet
+/// asserted: at 1024 spp the GPU's RMSE against a 4096-spp CPU reference levels off near
+/// 0.015-0.02 where the CPU's is 0.009; see the crate README.)
+#[test]
+fn the_gpu_path_tracer_converges_towards_the_cpu_image() {
+    let (w, h) = (32, 24);
+    for (name, s) in [
+        ("cornell", BuiltinScene::Cornell),
+        ("cornell-glass", BuiltinScene::CornellGlass),
+        ("glossy", BuiltinScene::Glossy),
+    ] {
+        let scene = s.build(1).unwrap();
+        let bvh = Bvh::build(&scene.tris);
+        let gpu = GpuTracer::new(&scene, &bvh).unwrap();
+        let reference = cpu(&scene, &bvh, w, h, 1024, 1);
+        let depth = renderers::RenderOptions::default().max_depth;
+        let g16 = gpu.render(w, h, 16, 7, depth).unwrap();
+        let g256 = gpu.render(w, h, 256, 8, depth).unwrap();
+        let c16 = cpu(&scene, &bvh, w, h, 16, 2);
+        let (e16, e256, c) = (rmse(&g16, &reference), rmse(&g256, &reference), rmse(&c16, &reference));
+        let (mg, mr) = (mean(&g256), mean(&reference));
+        eprintln!(
+            "{name}: RMSE gpu 16 spp {e16:.4}, 256 spp {e256:.4}, cpu 16 spp {c:.4}; mean gpu {mg:.4} reference {mr:.4}"
+        );
+        assert!((mg / mr - 1.0).abs() < 0.02, "{name}: mean radiance {mg} on the GPU, {mr} in the reference");
+        assert!(e16 < c * 1.5 && e16 > c * 0.5, "{name}: GPU error {e16} at 16 spp against the CPU's {c}");
+        assert!(e256 < e16 * 0.5, "{name}: 16x the samples cut the GPU error from {e16} to {e256} only");
+    }
 }
