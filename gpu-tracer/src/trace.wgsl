@@ -253,18 +253,21 @@ struct Frame {
 
 const PI: f32 = 3.14159265358979;
 
-var<private> rng_state: u32;
+var<private> rng_key: u32;
+var<private> rng_count: u32;
 
+// The PCG hash (Jarzynski and Olano 2020).
 fn pcg(v: u32) -> u32 {
     let state = v * 747796405u + 2891336453u;
     let word = ((state >> ((state >> 28u) + 4u)) ^ state) * 277803737u;
     return (word >> 22u) ^ word;
 }
 
+// Uniform in [0, 1): every draw hashes (key, draw index) on its own, so no two draws of a path,
+// and no two samples of a pixel, share a stream.
 fn rand() -> f32 {
-    rng_state = rng_state * 747796405u + 2891336453u;
-    let word = ((rng_state >> ((rng_state >> 28u) + 4u)) ^ rng_state) * 277803737u;
-    return f32(((word >> 22u) ^ word) >> 8u) * (1.0 / 16777216.0);
+    rng_count += 1u;
+    return f32(pcg(rng_key ^ pcg(rng_count)) >> 8u) * (1.0 / 16777216.0);
 }
 
 fn basis_t(n: vec3<f32>) -> vec3<f32> {
@@ -543,7 +546,8 @@ fn path(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let pixel = id.y * w + id.x;
-    rng_state = pcg(pcg(pcg(frame.counts.y) + pixel) + frame.counts.x);
+    rng_key = pcg(pcg(pcg(frame.counts.y) + pixel) + frame.counts.x);
+    rng_count = 0u;
     let fx = f32(id.x) + rand();
     let fy = f32(id.y) + rand();
     let c = path_sample(fx, fy);
