@@ -104,6 +104,14 @@ pub struct PrimaryHit {
     pub t: f32,
 }
 
+/// Image sizes the tracer accepts: 1..=16384 pixels on each side.
+fn check_size(w: u32, h: u32) -> Result<()> {
+    if w == 0 || h == 0 || w > 16384 || h > 16384 {
+        return Err(Error::Input(format!("image size {w}x{h}: expected 1..=16384 on each side")));
+    }
+    Ok(())
+}
+
 /// A scene and its BVH on the GPU, with the compute pipelines that trace them.
 pub struct GpuTracer {
     device: wgpu::Device,
@@ -314,13 +322,13 @@ impl GpuTracer {
     /// An empty progressive image of `w` × `h` pixels (`max_depth` bounces at most, as
     /// `renderers::RenderOptions::max_depth`).
     pub fn progressive(&self, w: u32, h: u32, seed: u32, max_depth: u32) -> Result<Progressive> {
-        if w == 0 || h == 0 || w > 16384 || h > 16384 {
-            return Err(Error::Input(format!("image size {w}x{h}: expected 1..=16384 on each side")));
-        }
-        let accum = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        check_size(w, h)?;
+        // wgpu zero-fills new buffers: no samples yet.
+        let accum = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("accumulated radiance"),
-            contents: &vec![0u8; (u64::from(w) * u64::from(h) * 16) as usize],
+            size: u64::from(w) * u64::from(h) * 16,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
         });
         Ok(Progressive { width: w, height: h, accum, spp: 0, seed, max_depth })
     }
@@ -420,21 +428,13 @@ impl GpuTracer {
     /// image at the scene's camera (rows top to bottom), the camera model of
     /// `renderers::Camera::direction`.
     pub fn primary_hits(&self, w: u32, h: u32) -> Result<Vec<PrimaryHit>> {
-        if w == 0 || h == 0 || w > 16384 || h > 16384 {
-            return Err(Error::Input(format!("image size {w}x{h}: expected 1..=16384 on each side")));
-        }
+        check_size(w, h)?;
         let ubuf = self.camera_uniform(w, h);
         let bytes = u64::from(w) * u64::from(h) * 8;
         let out = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("hits"),
             size: bytes,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let read = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("hits read back"),
-            size: bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
         let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -454,26 +454,15 @@ impl GpuTracer {
             pass.set_bind_group(0, &group, &[]);
             pass.dispatch_workgroups(w.div_ceil(8), h.div_ceil(8), 1);
         }
-        enc.copy_buffer_to_buffer(&out, 0, &read, 0, bytes);
         self.queue.submit([enc.finish()]);
-        let slice = read.slice(..);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        self.device.poll(wgpu::PollType::wait_indefinitely()).map(|_| ()).map_err(|e| Error::Gpu(e.to_string()))?;
-        rx.recv().map_err(|e| Error::Gpu(e.to_string()))?.map_err(|e| Error::Gpu(e.to_string()))?;
-        let data = slice.get_mapped_range().map_err(|e| Error::Gpu(e.to_string()))?;
-        let words: &[u32] = bytemuck::cast_slice(&data);
-        let hits = words
-            .chunks_exact(2)
-            .map(|p| match p[0] {
+        let hits = self
+            .read_back::<[u32; 2]>(&out)?
+            .into_iter()
+            .map(|[prim, t]| match prim {
                 u32::MAX => PrimaryHit { prim: None, t: f32::INFINITY },
-                prim => PrimaryHit { prim: Some(prim), t: f32::from_bits(p[1]) },
+                prim => PrimaryHit { prim: Some(prim), t: f32::from_bits(t) },
             })
             .collect();
-        drop(data);
-        read.unmap();
         Ok(hits)
     }
 }

@@ -138,10 +138,14 @@ struct Hit {
     b: vec2<f32>,
 };
 
-fn closest(r: Ray, tmax_in: f32) -> Hit {
-    var best = Hit(0xffffffffu, tmax_in, 0u, vec2<f32>(0.0));
+const NONE: u32 = 0xffffffffu;
+
+// The one traversal: the closest hit in (0, tmax) of any triangle but `skip` (NONE: none
+// skipped), or with `any_hit` the first hit found.
+fn traverse(r: Ray, tmax: f32, skip: u32, any_hit: bool) -> Hit {
+    var best = Hit(NONE, tmax, 0u, vec2<f32>(0.0));
     let root = nodes[0];
-    if root.count == 0xffffffffu || slab(r, root.min, root.max, best.t) < 0.0 {
+    if root.count == NONE || slab(r, root.min, root.max, best.t) < 0.0 {
         return best;
     }
     var stack: array<u32, 64>;
@@ -152,9 +156,13 @@ fn closest(r: Ray, tmax_in: f32) -> Hit {
         if n.count > 0u {
             for (var i = n.first; i < n.first + n.count; i++) {
                 let tri = tris[i];
+                let prim = bitcast<u32>(tri.v0.w);
                 let t = triangle(r, tri.v0.xyz, tri.v1.xyz, tri.v2.xyz, best.t);
-                if t.x > 0.0 {
-                    best = Hit(bitcast<u32>(tri.v0.w), t.x, i, t.yz);
+                if t.x > 0.0 && prim != skip {
+                    best = Hit(prim, t.x, i, t.yz);
+                    if any_hit {
+                        return best;
+                    }
                 }
             }
         } else {
@@ -190,6 +198,10 @@ fn closest(r: Ray, tmax_in: f32) -> Hit {
         node = stack[sp];
     }
     return best;
+}
+
+fn closest(r: Ray, tmax: f32) -> Hit {
+    return traverse(r, tmax, NONE, false);
 }
 
 @compute @workgroup_size(8, 8)
@@ -337,47 +349,7 @@ fn offset_point(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
 
 // Whether anything but triangle `skip` lies on the ray within (0, tmax).
 fn occluded(r: Ray, tmax: f32, skip: u32) -> bool {
-    let root = nodes[0];
-    if root.count == 0xffffffffu || slab(r, root.min, root.max, tmax) < 0.0 {
-        return false;
-    }
-    var stack: array<u32, 64>;
-    var sp = 0u;
-    var node = 0u;
-    loop {
-        let n = nodes[node];
-        if n.count > 0u {
-            for (var i = n.first; i < n.first + n.count; i++) {
-                let tri = tris[i];
-                if bitcast<u32>(tri.v0.w) != skip && triangle(r, tri.v0.xyz, tri.v1.xyz, tri.v2.xyz, tmax).x > 0.0 {
-                    return true;
-                }
-            }
-        } else {
-            let ta = slab(r, nodes[n.first].min, nodes[n.first].max, tmax);
-            let tb = slab(r, nodes[n.first + 1u].min, nodes[n.first + 1u].max, tmax);
-            if ta >= 0.0 && tb >= 0.0 {
-                node = n.first;
-                stack[sp] = n.first + 1u;
-                sp = min(sp + 1u, 63u);
-                continue;
-            }
-            if ta >= 0.0 {
-                node = n.first;
-                continue;
-            }
-            if tb >= 0.0 {
-                node = n.first + 1u;
-                continue;
-            }
-        }
-        if sp == 0u {
-            break;
-        }
-        sp -= 1u;
-        node = stack[sp];
-    }
-    return false;
+    return traverse(r, tmax, skip, true).prim != NONE;
 }
 
 // The hit point from the barycentrics (more accurate than o + t d far from the origin).
@@ -415,7 +387,7 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
     var depth = 0u;
     loop {
         let hit = closest(ray, 3.4028235e38);
-        if hit.prim == 0xffffffffu {
+        if hit.prim == NONE {
             break;
         }
         let nm = normals[hit.prim];

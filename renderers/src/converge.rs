@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use crate::bvh::Bvh;
 use crate::film::Film;
+use crate::plot::{plot_font, tick};
 use crate::render::{RenderOptions, render};
 use crate::scene::Scene;
 use crate::{Error, Result};
@@ -79,35 +80,6 @@ pub fn log_log_slope(points: &[(f64, f64)]) -> f64 {
     sxy / sxx
 }
 
-/// A tick value in at most 3 significant digits (`0.25`, `1200`, `3e-5`).
-pub fn tick(v: f64) -> String {
-    if v == 0.0 || !v.is_finite() {
-        return format!("{v}");
-    }
-    let a = v.abs();
-    if !(1e-3..1e5).contains(&a) {
-        let s = format!("{v:.1e}");
-        return s.replace(".0e", "e");
-    }
-    let digits = (2 - a.log10().floor() as i32).clamp(0, 6) as usize;
-    let s = format!("{v:.digits$}");
-    if s.contains('.') { s.trim_end_matches('0').trim_end_matches('.').to_string() } else { s }
-}
-
-/// Registers egui's font as plotters' "sans-serif" (once): plots need no system fonts.
-pub fn plot_font() -> &'static str {
-    static DONE: std::sync::Once = std::sync::Once::new();
-    DONE.call_once(|| {
-        // A font that cannot be registered leaves the plot without text; nothing else fails.
-        let _ = plotters::style::register_font(
-            "sans-serif",
-            plotters::style::FontStyle::Normal,
-            epaint_default_fonts::UBUNTU_LIGHT,
-        );
-    });
-    "sans-serif"
-}
-
 /// Writes a log-log plot of RMSE (blue) and relative MSE's square root (red) against seconds,
 /// with a grey line of slope −1/2 through the first RMSE point: axes with decade ticks and
 /// values, labels and a legend (plotters).
@@ -133,11 +105,8 @@ pub fn write_plot(points: &[ConvergencePoint], path: &Path) -> Result<()> {
         if y0.is_finite() { y0 } else { 1e-3 },
         if y1.is_finite() && y1 > y0 { y1 } else { y0 * 10.0 },
     );
-    let mut buf = vec![255u8; (w * h * 3) as usize];
-    {
-        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| bad(e.to_string()))?;
-        let mut chart = ChartBuilder::on(&root)
+    crate::plot::png(path, (w, h), |root| {
+        let mut chart = ChartBuilder::on(root)
             .caption("Error against render time", (font, 22))
             .margin(14)
             .x_label_area_size(44)
@@ -193,24 +162,13 @@ pub fn write_plot(points: &[ConvergencePoint], path: &Path) -> Result<()> {
             .border_style(BLACK)
             .draw()
             .map_err(|e| bad(e.to_string()))?;
-        root.present().map_err(|e| bad(e.to_string()))?;
-    }
-    image::save_buffer(path, &buf, w, h, image::ColorType::Rgb8)
-        .map_err(|e| Error::Image { path: path.into(), message: e.to_string() })
+        Ok(())
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn ticks_are_short() {
-        assert_eq!(tick(0.1), "0.1");
-        assert_eq!(tick(0.25), "0.25");
-        assert_eq!(tick(1200.0), "1200");
-        assert_eq!(tick(3e-5), "3e-5");
-        assert_eq!(tick(1.0), "1");
-    }
 
     #[test]
     fn the_plot_has_text_and_curves() {

@@ -4,7 +4,6 @@
 
 use std::path::Path;
 
-use crate::converge::{plot_font, tick};
 use crate::{Error, Result};
 
 /// What a heatmap shows: a `width` × `height` grid of values, row-major, row 0 at the top (as
@@ -20,6 +19,56 @@ pub struct Heatmap<'a> {
     /// What one cell spans along each axis in the axis' unit (1 for pixels, the tile size for
     /// tiles), so ticks read in that unit.
     pub cell: f64,
+}
+
+/// A tick value in at most 3 significant digits (`0.25`, `1200`, `3e-5`).
+pub fn tick(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() {
+        return format!("{v}");
+    }
+    let a = v.abs();
+    if !(1e-3..1e5).contains(&a) {
+        let s = format!("{v:.1e}");
+        return s.replace(".0e", "e");
+    }
+    let digits = (2 - a.log10().floor() as i32).clamp(0, 6) as usize;
+    let s = format!("{v:.digits$}");
+    if s.contains('.') { s.trim_end_matches('0').trim_end_matches('.').to_string() } else { s }
+}
+
+/// Registers egui's font as plotters' "sans-serif" (once): plots need no system fonts.
+pub fn plot_font() -> &'static str {
+    static DONE: std::sync::Once = std::sync::Once::new();
+    DONE.call_once(|| {
+        // A font that cannot be registered leaves the plot without text; nothing else fails.
+        let _ = plotters::style::register_font(
+            "sans-serif",
+            plotters::style::FontStyle::Normal,
+            epaint_default_fonts::UBUNTU_LIGHT,
+        );
+    });
+    "sans-serif"
+}
+
+/// Draws a `w` × `h` plot with plotters on a white page (`draw` gets the page) and writes it to
+/// `path` as an RGB PNG.
+pub(crate) fn png(
+    path: &Path,
+    (w, h): (u32, u32),
+    draw: impl FnOnce(
+        &plotters::drawing::DrawingArea<plotters::prelude::BitMapBackend<'_>, plotters::coord::Shift>,
+    ) -> Result<()>,
+) -> Result<()> {
+    use plotters::prelude::*;
+    let bad = |e: String| Error::Image { path: path.into(), message: e };
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| bad(e.to_string()))?;
+        draw(&root)?;
+        root.present().map_err(|e| bad(e.to_string()))?;
+    }
+    image::save_buffer(path, &buf, w, h, image::ColorType::Rgb8).map_err(|e| bad(e.to_string()))
 }
 
 /// Smallest and largest finite value.
@@ -56,10 +105,7 @@ pub fn write_heatmap(map: &Heatmap, path: &Path) -> Result<()> {
     let (lo, hi) = if hi > lo { (lo, hi) } else { (lo - 0.5, hi + 0.5) };
     let missing = map.values.iter().filter(|v| !v.is_finite()).count();
     let (xw, yh) = (gw as f64 * map.cell, gh as f64 * map.cell);
-    let mut buf = vec![255u8; (w * h * 3) as usize];
-    {
-        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
-        root.fill(&WHITE).map_err(|e| bad(e.to_string()))?;
+    crate::plot::png(path, (w, h), |root| {
         let (left, right) = root.split_horizontally(margin_l + pw + 20);
         let mut chart = ChartBuilder::on(&left)
             .caption(map.title, (font, 18))
@@ -119,15 +165,22 @@ pub fn write_heatmap(map: &Heatmap, path: &Path) -> Result<()> {
             Rectangle::new([(0.0, lo + (hi - lo) * a), (1.0, lo + (hi - lo) * b)], colour(a).filled())
         }))
         .map_err(|e| bad(e.to_string()))?;
-        root.present().map_err(|e| bad(e.to_string()))?;
-    }
-    image::save_buffer(path, &buf, w, h, image::ColorType::Rgb8)
-        .map_err(|e| Error::Image { path: path.into(), message: e.to_string() })
+        Ok(())
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn ticks_are_short() {
+        assert_eq!(tick(0.1), "0.1");
+        assert_eq!(tick(0.25), "0.25");
+        assert_eq!(tick(1200.0), "1200");
+        assert_eq!(tick(3e-5), "3e-5");
+        assert_eq!(tick(1.0), "1");
+    }
 
     #[test]
     fn a_heatmap_has_axes_cells_and_a_colour_bar() {

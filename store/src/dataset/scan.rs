@@ -5,27 +5,21 @@ use super::*;
 impl Dataset {
     /// Every tree, segment by segment in file order: a sequential scan that reads each page once.
     pub fn trees(&self) -> TreeIter<'_> {
-        TreeIter {
-            ds: self,
-            segment: 0,
-            last_segment: self.manifest.segments.len(),
-            preloaded: None,
-            entries: Vec::new(),
-            next_entry: 0,
-            batches: None,
-            pending: None,
-            pending_start: 0,
-            failed: false,
-        }
+        self.scan(0, self.manifest.segments.len(), None)
     }
 
     /// Every tree of segment `i` in file order, given its tree table.
     pub(crate) fn trees_of_segment(&self, i: usize, entries: Vec<TreeEntry>) -> TreeIter<'_> {
+        self.scan(i, i + 1, Some(entries))
+    }
+
+    /// A scan of segments `first..last` (the first one's tree table given when known).
+    fn scan(&self, first: usize, last: usize, preloaded: Option<Vec<TreeEntry>>) -> TreeIter<'_> {
         TreeIter {
             ds: self,
-            segment: i,
-            last_segment: i + 1,
-            preloaded: Some(entries),
+            segment: first,
+            last_segment: last,
+            preloaded,
             entries: Vec::new(),
             next_entry: 0,
             batches: None,

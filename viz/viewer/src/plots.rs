@@ -37,7 +37,7 @@ fn convergence_ui(ui: &mut Ui, s: &State, height: f32) -> bool {
     ));
     let x_end = pts.last().map_or(first[0], |p| p[0]);
     let slope = vec![first, [x_end, first[1] - 0.5 * (x_end - first[0])]];
-    let decimal = |v: f64| renderers::converge::tick(10f64.powf(v));
+    let decimal = |v: f64| renderers::plot::tick(10f64.powf(v));
     Plot::new("convergence")
         .height(height)
         .legend(Legend::default())
