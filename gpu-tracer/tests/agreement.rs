@@ -148,10 +148,9 @@ fn cpu(scene: &Scene, bvh: &Bvh, w: u32, h: u32, spp: u32, seed: u64) -> rendere
 }
 
 /// The GPU path tracer converges to the CPU's image. Away from the lights' edges: the mean
-/// radiance of a 256-spp GPU image is the 1024-spp CPU reference's within 2 %; the GPU's error
+/// radiance of a 1024-spp GPU image is the 1024-spp CPU reference's within 2 %; the GPU's error
 /// at 16 spp is the CPU's own at 16 spp within a quarter (the same estimator: same variance);
-/// 16x the samples cut it by 3x or more (4x for independent samples). The glass box is checked
-/// by `the_glass_box_converges_to_the_cpu_image`, which fails today (see the crate README).
+/// 16x the samples cut it by 3x or more (4x for independent samples).
 #[test]
 fn the_gpu_path_tracer_converges_towards_the_cpu_image() {
     for (name, s) in [("cornell", BuiltinScene::Cornell), ("glossy", BuiltinScene::Glossy)] {
@@ -159,10 +158,10 @@ fn the_gpu_path_tracer_converges_towards_the_cpu_image() {
     }
 }
 
-/// Open: the GPU's glass box is 2.2 % darker than the CPU's away from the lights (2048 GPU spp,
-/// two seeds, against 1024-spp CPU images of two seeds that agree within 0.8 %).
+/// The glass box: caustics through the glass block, total internal reflection, transmission
+/// both ways. (It was 2.2 % darker on the GPU while the block had a bottom face in the floor's
+/// plane: the two BVHs broke the coplanar tie differently.)
 #[test]
-#[ignore = "open: the GPU's glass box is 2.2 % darker than the CPU's (gpu-tracer/README.md)"]
 fn the_glass_box_converges_to_the_cpu_image() {
     converges("cornell-glass", &BuiltinScene::CornellGlass.build(1).unwrap());
 }
@@ -176,9 +175,10 @@ fn converges(name: &str, scene: &Scene) {
     let depth = renderers::RenderOptions::default().max_depth;
     let g16 = gpu.render(w, h, 16, 7, depth).unwrap();
     let g256 = gpu.render(w, h, 256, 8, depth).unwrap();
+    let g1024 = gpu.render(w, h, 1024, 9, depth).unwrap();
     let c16 = cpu(scene, &bvh, w, h, 16, 2);
     let (e16, e256, c) = (rmse(&g16, &reference, &mask), rmse(&g256, &reference, &mask), rmse(&c16, &reference, &mask));
-    let (mg, mr) = (mean(&g256, &mask), mean(&reference, &mask));
+    let (mg, mr) = (mean(&g1024, &mask), mean(&reference, &mask));
     eprintln!(
         "{name}: RMSE gpu 16 spp {e16:.4}, 256 spp {e256:.4}, cpu 16 spp {c:.4}; mean gpu {mg:.4} reference {mr:.4}"
     );
