@@ -4,6 +4,8 @@ use bytemuck::{Pod, Zeroable};
 use renderers::{Bvh, Scene};
 use wgpu::util::DeviceExt;
 
+mod record;
+
 /// What the GPU tracer can report.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
@@ -82,17 +84,57 @@ struct GpuFrame {
     counts: [u32; 4],
     /// total emitter area
     area: [f32; 4],
+    /// the pixels of the dispatch: x0, y0, width, height
+    window: [u32; 4],
+    /// recording (0/1), ray slots per path, the sample's index in its batch, injected bug (0/1)
+    rec: [u32; 4],
 }
+
+/// One recorded ray as the shader writes it (80 bytes; `RayRec` in `trace.wgsl`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+struct GpuRay {
+    o: [f32; 3],
+    t: f32,
+    d: [f32; 3],
+    prim: u32,
+    beta: [f32; 3],
+    parent: u32,
+    rad: [f32; 3],
+    kind: u32,
+    nodes: u32,
+    boxes: u32,
+    tris: u32,
+    material: u32,
+}
+
+const NONE: u32 = u32::MAX;
+/// Bytes of one recorded ray.
+const RAY_BYTES: u64 = std::mem::size_of::<GpuRay>() as u64;
+/// The deepest path the GPU records (`2 * (63 + 1)` ray slots per path).
+pub const MAX_RECORDED_DEPTH: u32 = 63;
 
 /// A progressive image on the GPU: the sum of the samples traced so far, per pixel.
 pub struct Progressive {
     width: u32,
     height: u32,
     accum: wgpu::Buffer,
+    /// Rays packed (\[0\]) and traced per kind (\[1 + kind\]) by the last dispatches.
+    totals: wgpu::Buffer,
     /// Samples per pixel added so far.
     pub spp: u32,
     pub seed: u32,
     pub max_depth: u32,
+    /// Rays traced so far by kind (camera, shadow, diffuse, specular, transmission).
+    pub rays_by_kind: [u64; 5],
+}
+
+/// The buffers a recording dispatch writes its rays to.
+struct RecordBuffers {
+    scratch: wgpu::Buffer,
+    packed: wgpu::Buffer,
+    spans: wgpu::Buffer,
+    slots: u32,
 }
 
 /// The closest hit of one pixel's primary ray.
@@ -128,36 +170,68 @@ pub struct GpuTracer {
     light_count: u32,
     light_area: f32,
     camera: renderers::Camera,
+    /// Stand-ins for the recording buffers when not recording (bindings may not be missing).
+    no_record: RecordBuffers,
+    /// The largest storage buffer binding the device allows.
+    max_binding: u64,
+}
+
+/// Opens a headless device on the preferred adapter (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` and
+/// `WGPU_POWER_PREF` choose another) with the adapter's largest storage buffers.
+pub fn headless_device() -> Result<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo)> {
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let options = wgpu::RequestAdapterOptions {
+        power_preference: wgpu::PowerPreference::from_env().unwrap_or(wgpu::PowerPreference::HighPerformance),
+        force_fallback_adapter: false,
+        compatible_surface: None,
+        apply_limit_buckets: false,
+    };
+    let adapter =
+        pollster::block_on(instance.request_adapter(&options)).map_err(|e| Error::NoAdapter(e.to_string()))?;
+    let info = adapter.get_info();
+    let have = adapter.limits();
+    let desc = wgpu::DeviceDescriptor {
+        label: Some("rtvtk gpu tracer"),
+        required_features: wgpu::Features::empty(),
+        required_limits: wgpu::Limits {
+            max_storage_buffer_binding_size: have.max_storage_buffer_binding_size,
+            max_buffer_size: have.max_buffer_size,
+            max_storage_buffers_per_shader_stage: have.max_storage_buffers_per_shader_stage.max(12),
+            ..Default::default()
+        },
+        experimental_features: wgpu::ExperimentalFeatures::disabled(),
+        memory_hints: wgpu::MemoryHints::Performance,
+        trace: wgpu::Trace::Off,
+    };
+    let (device, queue) =
+        pollster::block_on(adapter.request_device(&desc)).map_err(|e| Error::Device(e.to_string()))?;
+    Ok((device, queue, info))
 }
 
 impl GpuTracer {
     /// Uploads `scene` (its triangles in `bvh`'s leaf order) and its BVH to a headless device.
     pub fn new(scene: &Scene, bvh: &Bvh) -> Result<GpuTracer> {
-        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-        let options = wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::from_env().unwrap_or(wgpu::PowerPreference::HighPerformance),
-            force_fallback_adapter: false,
-            compatible_surface: None,
-            apply_limit_buckets: false,
-        };
-        let adapter =
-            pollster::block_on(instance.request_adapter(&options)).map_err(|e| Error::NoAdapter(e.to_string()))?;
-        let info = adapter.get_info();
-        let have = adapter.limits();
-        let desc = wgpu::DeviceDescriptor {
-            label: Some("rtvtk gpu tracer"),
-            required_features: wgpu::Features::empty(),
-            required_limits: wgpu::Limits {
-                max_storage_buffer_binding_size: have.max_storage_buffer_binding_size,
-                max_buffer_size: have.max_buffer_size,
-                ..Default::default()
-            },
-            experimental_features: wgpu::ExperimentalFeatures::disabled(),
-            memory_hints: wgpu::MemoryHints::Performance,
-            trace: wgpu::Trace::Off,
-        };
-        let (device, queue) =
-            pollster::block_on(adapter.request_device(&desc)).map_err(|e| Error::Device(e.to_string()))?;
+        let (device, queue, info) = headless_device()?;
+        Self::with_device(device, queue, &info, scene, bvh)
+    }
+
+    /// The same on a device the caller opened (the visualizer's): it needs 12 storage buffers
+    /// per shader stage (wgpu's default limit is 8; `headless_device` asks for the adapter's).
+    pub fn with_device(
+        device: wgpu::Device,
+        queue: wgpu::Queue,
+        info: &wgpu::AdapterInfo,
+        scene: &Scene,
+        bvh: &Bvh,
+    ) -> Result<GpuTracer> {
+        let limits = device.limits();
+        if limits.max_storage_buffers_per_shader_stage < 12 {
+            return Err(Error::Device(format!(
+                "the device allows {} storage buffers per shader stage; the path tracer needs 12",
+                limits.max_storage_buffers_per_shader_stage
+            )));
+        }
+        let max_binding = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
         // Validation errors (a shader the driver refuses) come back as errors, not panics.
         let errors: std::sync::Arc<std::sync::Mutex<Vec<String>>> = Default::default();
         let sink = errors.clone();
@@ -277,6 +351,20 @@ impl GpuTracer {
             compilation_options: Default::default(),
             cache: None,
         });
+        let small = |label: &str, size: u64| {
+            device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            })
+        };
+        let no_record = RecordBuffers {
+            scratch: small("no scratch", RAY_BYTES),
+            packed: small("no packed rays", RAY_BYTES),
+            spans: small("no spans", 8),
+            slots: 0,
+        };
         if let Some(e) = errors.lock().unwrap_or_else(|p| p.into_inner()).first() {
             return Err(Error::Gpu(format!("the tracing shaders: {e}")));
         }
@@ -295,6 +383,8 @@ impl GpuTracer {
             light_count,
             light_area,
             camera: scene.camera,
+            no_record,
+            max_binding,
         })
     }
 
@@ -330,11 +420,34 @@ impl GpuTracer {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        Ok(Progressive { width: w, height: h, accum, spp: 0, seed, max_depth })
+        let totals = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("ray totals"),
+            size: 32,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        Ok(Progressive { width: w, height: h, accum, totals, spp: 0, seed, max_depth, rays_by_kind: [0; 5] })
     }
 
     /// Adds `samples` path-traced samples per pixel to `p` (one dispatch each).
     pub fn trace(&self, p: &mut Progressive, samples: u32) -> Result<()> {
+        let batch: Vec<(u32, u32)> = (p.spp..p.spp.saturating_add(samples)).map(|s| (s, 0)).collect();
+        self.dispatch(p, [0, 0, p.width, p.height], &batch, None, false)?;
+        p.spp = p.spp.saturating_add(samples);
+        Ok(())
+    }
+
+    /// Traces one sample per `(sample index, index in the batch)` over the window
+    /// `[x0, y0, width, height]` of `p`, one dispatch each, recording into `rec` when given;
+    /// returns how many rays were recorded.
+    fn dispatch(
+        &self,
+        p: &mut Progressive,
+        window: [u32; 4],
+        samples: &[(u32, u32)],
+        rec: Option<&RecordBuffers>,
+        bug: bool,
+    ) -> Result<u32> {
         let cam = self.camera_uniform(p.width, p.height);
         let frame = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("frame"),
@@ -342,6 +455,7 @@ impl GpuTracer {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
+        let r = rec.unwrap_or(&self.no_record);
         let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: None,
             layout: &self.path.get_bind_group_layout(0),
@@ -355,12 +469,21 @@ impl GpuTracer {
                 wgpu::BindGroupEntry { binding: 7, resource: self.lights.as_entire_binding() },
                 wgpu::BindGroupEntry { binding: 8, resource: self.light_cdf.as_entire_binding() },
                 wgpu::BindGroupEntry { binding: 9, resource: p.accum.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 10, resource: r.scratch.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 11, resource: r.packed.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 12, resource: r.spans.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 13, resource: p.totals.as_entire_binding() },
             ],
         });
-        for _ in 0..samples {
+        let mut clear = self.device.create_command_encoder(&Default::default());
+        clear.clear_buffer(&p.totals, 0, None);
+        self.queue.submit([clear.finish()]);
+        for &(s, batch_index) in samples {
             let f = GpuFrame {
-                counts: [p.spp, p.seed, p.max_depth, self.light_count],
+                counts: [s, p.seed, p.max_depth, self.light_count],
                 area: [self.light_area, 0.0, 0.0, 0.0],
+                window,
+                rec: [u32::from(rec.is_some()), r.slots, batch_index, u32::from(bug)],
             };
             self.queue.write_buffer(&frame, 0, bytemuck::bytes_of(&f));
             let mut enc = self.device.create_command_encoder(&Default::default());
@@ -368,17 +491,20 @@ impl GpuTracer {
                 let mut pass = enc.begin_compute_pass(&Default::default());
                 pass.set_pipeline(&self.path);
                 pass.set_bind_group(0, &group, &[]);
-                pass.dispatch_workgroups(p.width.div_ceil(8), p.height.div_ceil(8), 1);
+                pass.dispatch_workgroups(window[2].div_ceil(8), window[3].div_ceil(8), 1);
             }
             self.queue.submit([enc.finish()]);
-            p.spp += 1;
         }
-        self.device.poll(wgpu::PollType::wait_indefinitely()).map(|_| ()).map_err(|e| Error::Gpu(e.to_string()))
+        let totals: Vec<u32> = self.read_back(&p.totals, 32)?;
+        for (k, n) in p.rays_by_kind.iter_mut().zip(&totals[1..6]) {
+            *k += u64::from(*n);
+        }
+        Ok(totals[0])
     }
 
     /// The mean of the samples so far, as the CPU tracer's film.
     pub fn film(&self, p: &Progressive) -> Result<renderers::Film> {
-        let sums: Vec<[f32; 4]> = self.read_back(&p.accum)?;
+        let sums: Vec<[f32; 4]> = self.read_back(&p.accum, p.accum.size())?;
         let pixels = sums
             .iter()
             .map(|s| if s[3] > 0.0 { glam::Vec3A::new(s[0], s[1], s[2]) / s[3] } else { glam::Vec3A::ZERO })
@@ -393,9 +519,11 @@ impl GpuTracer {
         self.film(&p)
     }
 
-    /// The contents of a storage buffer (made with `COPY_SRC`).
-    fn read_back<T: Pod>(&self, buf: &wgpu::Buffer) -> Result<Vec<T>> {
-        let bytes = buf.size();
+    /// The first `bytes` of a storage buffer (made with `COPY_SRC`).
+    fn read_back<T: Pod>(&self, buf: &wgpu::Buffer, bytes: u64) -> Result<Vec<T>> {
+        if bytes == 0 {
+            return Ok(Vec::new());
+        }
         let read = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("read back"),
             size: bytes,
@@ -456,7 +584,7 @@ impl GpuTracer {
         }
         self.queue.submit([enc.finish()]);
         let hits = self
-            .read_back::<[u32; 2]>(&out)?
+            .read_back::<[u32; 2]>(&out, bytes)?
             .into_iter()
             .map(|[prim, t]| match prim {
                 u32::MAX => PrimaryHit { prim: None, t: f32::INFINITY },

@@ -140,11 +140,20 @@ struct Hit {
 
 const NONE: u32 = 0xffffffffu;
 
+// What the last traversal cost (renderers::TraversalStats over this binary BVH): nodes entered,
+// ray/box tests, ray/triangle tests.
+var<private> st_nodes: u32;
+var<private> st_boxes: u32;
+var<private> st_tris: u32;
+
 // The one traversal: the closest hit in (0, tmax) of any triangle but `skip` (NONE: none
 // skipped), or with `any_hit` the first hit found.
 fn traverse(r: Ray, tmax: f32, skip: u32, any_hit: bool) -> Hit {
     var best = Hit(NONE, tmax, 0u, vec2<f32>(0.0));
     let root = nodes[0];
+    st_nodes = 0u;
+    st_boxes = 1u;
+    st_tris = 0u;
     if root.count == NONE || slab(r, root.min, root.max, best.t) < 0.0 {
         return best;
     }
@@ -153,7 +162,9 @@ fn traverse(r: Ray, tmax: f32, skip: u32, any_hit: bool) -> Hit {
     var node = 0u;
     loop {
         let n = nodes[node];
+        st_nodes += 1u;
         if n.count > 0u {
+            st_tris += n.count;
             for (var i = n.first; i < n.first + n.count; i++) {
                 let tri = tris[i];
                 let prim = bitcast<u32>(tri.v0.w);
@@ -168,6 +179,7 @@ fn traverse(r: Ray, tmax: f32, skip: u32, any_hit: bool) -> Hit {
         } else {
             let a = nodes[n.first];
             let b = nodes[n.first + 1u];
+            st_boxes += 2u;
             let ta = slab(r, a.min, a.max, best.t);
             let tb = slab(r, b.min, b.max, best.t);
             if ta >= 0.0 && tb >= 0.0 {
@@ -252,6 +264,10 @@ struct Frame {
     counts: vec4<u32>,
     // total emitter area, 0, 0, 0
     area: vec4<f32>,
+    // the pixels this dispatch traces: x0, y0, width, height
+    window: vec4<u32>,
+    // recording (0 or 1), ray slots per path, the sample's index in the batch, injected bug (0 or 1)
+    rec: vec4<u32>,
 };
 
 @group(0) @binding(4) var<uniform> frame: Frame;
@@ -262,6 +278,60 @@ struct Frame {
 // cumulative emitter areas, as renderers::Scene::light_cdf
 @group(0) @binding(8) var<storage, read> light_cdf: array<f32>;
 @group(0) @binding(9) var<storage, read_write> accum: array<vec4<f32>>;
+
+// One recorded ray (renderers::tracer::RecRay): 80 bytes.
+struct RayRec {
+    o: vec3<f32>,
+    t: f32,
+    d: vec3<f32>,
+    // the triangle hit, NONE for a miss
+    prim: u32,
+    beta: vec3<f32>,
+    // the parent's index within the path, NONE for the camera ray
+    parent: u32,
+    // the radiance carried back to the origin (while tracing: the path's radiance before it)
+    rad: vec3<f32>,
+    kind: u32,
+    nodes: u32,
+    boxes: u32,
+    tris: u32,
+    material: u32,
+};
+
+// Recording: every path writes its rays to its own slots of `scratch`, then copies them, packed,
+// to `packed` at an offset taken from `totals[0]`; `spans` gets each path's (offset, count).
+@group(0) @binding(10) var<storage, read_write> scratch: array<RayRec>;
+@group(0) @binding(11) var<storage, read_write> packed: array<RayRec>;
+@group(0) @binding(12) var<storage, read_write> spans: array<vec2<u32>>;
+// [0]: rays packed so far; [1 + kind]: rays traced per kind (always counted)
+@group(0) @binding(13) var<storage, read_write> totals: array<atomic<u32>, 8>;
+
+const CAMERA: u32 = 0u;
+const SHADOW: u32 = 1u;
+const DIFFUSE: u32 = 2u;
+const SPECULAR: u32 = 3u;
+const TRANSMISSION: u32 = 4u;
+
+var<private> rec_base: u32;
+var<private> rec_n: u32;
+var<private> kind_n: array<u32, 5>;
+
+// Counts a ray of `kind` and, when recording, writes it; its index within the path (NONE when
+// not recorded).
+fn record(o: vec3<f32>, d: vec3<f32>, t: f32, prim: u32, beta: vec3<f32>, parent: u32, rad: vec3<f32>, kind: u32) -> u32 {
+    kind_n[kind] += 1u;
+    if frame.rec.x == 0u || rec_n >= frame.rec.y {
+        return NONE;
+    }
+    var m = NONE;
+    if prim != NONE {
+        m = bitcast<u32>(normals[prim].w);
+    }
+    let i = rec_n;
+    scratch[rec_base + i] = RayRec(o, t, d, prim, beta, parent, rad, kind, st_nodes, st_boxes, st_tris, m);
+    rec_n += 1u;
+    return i;
+}
 
 const PI: f32 = 3.14159265358979;
 
@@ -347,11 +417,6 @@ fn offset_point(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
     return out;
 }
 
-// Whether anything but triangle `skip` lies on the ray within (0, tmax).
-fn occluded(r: Ray, tmax: f32, skip: u32) -> bool {
-    return traverse(r, tmax, skip, true).prim != NONE;
-}
-
 // The hit point from the barycentrics (more accurate than o + t d far from the origin).
 fn hit_point(h: Hit) -> vec3<f32> {
     let tri = tris[h.slot];
@@ -385,8 +450,11 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
     var l = vec3<f32>(0.0);
     var count_emission = true;
     var depth = 0u;
+    var kind = CAMERA;
+    var parent = NONE;
     loop {
         let hit = closest(ray, 3.4028235e38);
+        let idx = record(ray.o, ray.d, hit.t, hit.prim, beta, parent, l, kind);
         if hit.prim == NONE {
             break;
         }
@@ -418,11 +486,21 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
             let cos_l = abs(dot(li.normal.xyz, wi));
             if cos_x > 0.0 && dist > 0.0 {
                 let lprim = bitcast<u32>(li.normal.w);
-                if !occluded(make_ray(origin, wi), dist * (1.0 - 1e-4), lprim) {
-                    let f = eval_bsdf(m, n, -ray.d, wi);
-                    let le = materials[bitcast<u32>(normals[lprim].w)].emission.xyz;
-                    l += beta * f * (cos_x * cos_l * frame.area.x / dist2) * le;
+                var sdir = wi;
+                // the injected bug of renderers::Bug::ShadowDir (Figure 1)
+                if frame.rec.w != 0u && depth >= 1u && m.kind == 0u && n.y > 0.9 {
+                    sdir = vec3<f32>(-wi.x, wi.y, -wi.z);
                 }
+                let blocker = traverse(make_ray(origin, sdir), dist * (1.0 - 1e-4), lprim, true);
+                let f = eval_bsdf(m, n, -ray.d, wi);
+                let weight = beta * f * (cos_x * cos_l * frame.area.x / dist2);
+                let le = materials[bitcast<u32>(normals[lprim].w)].emission.xyz;
+                let lit = blocker.prim == NONE;
+                if lit {
+                    l += weight * le;
+                }
+                _ = record(origin, sdir, select(blocker.t, dist, lit), select(blocker.prim, lprim, lit), weight, idx,
+                    select(vec3<f32>(0.0), le, lit), SHADOW);
             }
         }
         // sample the material (renderers::material::sample)
@@ -437,6 +515,7 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
                 break;
             }
             weight = m.diffuse.xyz;
+            kind = DIFFUSE;
         } else if m.kind == 1u {
             let ld = luminance(m.diffuse.xyz);
             let ls = luminance(m.specular.xyz);
@@ -444,8 +523,10 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
             let r = reflect_dir(d, n);
             if rand() < pd {
                 wi = cosine_hemisphere(n, rand(), rand());
+                kind = DIFFUSE;
             } else {
                 wi = phong_lobe(r, m.exponent, rand(), rand());
+                kind = SPECULAR;
             }
             let cs = dot(n, wi);
             if cs <= 0.0 {
@@ -461,6 +542,7 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
             wi = reflect_dir(d, n);
             weight = m.specular.xyz;
             delta = true;
+            kind = SPECULAR;
         } else {
             let entering = dot(ng, wo) >= 0.0;
             let nn = select(-ng, ng, entering);
@@ -484,9 +566,11 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
             if rand() < fr {
                 wi = reflect_dir(d, nn);
                 weight = m.specular.xyz;
+                kind = SPECULAR;
             } else {
                 wi = normalize(d * eta + nn * (eta * cos_i - cos_t));
                 weight = m.specular.xyz * (eta * eta);
+                kind = TRANSMISSION;
             }
             delta = true;
         }
@@ -505,7 +589,15 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
         }
         let side = select(-ng, ng, dot(wi, ng) > 0.0);
         ray = make_ray(offset_point(p, side), wi);
+        parent = idx;
         depth += 1u;
+    }
+    // what each traced ray carries back: the radiance gathered after it, over its throughput
+    for (var i = 0u; i < rec_n; i++) {
+        let r = scratch[rec_base + i];
+        if r.kind != SHADOW {
+            scratch[rec_base + i].rad = select(vec3<f32>(0.0), (l - r.rad) / r.beta, r.beta > vec3<f32>(0.0));
+        }
     }
     return l;
 }
@@ -513,20 +605,37 @@ fn path_sample(px: f32, py: f32) -> vec3<f32> {
 @compute @workgroup_size(8, 8)
 fn path(@builtin(global_invocation_id) id: vec3<u32>) {
     let w = u32(cam.params.z);
-    let h = u32(cam.params.w);
-    if id.x >= w || id.y >= h {
+    if id.x >= frame.window.z || id.y >= frame.window.w {
         return;
     }
-    let pixel = id.y * w + id.x;
+    let x = frame.window.x + id.x;
+    let y = frame.window.y + id.y;
+    let pixel = y * w + x;
+    // this path's place among the batch's paths (the window's pixels, sample after sample)
+    let path_index = frame.rec.z * frame.window.z * frame.window.w + id.y * frame.window.z + id.x;
+    rec_base = path_index * frame.rec.y;
+    rec_n = 0u;
     rng_key = pcg(pcg(pcg(frame.counts.y) + pixel) + frame.counts.x);
     rng_count = 0u;
-    let fx = f32(id.x) + rand();
-    let fy = f32(id.y) + rand();
+    let fx = f32(x) + rand();
+    let fy = f32(y) + rand();
     let c = path_sample(fx, fy);
     // a non-finite sample (none expected) is dropped, as a NaN would poison the pixel
     if all(c == c) && max(max(c.x, c.y), c.z) < 3.4e38 {
         accum[pixel] += vec4<f32>(c, 1.0);
     } else {
         accum[pixel] += vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    }
+    for (var k = 0u; k < 5u; k++) {
+        if kind_n[k] > 0u {
+            atomicAdd(&totals[1u + k], kind_n[k]);
+        }
+    }
+    if frame.rec.x != 0u {
+        let at = atomicAdd(&totals[0], rec_n);
+        for (var i = 0u; i < rec_n; i++) {
+            packed[at + i] = scratch[rec_base + i];
+        }
+        spans[path_index] = vec2<u32>(at, rec_n);
     }
 }

@@ -152,9 +152,10 @@ struct ThreadOut {
     visits: Vec<(u64, u32, u32)>,
 }
 
-/// Hands one sample's rays to the recorder as one tree (`[x, y, sample]`); `map` is scratch
-/// space reused from tree to tree.
-fn emit(
+/// Hands one sample's rays to the recorder as one tree (`[x, y, sample]`), leaving out rays of
+/// kinds not in `keep` (with their descendants); `map` is scratch space reused from tree to tree.
+/// Shared by the CPU tracers and the GPU tracer, so both record the same columns and payload.
+pub fn emit(
     rec: &Recorder,
     [x, y, s]: [u32; 3],
     sr: &SampleRecord,
