@@ -34,7 +34,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Render a scene with a CPU tracer, recording every ray into a dataset.
+    /// Render a scene with a CPU tracer or the GPU path tracer, recording every ray into a dataset.
     Record(Box<record::RecordArgs>),
     /// Render and record the Cornell box, then print a summary of the trace.
     Demo {
@@ -57,7 +57,8 @@ enum Command {
     /// Open the interactive viewer on datasets (or on a scene, `--scene cornell`, with no dataset).
     #[cfg(feature = "sql")]
     View(Box<view::ViewArgs>),
-    /// Image error (RMSE, relative MSE) of the path tracer against time and samples per pixel.
+    /// Image error (RMSE, relative MSE) of the path tracers against time and samples per pixel,
+    /// against a high-sample CPU reference.
     Converge {
         #[arg(long, default_value = "cornell")]
         scene: String,
@@ -74,6 +75,9 @@ enum Command {
         out: PathBuf,
         #[arg(long)]
         threads: Option<usize>,
+        /// The tracers to measure side by side (comma separated): cpu, gpu.
+        #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu")]
+        tracer: Vec<converge::Tracer>,
     },
     /// Counts, bytes per ray, kinds, payload schema and format version of a dataset.
     Info {
@@ -179,8 +183,8 @@ fn main() {
     }
     let result: Result<i32> = match cli.command {
         Command::Demo { out, size, spp, threads } => demo::run(out, size, spp, threads).map(|_| 0),
-        Command::Converge { scene, size, reference_spp, spp, out, threads } => {
-            converge::run(&scene, size, reference_spp, &spp, &out, threads).map(|_| 0)
+        Command::Converge { scene, size, reference_spp, spp, out, threads, tracer } => {
+            converge::run(&scene, size, reference_spp, &spp, &out, threads, &tracer).map(|_| 0)
         }
         Command::Record(args) => record::run(&args).map(|_| 0),
         Command::Render(args) => render::run(&args).map(|_| 0),

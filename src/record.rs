@@ -1,4 +1,4 @@
-//! `rtvtk record` and `rtvtk demo`: render a scene with a CPU tracer, recording every ray.
+//! `rtvtk record` and `rtvtk demo`: render a scene with a CPU or the GPU tracer, recording every ray.
 
 use std::path::PathBuf;
 
@@ -10,8 +10,13 @@ use rl::{Kind, Recorder, RecorderOptions};
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum TracerArg {
+    /// The CPU path tracer.
     Path,
+    /// The CPU Whitted tracer.
     Whitted,
+    /// The GPU path tracer (WGSL compute through wgpu: Vulkan, Metal, DX12; lavapipe on a
+    /// machine without a GPU). Same scene, camera, materials and recorded columns as `path`.
+    Gpu,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -176,7 +181,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         spp: a.spp,
         seed: a.seed,
         tracer: match a.tracer {
-            TracerArg::Path => TracerKind::Path,
+            TracerArg::Path | TracerArg::Gpu => TracerKind::Path,
             TracerArg::Whitted => TracerKind::Whitted,
         },
         max_depth: a.max_depth,
@@ -190,6 +195,17 @@ pub fn run(a: &RecordArgs) -> Result<()> {
     let t = std::time::Instant::now();
     let bvh = Bvh::build(&scene.tris);
     let build_secs = t.elapsed().as_secs_f64();
+    let gpu = match a.tracer {
+        TracerArg::Gpu => {
+            if a.record_visits {
+                bail!(
+                    "--record-visits: the GPU tracer does not record the BVH nodes each ray visits (use --tracer path)"
+                );
+            }
+            Some(gpu_tracer::GpuTracer::new(&scene, &bvh).context("the GPU tracer")?)
+        }
+        _ => None,
+    };
     let recorder = match (&a.out, a.no_record) {
         (Some(out), false) => {
             let mut options = RecorderOptions {
@@ -202,6 +218,12 @@ pub fn run(a: &RecordArgs) -> Result<()> {
             options.chunk_rays = a.chunk_rays as usize;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
             renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
+            if let Some(g) = &gpu {
+                rec.set_attributes([
+                    ("tracer".to_string(), "gpu".to_string()),
+                    ("gpu".to_string(), g.adapter().to_string()),
+                ])?;
+            }
             // The images beside the dataset, findable from its manifest.
             let inside = |p: &Option<PathBuf>, name: &str| match p {
                 None => Some(name.to_string()),
@@ -222,7 +244,11 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         ProgressStyle::with_template("{spinner} rendering [{bar:40}] {pos}/{len} rows {elapsed_precise} eta {eta}")
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    let (film, stats) = renderers::render(&scene, &bvh, &opts, recorder.as_ref(), &|n| bar.set_position(u64::from(n)))?;
+    let progress = |n: u32| bar.set_position(u64::from(n));
+    let (film, stats) = match &gpu {
+        Some(g) => g.render_recorded(&opts, recorder.as_ref(), &progress)?,
+        None => renderers::render(&scene, &bvh, &opts, recorder.as_ref(), &progress)?,
+    };
     bar.finish_and_clear();
     let summary = match recorder {
         Some(r) => Some(r.finish()?),
@@ -254,6 +280,9 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         stats.secs,
         stats.rays as f64 / stats.secs / 1e6
     );
+    if let Some(g) = &gpu {
+        println!("  on the GPU: {}", g.adapter());
+    }
     let kinds = store::KindTable::default();
     for (k, n) in &stats.rays_by_kind {
         let name = kinds.name(*k).unwrap_or("?");

@@ -547,6 +547,11 @@ impl GpuTracer {
         Ok(out)
     }
 
+    /// Traces from `camera` from now on (the scene's camera at first).
+    pub fn set_camera(&mut self, camera: renderers::Camera) {
+        self.camera = camera;
+    }
+
     /// The adapter in words (`llvmpipe (Vulkan)`).
     pub fn adapter(&self) -> &str {
         &self.adapter

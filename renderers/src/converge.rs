@@ -53,16 +53,30 @@ pub fn convergence(
     }
     let reference_opts = RenderOptions { spp: reference_spp, seed: base.seed.wrapping_add(1000), ..base.clone() };
     let (reference, _) = render(scene, bvh, &reference_opts, None, &|_| {})?;
+    let points = measure(&reference, base.seed, spps, |opts_spp, seed| {
+        let opts = RenderOptions { spp: opts_spp, seed, ..base.clone() };
+        render(scene, bvh, &opts, None, &|_| {}).map(|(img, _)| img)
+    })?;
+    Ok((reference, points))
+}
+
+/// Times `render(spp, seed)` for each of `spps` (seed `seed + i + 1` for the i-th) and measures
+/// its image's error against `reference`: any tracer's convergence against the same reference.
+pub fn measure<E>(
+    reference: &Film,
+    seed: u64,
+    spps: &[u32],
+    mut render: impl FnMut(u32, u64) -> std::result::Result<Film, E>,
+) -> std::result::Result<Vec<ConvergencePoint>, E> {
     let mut points = Vec::new();
     for (i, &spp) in spps.iter().enumerate() {
-        let opts = RenderOptions { spp, seed: base.seed.wrapping_add(i as u64 + 1), ..base.clone() };
         let t = Instant::now();
-        let (img, _) = render(scene, bvh, &opts, None, &|_| {})?;
+        let img = render(spp, seed.wrapping_add(i as u64 + 1))?;
         let secs = t.elapsed().as_secs_f64();
-        let (rmse, rel_mse) = image_error(&img, &reference);
+        let (rmse, rel_mse) = image_error(&img, reference);
         points.push(ConvergencePoint { spp, secs, rmse, rel_mse });
     }
-    Ok((reference, points))
+    Ok(points)
 }
 
 /// Least-squares slope of log(y) against log(x).
@@ -80,16 +94,30 @@ pub fn log_log_slope(points: &[(f64, f64)]) -> f64 {
     sxy / sxx
 }
 
+/// The colours of the curves of the i-th tracer of a plot: (RMSE, sqrt(relMSE)).
+pub const CURVE_COLOURS: [([u8; 3], [u8; 3]); 3] =
+    [([30, 60, 200], [200, 40, 40]), ([0, 150, 90], [230, 130, 0]), ([120, 40, 170], [140, 110, 40])];
+
 /// Writes a log-log plot of RMSE (blue) and relative MSE's square root (red) against seconds,
 /// with a grey line of slope −1/2 through the first RMSE point: axes with decade ticks and
 /// values, labels and a legend (plotters).
 pub fn write_plot(points: &[ConvergencePoint], path: &Path) -> Result<()> {
+    write_plots(&[("", points)], path)
+}
+
+/// The same for several tracers side by side (`(name, points)`; colours `CURVE_COLOURS`, the
+/// slope line through the first tracer's first point).
+pub fn write_plots(tracers: &[(&str, &[ConvergencePoint])], path: &Path) -> Result<()> {
     use plotters::prelude::*;
     let bad = |e: String| Error::Image { path: path.into(), message: e };
+    if tracers.is_empty() || tracers.len() > CURVE_COLOURS.len() {
+        return Err(bad(format!("{} tracers: expected 1 to {}", tracers.len(), CURVE_COLOURS.len())));
+    }
     let (w, h) = (800u32, 560u32);
     let font = plot_font();
-    let xs: Vec<f64> = points.iter().map(|p| p.secs.max(1e-9)).collect();
-    let ys: Vec<f64> = points.iter().flat_map(|p| [p.rmse.max(1e-12), p.rel_mse.max(1e-24).sqrt()]).collect();
+    let all: Vec<&ConvergencePoint> = tracers.iter().flat_map(|(_, p)| p.iter()).collect();
+    let xs: Vec<f64> = all.iter().map(|p| p.secs.max(1e-9)).collect();
+    let ys: Vec<f64> = all.iter().flat_map(|p| [p.rmse.max(1e-12), p.rel_mse.max(1e-24).sqrt()]).collect();
     let decade = |v: f64, up: bool| 10f64.powf(if up { v.log10().ceil() } else { v.log10().floor() });
     let (x0, x1) = (
         decade(xs.iter().cloned().fold(f64::INFINITY, f64::min), false),
@@ -125,26 +153,33 @@ pub fn write_plot(points: &[ConvergencePoint], path: &Path) -> Result<()> {
             .y_label_formatter(&|v| tick(*v))
             .draw()
             .map_err(|e| bad(e.to_string()))?;
-        let blue = RGBColor(30, 60, 200);
-        let red = RGBColor(200, 40, 40);
-        let series = |f: &dyn Fn(&ConvergencePoint) -> f64| -> Vec<(f64, f64)> {
-            points.iter().map(|p| (p.secs.max(1e-9), f(p))).collect()
-        };
-        let rmse = series(&|p| p.rmse.max(1e-12));
-        let rel = series(&|p| p.rel_mse.max(1e-24).sqrt());
-        chart
-            .draw_series(LineSeries::new(rmse.clone(), blue.stroke_width(2)))
-            .map_err(|e| bad(e.to_string()))?
-            .label("RMSE")
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], blue.stroke_width(2)));
-        chart.draw_series(rmse.iter().map(|&p| Circle::new(p, 3, blue.filled()))).map_err(|e| bad(e.to_string()))?;
-        chart
-            .draw_series(LineSeries::new(rel.clone(), red.stroke_width(2)))
-            .map_err(|e| bad(e.to_string()))?
-            .label("sqrt(relMSE)")
-            .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], red.stroke_width(2)));
-        chart.draw_series(rel.iter().map(|&p| Circle::new(p, 3, red.filled()))).map_err(|e| bad(e.to_string()))?;
-        if let Some(&(sx, sy)) = rmse.first() {
+        let mut first = None;
+        for (i, (name, points)) in tracers.iter().enumerate() {
+            let ([br, bg, bb], [rr, rg, rb]) = CURVE_COLOURS[i];
+            let (blue, red) = (RGBColor(br, bg, bb), RGBColor(rr, rg, rb));
+            let label = |what: &str| if name.is_empty() { what.to_string() } else { format!("{what}, {name}") };
+            let series = |f: &dyn Fn(&ConvergencePoint) -> f64| -> Vec<(f64, f64)> {
+                points.iter().map(|p| (p.secs.max(1e-9), f(p))).collect()
+            };
+            let rmse = series(&|p| p.rmse.max(1e-12));
+            let rel = series(&|p| p.rel_mse.max(1e-24).sqrt());
+            chart
+                .draw_series(LineSeries::new(rmse.clone(), blue.stroke_width(2)))
+                .map_err(|e| bad(e.to_string()))?
+                .label(label("RMSE"))
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], blue.stroke_width(2)));
+            chart
+                .draw_series(rmse.iter().map(|&p| Circle::new(p, 3, blue.filled())))
+                .map_err(|e| bad(e.to_string()))?;
+            chart
+                .draw_series(LineSeries::new(rel.clone(), red.stroke_width(2)))
+                .map_err(|e| bad(e.to_string()))?
+                .label(label("sqrt(relMSE)"))
+                .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], red.stroke_width(2)));
+            chart.draw_series(rel.iter().map(|&p| Circle::new(p, 3, red.filled()))).map_err(|e| bad(e.to_string()))?;
+            first = first.or(rmse.first().copied());
+        }
+        if let Some((sx, sy)) = first {
             let grey = RGBColor(140, 140, 140);
             // From the first point to the plot's edge, or to where it leaves through the bottom.
             let end = x1.min(sx * (sy / y0).powi(2));

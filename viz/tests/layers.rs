@@ -381,6 +381,57 @@ fn ctrl_click_traces_a_pixel_with_no_dataset_loaded() {
     assert!(p.add("heatmap", &Value::Null).unwrap_err().to_string().contains("not available"));
 }
 
+fn mean_rgb(img: &image::RgbaImage) -> f64 {
+    img.pixels().map(|p| f64::from(p.0[0]) + f64::from(p.0[1]) + f64::from(p.0[2])).sum::<f64>()
+        / img.pixels().len() as f64
+}
+
+#[test]
+fn the_image_layer_refines_on_the_gpu_to_the_cpu_picture() {
+    // Source "gpu": the GPU path tracer adds batches of samples per idle call (two equal halves,
+    // so the convergence estimate works as for the CPU) until max_spp; its picture is the CPU
+    // tracer's within noise.
+    let mut p = pipeline(&[("image", json!({"source": "gpu", "max_spp": 64}))]);
+    let mut calls = 0;
+    while p.idle().unwrap() {
+        calls += 1;
+        assert!(calls < 64, "stops at max_spp");
+    }
+    assert!(p.report().iter().any(|r| r.contains("on the GPU, 64 samples per pixel")), "{:?}", p.report());
+    let curve = p.layers()[0].component.convergence();
+    assert!(curve.len() >= 2 && curve.last().unwrap().rmse < curve[0].rmse, "{curve:?}");
+    let gpu = p.snapshot(false).unwrap();
+    let mut q = pipeline(&[("image", json!({"source": "trace", "max_spp": 64}))]);
+    while q.idle().unwrap() {}
+    let cpu = q.snapshot(false).unwrap();
+    let (g, c) = (mean_rgb(&gpu), mean_rgb(&cpu));
+    eprintln!("mean sRGB sum: gpu {g:.2} cpu {c:.2}");
+    assert!(lit(&gpu) > (W * H / 3) as usize);
+    assert!((g / c - 1.0).abs() < 0.03, "GPU picture {g} against the CPU's {c}");
+    // Back to the CPU: a new image.
+    let id = p.layers()[0].component.id();
+    p.layer_mut(id).unwrap().component.set_settings(&json!({"source": "trace", "max_spp": 2})).unwrap();
+    assert!(p.idle().unwrap());
+    assert!(p.report().iter().any(|r| r.contains("path traced, 1 samples per pixel")), "{:?}", p.report());
+}
+
+#[test]
+fn ctrl_click_traces_a_pixel_on_the_gpu() {
+    // Immediate mode with the GPU tracer: the pixel's rays are recorded on the GPU, handed to
+    // `rl` immediate mode and drawn, as with the CPU tracer.
+    let scene = renderers::BuiltinScene::CornellGlass.build(1).unwrap();
+    let sources = Sources::from_scene(scene, 4 * W, 4 * H).unwrap();
+    let mut p = Pipeline::new(Gpu::headless().unwrap(), sources);
+    p.add("geometry", &json!({"opacity": 0.2})).unwrap();
+    let rays = p.add("rays", &json!({"tracer": "gpu"})).unwrap();
+    let before = p.snapshot(false).unwrap();
+    let traced = p.trace_ray(rays, [2 * W, 3 * H]).unwrap().expect("the ray layer traces");
+    assert!(traced.rays >= 2, "a camera ray and what it spawned: {traced:?}");
+    let after = p.snapshot(true).unwrap();
+    assert!(lit(&after) > lit(&before) + 50, "the traced tree is drawn: {} -> {}", lit(&before), lit(&after));
+    assert!(p.trace_ray(rays, [4 * W, 0]).unwrap_err().to_string().contains("outside"));
+}
+
 /// The ray layer reads the store itself (no SQL engine): for every kind of filter it must load
 /// exactly the rays the same filters select in SQL.
 #[test]

@@ -103,6 +103,9 @@ pub enum ImageSource {
     Dataset,
     /// The CPU path tracer, one sample per pixel per idle call, at the layer's camera and size.
     Trace,
+    /// The GPU path tracer (`gpu_tracer`, its own headless device), as many samples per idle
+    /// call as fit in about 50 ms.
+    Gpu,
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -130,6 +133,8 @@ struct Progressive {
     secs: f64,
     curve: Vec<crate::component::ConvergencePoint>,
     key: Option<(crate::camera::ViewCamera, u32, u32)>,
+    /// The GPU tracer (source `gpu`) and the samples per half batch it takes now.
+    gpu: Option<(gpu_tracer::GpuTracer, u32)>,
 }
 
 /// The image layer.
@@ -172,7 +177,7 @@ impl Image {
                 layer: "image".into(),
                 message: "the dataset has no rendered image; use source \"trace\" to path-trace one".into(),
             }),
-            ImageSource::Trace if sources.scene.is_none() => Err(Error::Layer {
+            ImageSource::Trace | ImageSource::Gpu if sources.scene.is_none() => Err(Error::Layer {
                 layer: "image".into(),
                 message: "there is no image and no scene (triangles table) to trace one from".into(),
             }),
@@ -225,7 +230,7 @@ impl Component for Image {
         LayerRole::Flat
     }
     fn uses_camera(&self) -> bool {
-        self.settings.source == ImageSource::Trace
+        self.settings.source != ImageSource::Dataset
     }
     fn generation(&self) -> u64 {
         self.generation
@@ -242,13 +247,17 @@ impl Component for Image {
             if s.source != self.settings.source || s.exposure != self.settings.exposure {
                 self.texture = None;
             }
+            if s.source != self.settings.source {
+                // Another tracer: a new image.
+                self.progressive = None;
+            }
             self.settings = s;
             self.generation += 1;
         }
         Ok(())
     }
     fn idle(&mut self, ctx: &mut IdleCtx) -> Result<bool> {
-        if self.settings.source != ImageSource::Trace {
+        if self.settings.source == ImageSource::Dataset {
             return Ok(false);
         }
         let Some(scene) = &ctx.sources.scene else { return Ok(false) };
@@ -261,6 +270,7 @@ impl Component for Image {
             secs: 0.0,
             curve: Vec::new(),
             key: None,
+            gpu: None,
         });
         if p.key != Some(key) {
             p.key = Some(key);
@@ -278,24 +288,63 @@ impl Component for Image {
         let v = |a: [f64; 3]| glam::DVec3::from_array(a).as_vec3a();
         s.camera =
             renderers::Camera { position: v(c.position), target: v(c.target), up: v(c.up), fov_y: c.fov_y as f32 };
-        let opts = renderers::RenderOptions {
-            width: ctx.width,
-            height: ctx.height,
-            spp: 1,
-            seed: u64::from(p.spp),
-            ..Default::default()
-        };
         let t0 = std::time::Instant::now();
-        let (film, _) = renderers::render(&s, &p.bvh, &opts, None, &|_| {})?;
-        for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
-            *a += *b;
-        }
-        if p.spp.is_multiple_of(2) {
-            for (a, b) in p.even.iter_mut().zip(&film.pixels) {
+        if self.settings.source == ImageSource::Gpu {
+            // Two equal batches of k samples: one counts as the even samples, one as the odd.
+            if p.gpu.is_none() {
+                let g = gpu_tracer::GpuTracer::new(&s, &p.bvh)
+                    .map_err(|e| Error::Layer { layer: "image".into(), message: format!("source \"gpu\": {e}") })?;
+                p.gpu = Some((g, 1));
+            }
+            let Some((g, k)) = p.gpu.as_mut() else { return Ok(false) };
+            g.set_camera(s.camera);
+            let k = (*k).min((self.settings.max_spp - p.spp).div_ceil(2)).max(1);
+            let depth = renderers::RenderOptions::default().max_depth;
+            let gpu_err = |e: gpu_tracer::Error| Error::Layer { layer: "image".into(), message: e.to_string() };
+            for half in 0..2u32 {
+                let film = g
+                    .render(ctx.width, ctx.height, k, p.spp.wrapping_mul(2).wrapping_add(half), depth)
+                    .map_err(gpu_err)?;
+                for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
+                    *a += *b * k as f32;
+                }
+                if half == 0 {
+                    for (a, b) in p.even.iter_mut().zip(&film.pixels) {
+                        *a += *b * k as f32;
+                    }
+                }
+            }
+            p.spp += 2 * k;
+            // Aim at about 50 ms per idle call.
+            let took = t0.elapsed().as_secs_f64();
+            if let Some((_, next)) = p.gpu.as_mut() {
+                *next = if took < 0.025 {
+                    (k * 2).min(256)
+                } else if took > 0.1 {
+                    (k / 2).max(1)
+                } else {
+                    k
+                };
+            }
+        } else {
+            let opts = renderers::RenderOptions {
+                width: ctx.width,
+                height: ctx.height,
+                spp: 1,
+                seed: u64::from(p.spp),
+                ..Default::default()
+            };
+            let (film, _) = renderers::render(&s, &p.bvh, &opts, None, &|_| {})?;
+            for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
                 *a += *b;
             }
+            if p.spp.is_multiple_of(2) {
+                for (a, b) in p.even.iter_mut().zip(&film.pixels) {
+                    *a += *b;
+                }
+            }
+            p.spp += 1;
         }
-        p.spp += 1;
         p.secs += t0.elapsed().as_secs_f64();
         if let Some(rmse) = half_difference_rmse(&p.sum, &p.even, p.spp) {
             p.curve.push(crate::component::ConvergencePoint { secs: p.secs, spp: p.spp, rmse });
@@ -332,6 +381,7 @@ impl Component for Image {
     fn report(&self) -> Vec<String> {
         match self.settings.source {
             ImageSource::Trace => vec![format!("image: path traced, {} samples per pixel", self.spp())],
+            ImageSource::Gpu => vec![format!("image: path traced on the GPU, {} samples per pixel", self.spp())],
             ImageSource::Dataset => Vec::new(),
         }
     }

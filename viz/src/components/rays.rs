@@ -55,6 +55,18 @@ pub struct RaysSettings {
     pub gradient: bool,
     /// Highlight this tree (drawn wider).
     pub selected_tree: Option<u64>,
+    /// The tracer of immediate mode (Ctrl-click): `cpu` (the CPU path tracer) or `gpu` (the
+    /// GPU path tracer, recording the pixel's rays on the GPU).
+    pub tracer: ImmediateTracer,
+}
+
+/// Which tracer traces a pixel in immediate mode.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ImmediateTracer {
+    #[default]
+    Cpu,
+    Gpu,
 }
 
 impl Default for RaysSettings {
@@ -71,6 +83,7 @@ impl Default for RaysSettings {
             opacity: 1.0,
             gradient: true,
             selected_tree: None,
+            tracer: ImmediateTracer::Cpu,
         }
     }
 }
@@ -233,6 +246,8 @@ pub struct Rays {
     traced_ids: Vec<([u32; 2], u64, u32)>,
     pick_pipeline: Option<wgpu::RenderPipeline>,
     bvh: Option<std::sync::Arc<renderers::Bvh>>,
+    /// The GPU tracer of immediate mode (settings `tracer: "gpu"`), made on first use.
+    gpu: Option<gpu_tracer::GpuTracer>,
     /// The last load was cancelled after this many segments (kept, drawn).
     cancelled_after: Option<u64>,
 }
@@ -260,6 +275,7 @@ impl Rays {
             traced_ids: Vec::new(),
             pick_pipeline: None,
             bvh: None,
+            gpu: None,
             cancelled_after: None,
         };
         if !settings.is_null() {
@@ -562,7 +578,24 @@ impl Component for Rays {
             threads: 1,
             ..Default::default()
         };
-        renderers::render(&s, &bvh, &opts, Some(&rec), &|_| {})?;
+        match self.settings.tracer {
+            ImmediateTracer::Cpu => {
+                renderers::render(&s, &bvh, &opts, Some(&rec), &|_| {})?;
+            }
+            ImmediateTracer::Gpu => {
+                let layer_err = |e: gpu_tracer::Error| Error::Layer {
+                    layer: "rays".into(),
+                    message: format!("tracer \"gpu\": {e}"),
+                };
+                if self.gpu.is_none() {
+                    self.gpu = Some(gpu_tracer::GpuTracer::new(&s, &bvh).map_err(layer_err)?);
+                }
+                if let Some(g) = self.gpu.as_mut() {
+                    g.set_camera(s.camera);
+                    g.render_recorded(&opts, Some(&rec), &|_| {}).map_err(layer_err)?;
+                }
+            }
+        }
         rec.finish()?;
         let kinds = store::KindTable::default();
         let mut builder = SegmentBuilder::new(ctx.sources.bounds, ctx.sources.frame());
