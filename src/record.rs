@@ -202,6 +202,13 @@ pub fn run(a: &RecordArgs) -> Result<()> {
                     "--record-visits: the GPU tracer does not record the BVH nodes each ray visits (use --tracer path)"
                 );
             }
+            if !a.no_record && a.max_depth > gpu_tracer::MAX_RECORDED_DEPTH {
+                bail!(
+                    "--max-depth {}: the GPU records paths of depth {} at most",
+                    a.max_depth,
+                    gpu_tracer::MAX_RECORDED_DEPTH
+                );
+            }
             Some(gpu_tracer::GpuTracer::new(&scene, &bvh).context("the GPU tracer")?)
         }
         _ => None,

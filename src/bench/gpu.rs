@@ -1,49 +1,169 @@
-//! `rtvtk bench gpu`: primary rays per second of the GPU traversal beside the CPU BVH on every
-//! core, in the same run, on the same rays (issue 26's first figure; the path tracer follows).
+//! `rtvtk bench gpu`: the GPU tracer beside the CPU, in the same run — primary rays per second
+//! (same rays, hits compared), path-traced samples and rays per second by kind, frames of one
+//! sample per pixel per second, and recording throughput.
 
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use renderers::geometry::Ray;
-use renderers::{Bvh, TraversalStats};
+use renderers::{Bvh, RenderOptions, RenderStats, TraversalStats};
+use rl::{Kind, Recorder, RecorderOptions};
 
 use crate::bench::query::median;
 
-pub fn run(scene_name: &str, subdivide: u32, (w, h): (u32, u32), rounds: usize) -> Result<()> {
+/// What `rtvtk bench gpu` measures.
+pub struct GpuBench {
+    pub rounds: usize,
+    /// Samples per pixel of a GPU path-tracing round.
+    pub spp: u32,
+    /// Measure the CPU beside the GPU.
+    pub cpu: bool,
+    /// Also record one sample per pixel with each tracer.
+    pub record: bool,
+}
+
+pub fn run(scene_name: &str, subdivide: u32, (w, h): (u32, u32), o: &GpuBench) -> Result<()> {
     let scene = renderers::load_scene(scene_name, None, subdivide.max(1))?;
     let bvh = Bvh::build(&scene.tris);
     let gpu = gpu_tracer::GpuTracer::new(&scene, &bvh).context("the GPU tracer")?;
     let n = f64::from(w) * f64::from(h);
     let threads = std::thread::available_parallelism().map_or(1, |c| c.get());
+    let rounds = o.rounds;
     println!(
-        "scene {} ({} triangles), {w}x{h} primary rays, GPU: {}, CPU: {threads} threads",
+        "scene {} ({} triangles), {w}x{h}, GPU: {}, CPU: {threads} threads{}",
         scene.name,
         scene.tris.len(),
-        gpu.adapter()
+        gpu.adapter(),
+        if cfg!(debug_assertions) {
+            " (a dev build: the CPU figures are not fair baselines; use --release)"
+        } else {
+            ""
+        }
     );
-    // One warm-up of each (pipeline compilation, page faults), then interleaved rounds.
+
+    // Primary rays. One warm-up of each (pipeline compilation, page faults), then interleaved rounds.
     let mut gpu_hits = gpu.primary_hits(w, h)?;
-    let mut cpu_hits = cpu_primary(&scene, &bvh, w, h, threads);
     let (mut gs, mut cs) = (Vec::new(), Vec::new());
+    let mut cpu_hits = if o.cpu { Some(cpu_primary(&scene, &bvh, w, h, threads)) } else { None };
     for _ in 0..rounds {
         let t = Instant::now();
         gpu_hits = gpu.primary_hits(w, h)?;
         gs.push(t.elapsed().as_secs_f64());
-        let t = Instant::now();
-        cpu_hits = cpu_primary(&scene, &bvh, w, h, threads);
-        cs.push(t.elapsed().as_secs_f64());
+        if o.cpu {
+            let t = Instant::now();
+            cpu_hits = Some(cpu_primary(&scene, &bvh, w, h, threads));
+            cs.push(t.elapsed().as_secs_f64());
+        }
     }
-    let differ = gpu_hits.iter().zip(&cpu_hits).filter(|(g, c)| g.prim != **c).count();
-    if differ * 500 > gpu_hits.len() {
-        bail!("the GPU and CPU disagree on {differ} of {} pixels", gpu_hits.len());
-    }
-    let (g, c) = (median(&gs), median(&cs));
+    println!();
+    println!("## Primary rays (closest hit, one per pixel centre)");
     println!("| tracer | s per frame (median of {rounds}) | Mrays/s |");
     println!("|---|---|---|");
+    let g = median(&gs);
     println!("| GPU (compute, incl. upload of the camera and read-back of the hits) | {g:.4} | {:.2} |", n / g / 1e6);
-    println!("| CPU BVH, {threads} threads | {c:.4} | {:.2} |", n / c / 1e6);
-    println!("GPU / CPU: {:.2}x the rays per second; {differ} pixels differ", c / g);
+    if let Some(cpu_hits) = &cpu_hits {
+        let differ = gpu_hits.iter().zip(cpu_hits).filter(|(g, c)| g.prim != **c).count();
+        if differ * 500 > gpu_hits.len() {
+            bail!("the GPU and CPU disagree on {differ} of {} pixels", gpu_hits.len());
+        }
+        let c = median(&cs);
+        println!("| CPU BVH, {threads} threads | {c:.4} | {:.2} |", n / c / 1e6);
+        println!("GPU / CPU: {:.2}x the rays per second; {differ} pixels differ", c / g);
+    }
+
+    // The path tracer: rounds of `spp` samples per pixel into one progressive image.
+    let depth = RenderOptions::default().max_depth;
+    let mut p = gpu.progressive(w, h, 1, depth)?;
+    gpu.trace(&mut p, 1)?;
+    let mut gpu_rounds = Vec::new();
+    for _ in 0..rounds {
+        let before = p.rays_by_kind;
+        let t = Instant::now();
+        gpu.trace(&mut p, o.spp)?;
+        let secs = t.elapsed().as_secs_f64();
+        let kinds: Vec<u64> = p.rays_by_kind.iter().zip(&before).map(|(a, b)| a - b).collect();
+        gpu_rounds.push((secs, kinds));
+    }
+    gpu_rounds.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (gsecs, gkinds) = gpu_rounds[gpu_rounds.len() / 2].clone();
+    let gsamples = n * f64::from(o.spp);
+    println!();
+    println!("## Path tracing (max depth {depth}, next-event estimation, Russian roulette; no recording)");
+    println!(
+        "| tracer | samples | s (median of {rounds}) | Msamples/s | 1-spp frames/s | Mrays/s all | camera | shadow | diffuse | specular | transmission |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    let row = |name: &str, samples: f64, secs: f64, kinds: &[u64]| {
+        let total: u64 = kinds.iter().sum();
+        let per = |k: usize| format!("{:.2}", kinds.get(k).copied().unwrap_or(0) as f64 / secs / 1e6);
+        println!(
+            "| {name} | {samples} | {secs:.4} | {:.3} | {:.2} | {:.2} | {} | {} | {} | {} | {} |",
+            samples / secs / 1e6,
+            samples / n / secs,
+            total as f64 / secs / 1e6,
+            per(0),
+            per(1),
+            per(2),
+            per(3),
+            per(4)
+        );
+    };
+    row("GPU", gsamples, gsecs, &gkinds);
+    let fps = 1.0 / (gsecs / f64::from(o.spp));
+    if o.cpu {
+        // One sample per pixel on every core, the same scene and size.
+        let opts = RenderOptions { width: w, height: h, spp: 1, threads, ..Default::default() };
+        let mut cpu_rounds: Vec<(f64, RenderStats)> = Vec::new();
+        for _ in 0..rounds.min(3) {
+            let (_, stats) = renderers::render(&scene, &bvh, &opts, None, &|_| {})?;
+            cpu_rounds.push((stats.secs, stats));
+        }
+        cpu_rounds.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let (csecs, cstats) = &cpu_rounds[cpu_rounds.len() / 2];
+        let ck: Vec<u64> = (0..5u8).map(|k| kind_count(cstats, Kind(k))).collect();
+        row(&format!("CPU, {threads} threads"), n, *csecs, &ck);
+        println!("GPU / CPU: {:.2}x the samples per second", (gsamples / gsecs) / (n / csecs));
+    }
+    println!(
+        "real time at {w}x{h} (60 frames of one sample per pixel per second): {:.1} frames/s, {}",
+        fps,
+        if fps >= 60.0 { "reached" } else { "not reached on this adapter" }
+    );
+
+    if o.record {
+        println!();
+        println!("## Recording one sample per pixel (every ray, through rl into a dataset)");
+        println!("| tracer | rays | s | Mrays recorded/s |");
+        println!("|---|---|---|---|");
+        let opts = RenderOptions { width: w, height: h, spp: 1, threads, ..Default::default() };
+        let mut tracers: Vec<(&str, Option<&gpu_tracer::GpuTracer>)> = vec![("GPU", Some(&gpu))];
+        if o.cpu {
+            tracers.push(("CPU", None));
+        }
+        for (name, g) in tracers {
+            let dir = tempfile::tempdir()?;
+            let rec = Recorder::create(
+                dir.path().join("t"),
+                RecorderOptions { payload: renderers::payload_schema(), ..Default::default() },
+            )?;
+            let t = Instant::now();
+            let (_, stats) = match g {
+                Some(g) => g.render_recorded(&opts, Some(&rec), &|_| {})?,
+                None => renderers::render(&scene, &bvh, &opts, Some(&rec), &|_| {})?,
+            };
+            let summary = rec.finish()?;
+            let secs = t.elapsed().as_secs_f64();
+            if summary.rays != stats.rays {
+                bail!("{name}: traced {} rays, recorded {}", stats.rays, summary.rays);
+            }
+            println!("| {name} | {} | {secs:.3} | {:.3} |", summary.rays, summary.rays as f64 / secs / 1e6);
+        }
+    }
     Ok(())
+}
+
+fn kind_count(s: &RenderStats, k: Kind) -> u64 {
+    s.rays_by_kind.iter().find(|(kind, _)| *kind == k).map_or(0, |(_, n)| *n)
 }
 
 /// The closest triangle of every pixel's primary ray, on the CPU BVH, rows split over threads.

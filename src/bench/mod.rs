@@ -131,8 +131,9 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 3)]
         rounds: usize,
     },
-    /// The GPU traversal's primary rays per second beside the CPU BVH on every core (same rays,
-    /// same run; the hits are compared).
+    /// The GPU tracer beside the CPU in the same run: primary rays per second (same rays, hits
+    /// compared), path-traced samples and rays per second by kind, frames of one sample per
+    /// pixel per second, and with --record rays recorded per second.
     Gpu {
         #[arg(long, default_value = "cornell")]
         scene: String,
@@ -143,6 +144,16 @@ pub enum BenchCommand {
         size: (u32, u32),
         #[arg(long, default_value_t = 5)]
         rounds: usize,
+        /// Samples per pixel of each GPU path-tracing round (one dispatch per sample).
+        #[arg(long, default_value_t = 4)]
+        spp: u32,
+        /// Leave out the CPU baselines (the CPU path tracer at 1080p takes long in a dev build).
+        #[arg(long)]
+        no_cpu: bool,
+        /// Also record one sample per pixel into a dataset with each tracer (rays recorded per
+        /// second, through `rl` into the store).
+        #[arg(long)]
+        record: bool,
     },
     /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
     Fetch {
@@ -162,8 +173,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Viz { dataset, rays, size, frames, rounds } => {
             crate::bench::viz::run(&dataset, &rays, size, frames.max(1), rounds.max(1))
         }
-        BenchCommand::Gpu { scene, subdivide, size, rounds } => {
-            crate::bench::gpu::run(&scene, subdivide, size, rounds.max(1))
+        BenchCommand::Gpu { scene, subdivide, size, rounds, spp, no_cpu, record } => {
+            let o = crate::bench::gpu::GpuBench { rounds: rounds.max(1), spp: spp.max(1), cpu: !no_cpu, record };
+            crate::bench::gpu::run(&scene, subdivide, size, &o)
         }
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
         BenchCommand::Record { runs, args } => crate::bench::record::run(runs, &args),
