@@ -26,6 +26,10 @@ pub struct ViewArgs {
     /// Write a screenshot of the window once everything is drawn, then close.
     #[arg(long)]
     pub screenshot: Option<PathBuf>,
+    /// The tracer of the live image and of Ctrl-click (immediate mode) in the default layers:
+    /// cpu or gpu (per layer: the image layer's `source`, the ray layer's `tracer`).
+    #[arg(long, value_enum, default_value = "cpu")]
+    pub tracer: crate::converge::Tracer,
 }
 
 pub fn run(args: &ViewArgs) -> Result<()> {
@@ -57,6 +61,7 @@ pub fn run(args: &ViewArgs) -> Result<()> {
         token,
         reset_layout: args.reset_layout,
         screenshot: args.screenshot.clone(),
+        gpu: args.tracer == crate::converge::Tracer::Gpu,
     };
     rtvtk_viewer::run(options).context("the viewer failed")
 }

@@ -26,6 +26,8 @@ pub struct ViewerOptions {
     pub reset_layout: bool,
     /// Take a screenshot of the window once everything is drawn, write it here, and close.
     pub screenshot: Option<PathBuf>,
+    /// The default layers trace with the GPU path tracer (image and Ctrl-click).
+    pub gpu: bool,
 }
 
 /// Wakes the UI from other threads (set once the UI's context is known).
@@ -83,7 +85,7 @@ impl Viewer {
         let waker = Waker::default();
         let w = waker.clone();
         let wake: Arc<dyn Fn() + Send + Sync> = Arc::new(move || w.wake());
-        let worker = Worker::spawn(wake.clone());
+        let worker = Worker::spawn(wake.clone(), options.gpu);
         let datasets: Vec<PathBuf> = options
             .sources
             .iter()

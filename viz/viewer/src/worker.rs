@@ -148,7 +148,9 @@ pub struct Worker {
 
 impl Worker {
     /// Starts the thread; `wake` is called whenever an event is ready (the UI's repaint).
-    pub fn spawn(wake: Arc<dyn Fn() + Send + Sync>) -> Worker {
+    /// The render thread; `gpu`: the default layers trace with the GPU path tracer (image
+    /// source and immediate mode).
+    pub fn spawn(wake: Arc<dyn Fn() + Send + Sync>, gpu: bool) -> Worker {
         let (tx, crx) = channel();
         let (etx, rx) = channel();
         let pending = Arc::new(std::sync::atomic::AtomicUsize::new(0));
@@ -156,7 +158,7 @@ impl Worker {
         let progress: Arc<viz::component::Progress> = Arc::default();
         let pr = progress.clone();
         let thread =
-            std::thread::Builder::new().name("rtvtk-render".into()).spawn(move || run(crx, etx, wake, p, pr)).ok();
+            std::thread::Builder::new().name("rtvtk-render".into()).spawn(move || run(crx, etx, wake, p, pr, gpu)).ok();
         Worker { tx, rx, thread, pending, progress }
     }
 
@@ -187,11 +189,13 @@ impl Drop for Worker {
     }
 }
 
-/// The components a fresh pipeline starts with, where the source offers them.
-pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2]) -> Vec<LayerSpec> {
+/// The components a fresh pipeline starts with, where the source offers them; with `gpu` the
+/// image is path-traced on the GPU and Ctrl-click traces on the GPU.
+pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], gpu: bool) -> Vec<LayerSpec> {
     let spec = |id, kind: &str, settings| LayerSpec { id, kind: kind.into(), settings, enabled: true };
+    let image = if gpu { serde_json::json!({ "source": "gpu" }) } else { serde_json::Value::Null };
     let mut v = vec![
-        spec(1, "image", serde_json::Value::Null),
+        spec(1, "image", image),
         LayerSpec {
             enabled: false,
             ..spec(2, "geometry", serde_json::json!({ "style": "wireframe", "opacity": 0.6, "line_width": 1.0 }))
@@ -204,6 +208,9 @@ pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2]) -> Vec<LayerSpec> {
         v.push(spec(4, "rays", serde_json::json!({ "pixel": [w / 2, h / 2], "max_rays": 100_000 })));
     } else {
         v.push(spec(4, "rays", serde_json::json!({ "max_rays": 0 })));
+    }
+    if gpu && let Some(obj) = v[3].settings.as_object_mut() {
+        obj.insert("tracer".into(), "gpu".into());
     }
     v
 }
@@ -235,6 +242,7 @@ fn run(
     wake: Arc<dyn Fn() + Send + Sync>,
     pending: Arc<std::sync::atomic::AtomicUsize>,
     progress: Arc<viz::component::Progress>,
+    gpu_tracing: bool,
 ) {
     let send = |e: Event| {
         let _ = tx.send(e);
@@ -287,7 +295,7 @@ fn run(
                 Cmd::Camera(_) if Some(i) != last_camera => {}
                 Cmd::Resize(_) if Some(i) != last_size => {}
                 cmd => {
-                    if let Some(e) = apply(&mut state, cmd, &progress) {
+                    if let Some(e) = apply(&mut state, cmd, &progress, gpu_tracing) {
                         send(e);
                     }
                     dirty = true;
@@ -363,7 +371,12 @@ fn make(p: &mut Pipeline, spec: &LayerSpec) -> viz::Result<()> {
     Ok(())
 }
 
-fn apply(state: &mut Option<State>, cmd: Cmd, progress: &Arc<viz::component::Progress>) -> Option<Event> {
+fn apply(
+    state: &mut Option<State>,
+    cmd: Cmd,
+    progress: &Arc<viz::component::Progress>,
+    gpu_tracing: bool,
+) -> Option<Event> {
     let err = |layer, e: viz::Error| Some(Event::Error { layer, message: e.to_string() });
     if let Cmd::Open(source, specs) = cmd {
         let sources = match open(&source) {
@@ -387,7 +400,7 @@ fn apply(state: &mut Option<State>, cmd: Cmd, progress: &Arc<viz::component::Pro
         let size = sources.image_size;
         let mut pipeline = Pipeline::new(gpu, sources);
         pipeline.progress = progress.clone();
-        let specs = if specs.is_empty() { default_layers(has_dataset, size) } else { specs };
+        let specs = if specs.is_empty() { default_layers(has_dataset, size, gpu_tracing) } else { specs };
         let mut failed = Vec::new();
         for spec in &specs {
             if let Err(e) = make(&mut pipeline, spec) {

@@ -46,7 +46,11 @@ fn dataset() -> &'static Path {
 }
 
 fn harness(sources: Vec<Source>) -> Harness<'static, Viewer> {
-    let v = Viewer::new(ViewerOptions { sources, ..Default::default() }, None).unwrap();
+    harness_with(ViewerOptions { sources, ..Default::default() })
+}
+
+fn harness_with(options: ViewerOptions) -> Harness<'static, Viewer> {
+    let v = Viewer::new(options, None).unwrap();
     Harness::builder()
         .with_size([1280.0, 800.0])
         .with_max_steps(100_000)
@@ -241,8 +245,24 @@ fn a_console_query_is_drawn_and_a_clicked_row_selects_its_ray() {
 
 #[test]
 fn ctrl_click_traces_a_pixel_with_no_dataset() {
-    let mut h = harness(vec![Source::Scene("cornell".into())]);
+    ctrl_click_traces(false);
+}
+
+/// `rtvtk view --tracer gpu`: the image is path-traced on the GPU and Ctrl-click records the
+/// pixel's rays on the GPU.
+#[test]
+fn ctrl_click_traces_a_pixel_on_the_gpu() {
+    ctrl_click_traces(true);
+}
+
+fn ctrl_click_traces(gpu: bool) {
+    let mut h =
+        harness_with(ViewerOptions { sources: vec![Source::Scene("cornell".into())], gpu, ..Default::default() });
     wait(&mut h, "the scene", ready);
+    let layer = |v: &Viewer, kind: &str| v.state.layers.iter().find(|l| l.kind == kind).unwrap().clone();
+    let tracer = if gpu { "gpu" } else { "cpu" };
+    assert_eq!(layer(h.state(), "rays").settings["tracer"], tracer);
+    assert_eq!(layer(h.state(), "image").settings["source"], if gpu { "gpu" } else { "trace" });
     let (rect, size) = h.state().state.image_rect.unwrap();
     let (px, py) = (size[0] / 2, size[1] * 2 / 3);
     let pos = rect.min
@@ -271,6 +291,8 @@ fn ctrl_click_traces_a_pixel_with_no_dataset() {
     assert!(errors(h.state()).is_empty(), "{:?}", errors(h.state()));
     // The image layer path-traces progressively: the Plots tab draws its convergence curve.
     wait(&mut h, "a convergence curve", |v| v.state.layers.iter().any(|l| l.convergence.len() >= 3));
+    let report = layer(h.state(), "image").report;
+    assert_eq!(report.iter().any(|r| r.contains("on the GPU")), gpu, "{report:?}");
     click(&mut h, "Plots");
     h.get_by_label_contains("Convergence of the progressive image");
 }
