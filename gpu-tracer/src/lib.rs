@@ -174,6 +174,28 @@ pub struct GpuTracer {
     no_record: RecordBuffers,
     /// The largest storage buffer binding the device allows.
     max_binding: u64,
+    module: wgpu::ShaderModule,
+}
+
+/// The primary-ray and path-tracing pipelines of `module`, with the nearer child visited first
+/// or not.
+fn pipelines(
+    device: &wgpu::Device,
+    module: &wgpu::ShaderModule,
+    nearer_first: bool,
+) -> (wgpu::ComputePipeline, wgpu::ComputePipeline) {
+    let constants = [("NEARER_FIRST", if nearer_first { 1.0 } else { 0.0 })];
+    let make = |entry: &str| {
+        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(entry),
+            layout: None,
+            module,
+            entry_point: Some(entry),
+            compilation_options: wgpu::PipelineCompilationOptions { constants: &constants, ..Default::default() },
+            cache: None,
+        })
+    };
+    (make("primary"), make("path"))
 }
 
 /// Opens a headless device on the preferred adapter (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` and
@@ -335,22 +357,7 @@ impl GpuTracer {
             label: Some("trace"),
             source: wgpu::ShaderSource::Wgsl(include_str!("trace.wgsl").into()),
         });
-        let primary = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("primary"),
-            layout: None,
-            module: &module,
-            entry_point: Some("primary"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
-        let path = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("path"),
-            layout: None,
-            module: &module,
-            entry_point: Some("path"),
-            compilation_options: Default::default(),
-            cache: None,
-        });
+        let (primary, path) = pipelines(&device, &module, true);
         let small = |label: &str, size: u64| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -385,6 +392,7 @@ impl GpuTracer {
             camera: scene.camera,
             no_record,
             max_binding,
+            module,
         })
     }
 
@@ -545,6 +553,12 @@ impl GpuTracer {
         drop(data);
         read.unmap();
         Ok(out)
+    }
+
+    /// Visits the nearer of two hit BVH children first (the default) or always the first one
+    /// (the traversal-order measurement of `rtvtk bench gpu`).
+    pub fn set_nearer_child_first(&mut self, on: bool) {
+        (self.primary, self.path) = pipelines(&self.device, &self.module, on);
     }
 
     /// Traces from `camera` from now on (the scene's camera at first).

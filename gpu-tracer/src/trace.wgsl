@@ -140,6 +140,10 @@ struct Hit {
 
 const NONE: u32 = 0xffffffffu;
 
+// Visit the nearer of two hit children first (false: always the first child; `rtvtk bench gpu`
+// measures both).
+override NEARER_FIRST: bool = true;
+
 // What the last traversal cost (renderers::TraversalStats over this binary BVH): nodes entered,
 // ray/box tests, ray/triangle tests.
 var<private> st_nodes: u32;
@@ -184,7 +188,7 @@ fn traverse(r: Ray, tmax: f32, skip: u32, any_hit: bool) -> Hit {
             let tb = slab(r, b.min, b.max, best.t);
             if ta >= 0.0 && tb >= 0.0 {
                 // the nearer child next, the other on the stack
-                if ta <= tb {
+                if ta <= tb || !NEARER_FIRST {
                     node = n.first;
                     stack[sp] = n.first + 1u;
                 } else {

@@ -25,7 +25,7 @@ pub struct GpuBench {
 pub fn run(scene_name: &str, subdivide: u32, (w, h): (u32, u32), o: &GpuBench) -> Result<()> {
     let scene = renderers::load_scene(scene_name, None, subdivide.max(1))?;
     let bvh = Bvh::build(&scene.tris);
-    let gpu = gpu_tracer::GpuTracer::new(&scene, &bvh).context("the GPU tracer")?;
+    let mut gpu = gpu_tracer::GpuTracer::new(&scene, &bvh).context("the GPU tracer")?;
     let n = f64::from(w) * f64::from(h);
     let threads = std::thread::available_parallelism().map_or(1, |c| c.get());
     let rounds = o.rounds;
@@ -129,6 +129,40 @@ pub fn run(scene_name: &str, subdivide: u32, (w, h): (u32, u32), o: &GpuBench) -
         fps,
         if fps >= 60.0 { "reached" } else { "not reached on this adapter" }
     );
+
+    // The traversal order, the layout choice the shader makes: the nearer hit child first
+    // (pushing the farther) against always the first child, same rays, interleaved rounds.
+    println!();
+    println!("## Traversal order (same BVH layout; median of {rounds} interleaved rounds)");
+    println!("| child order | primary s | primary Mrays/s | path s ({} spp) | path Msamples/s |", o.spp);
+    println!("|---|---|---|---|---|");
+    let mut by_order: Vec<(bool, Vec<f64>, Vec<f64>)> =
+        vec![(true, Vec::new(), Vec::new()), (false, Vec::new(), Vec::new())];
+    for _ in 0..rounds {
+        for (nearer, prim, path) in by_order.iter_mut() {
+            gpu.set_nearer_child_first(*nearer);
+            let t = Instant::now();
+            gpu.primary_hits(w, h)?;
+            prim.push(t.elapsed().as_secs_f64());
+            let mut q = gpu.progressive(w, h, 2, depth)?;
+            let t = Instant::now();
+            gpu.trace(&mut q, o.spp)?;
+            path.push(t.elapsed().as_secs_f64());
+        }
+    }
+    gpu.set_nearer_child_first(true);
+    for (nearer, prim, path) in &by_order {
+        let (a, b) = (median(prim), median(path));
+        println!(
+            "| {} | {a:.4} | {:.2} | {b:.4} | {:.3} |",
+            if *nearer { "nearer first (used)" } else { "first child first" },
+            n / a / 1e6,
+            gsamples / b / 1e6
+        );
+    }
+    let (p0, p1) = (median(&by_order[0].1), median(&by_order[1].1));
+    let (q0, q1) = (median(&by_order[0].2), median(&by_order[1].2));
+    println!("nearer-first speed-up: primary {:.2}x, path {:.2}x", p1 / p0, q1 / q0);
 
     if o.record {
         println!();
