@@ -141,7 +141,7 @@ const SQL_COMMANDS: [&str; 5] = ["view", "sql", "analyze", "serve", "bench"];
 
 /// The Tokio runtime the query commands run on.
 #[cfg(feature = "sql")]
-fn runtime() -> Result<tokio::runtime::Runtime> {
+pub(crate) fn runtime() -> Result<tokio::runtime::Runtime> {
     use anyhow::Context as _;
     tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the runtime")
 }

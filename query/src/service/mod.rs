@@ -11,9 +11,19 @@
 //! loses nothing. Every statement is planned with [`read_only_sql_options`]: DDL (`CREATE`,
 //! `DROP`), DML (`INSERT`, `COPY ... TO`) and `SET` are refused with `InvalidArgument`, as are
 //! updates, ingestion, Substrait plans and transactions.
+//!
+//! [`ServiceOptions`] make it shareable: a bearer token ([`guard::authorized`]), a bound on
+//! queries running and queued, per-query time and memory limits, cancellation
+//! (`CancelFlightInfo`, `CancelQuery`, or the client dropping its stream), a drain period on
+//! shutdown and a log line per query.
+
+mod guard;
+pub use guard::{LogFormat, MAX_SQL_BYTES, QueryPool, ServiceOptions, authorized};
 
 use std::net::{SocketAddr, TcpListener};
 use std::sync::Arc;
+
+use guard::{Admission, Guarded, QueryLog, Running};
 
 use arrow::array::{ArrayRef, RecordBatch, StringArray};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
@@ -69,33 +79,132 @@ pub fn local_addr(listener: &TcpListener) -> Result<SocketAddr> {
 }
 
 /// Serves `ctx` read-only over Flight SQL on `listener` until `shutdown` completes (pass
-/// `std::future::pending()` to serve until the process ends). Must run inside a Tokio runtime
-/// with I/O enabled.
+/// `std::future::pending()` to serve until the process ends), with the default options (no
+/// token, no limits). Must run inside a Tokio runtime with I/O and timers enabled.
 pub async fn serve(
     ctx: &SessionContext,
+    listener: TcpListener,
+    shutdown: impl std::future::Future<Output = ()> + Send,
+) -> Result<()> {
+    serve_with(TraceService::with_options(ctx.clone(), ServiceOptions::default())?, listener, shutdown).await
+}
+
+/// Serves `service` on `listener` until `shutdown` completes: then no new connection is
+/// accepted, running queries may finish for the drain timeout, the rest are cancelled, and it
+/// returns once they are gone.
+pub async fn serve_with(
+    service: TraceService,
     listener: TcpListener,
     shutdown: impl std::future::Future<Output = ()> + Send,
 ) -> Result<()> {
     let listener = tokio::net::TcpListener::from_std(listener)
         .map_err(|e| Error::Service(format!("cannot use the listener: {e}")))?;
     let incoming = tonic::transport::server::TcpIncoming::from(listener).with_nodelay(Some(true));
-    tonic::transport::Server::builder()
-        .add_service(FlightServiceServer::new(TraceService::new(ctx.clone())?))
-        .serve_with_incoming_shutdown(incoming, shutdown)
-        .await
-        .map_err(|e| Error::Service(format!("Flight SQL server stopped: {e}")))
+    let token = service.options.token.clone();
+    let (running, drain, log) = (service.running.clone(), service.options.drain_timeout, service.options.log);
+    let stopping = Arc::new(tokio::sync::Notify::new());
+    let stopped = stopping.clone();
+    let signal = async move {
+        shutdown.await;
+        if log != LogFormat::Quiet {
+            eprintln!(
+                "rtvtk serve: shutting down: no new queries; {} running may finish within {:.1} s",
+                running.count(),
+                drain.as_secs_f64()
+            );
+        }
+        stopped.notify_one();
+        let r = running.clone();
+        tokio::spawn(async move {
+            tokio::time::sleep(drain).await;
+            let n = r.cancel_all("the server is shutting down (--drain-timeout passed)");
+            if n > 0 && log != LogFormat::Quiet {
+                eprintln!("rtvtk serve: cancelled {n} queries still running after the drain timeout");
+            }
+        });
+    };
+    let check = move |request: Request<()>| match &token {
+        Some(t) => authorized(t, &request).map(|_| request),
+        None => Ok(request),
+    };
+    let server = tonic::transport::Server::builder()
+        .add_service(FlightServiceServer::with_interceptor(service, check))
+        .serve_with_incoming_shutdown(incoming, signal);
+    // Connections that outlive the drain (a client holding an idle stream open) do not keep
+    // the process: a few seconds after the drain timeout it returns anyway.
+    let deadline = async move {
+        stopping.notified().await;
+        tokio::time::sleep(drain + std::time::Duration::from_secs(5)).await;
+    };
+    futures::pin_mut!(server, deadline);
+    match futures::future::select(server, deadline).await {
+        futures::future::Either::Left((r, _)) => {
+            r.map_err(|e| Error::Service(format!("Flight SQL server stopped: {e}")))
+        }
+        futures::future::Either::Right(_) => Ok(()),
+    }
 }
 
 /// The Flight SQL service over a session (see the module documentation).
 pub struct TraceService {
     ctx: SessionContext,
     sql_info: SqlInfoData,
+    options: ServiceOptions,
+    admission: Arc<Admission>,
+    running: Arc<Running>,
+}
+
+/// A ticket of this server: `rtvtk1`, the query id (u64 LE), `S` + SQL or `P` + a prepared
+/// statement's handle.
+const TICKET_MAGIC: &[u8] = b"rtvtk1";
+
+enum TicketBody {
+    Sql(String),
+    Prepared(Handle),
+}
+
+fn encode_ticket(id: u64, body: &TicketBody) -> Result<Bytes, Status> {
+    let mut out = TICKET_MAGIC.to_vec();
+    out.extend_from_slice(&id.to_le_bytes());
+    match body {
+        TicketBody::Sql(sql) => {
+            out.push(b'S');
+            out.extend_from_slice(sql.as_bytes());
+        }
+        TicketBody::Prepared(h) => {
+            out.push(b'P');
+            out.extend_from_slice(&h.encode()?);
+        }
+    }
+    Ok(out.into())
+}
+
+/// The query id and body of a ticket (a bare SQL ticket of an older server: id `None`).
+fn decode_ticket(bytes: &[u8]) -> Result<(Option<u64>, TicketBody), Status> {
+    let bad = || Status::invalid_argument("not a statement ticket of this server");
+    let Some(rest) = bytes.strip_prefix(TICKET_MAGIC) else {
+        let sql = std::str::from_utf8(bytes).map_err(|_| bad())?;
+        return Ok((None, TicketBody::Sql(sql.to_string())));
+    };
+    let id = u64::from_le_bytes(rest.get(..8).ok_or_else(bad)?.try_into().map_err(|_| bad())?);
+    let body = match rest.get(8) {
+        Some(b'S') => TicketBody::Sql(std::str::from_utf8(&rest[9..]).map_err(|_| bad())?.to_string()),
+        Some(b'P') => TicketBody::Prepared(Handle::decode(&rest[9..])?),
+        _ => return Err(bad()),
+    };
+    Ok((Some(id), body))
 }
 
 type DoGetStream = <TraceService as FlightService>::DoGetStream;
 
 impl TraceService {
+    /// The service with the default options (no token, no limits).
     pub fn new(ctx: SessionContext) -> Result<Self> {
+        Self::with_options(ctx, ServiceOptions::default())
+    }
+
+    /// The service under `options`.
+    pub fn with_options(ctx: SessionContext, options: ServiceOptions) -> Result<Self> {
         let mut b = SqlInfoDataBuilder::new();
         b.append(SqlInfo::FlightSqlServerName, "rtvtk");
         b.append(SqlInfo::FlightSqlServerVersion, env!("CARGO_PKG_VERSION"));
@@ -104,14 +213,31 @@ impl TraceService {
         b.append(SqlInfo::FlightSqlServerSql, true);
         b.append(SqlInfo::FlightSqlServerSubstrait, false);
         b.append(SqlInfo::FlightSqlServerTransaction, 0i32); // SQL_SUPPORTED_TRANSACTION_NONE
-        b.append(SqlInfo::FlightSqlServerCancel, false);
+        b.append(SqlInfo::FlightSqlServerCancel, true);
         b.append(SqlInfo::SqlIdentifierQuoteChar, "\"");
         let sql_info = b.build().map_err(|e| Error::Service(format!("server information: {e}")))?;
-        Ok(Self { ctx, sql_info })
+        let admission = Arc::new(Admission::new(options.max_concurrent, options.max_queued));
+        Ok(Self { ctx, sql_info, options, admission, running: Arc::default() })
+    }
+
+    /// Bytes the session's memory pool holds now, over all queries (0 when none runs).
+    pub fn memory_reserved(&self) -> usize {
+        self.ctx.runtime_env().memory_pool.reserved()
+    }
+
+    /// Queries executing or streaming now.
+    pub fn running_queries(&self) -> usize {
+        self.running.count()
     }
 
     /// Plans `sql` read-only, with `params` bound when given.
     async fn plan(&self, sql: &str, params: Option<ParamValues>) -> Result<LogicalPlan, Status> {
+        if sql.len() > MAX_SQL_BYTES {
+            return Err(Status::invalid_argument(format!(
+                "the statement is {} bytes long; the server takes at most {MAX_SQL_BYTES}",
+                sql.len()
+            )));
+        }
         let sql = number_placeholders(sql);
         let plan = self.ctx.state().create_logical_plan(&sql).await.map_err(plan_status)?;
         read_only_sql_options().verify_plan(&plan).map_err(plan_status)?;
@@ -121,13 +247,65 @@ impl TraceService {
         }
     }
 
-    /// Runs a planned statement and streams its batches, announced with the plan's schema (the
-    /// one `FlightInfo` advertised; strict clients compare them).
-    async fn execute(&self, plan: LogicalPlan) -> Result<Response<DoGetStream>, Status> {
+    /// Runs a planned statement once admitted and streams its batches under the time limit
+    /// and cancellation, announced with the plan's schema (the one `FlightInfo` advertised;
+    /// strict clients compare them).
+    async fn execute(&self, plan: LogicalPlan, log: QueryLog) -> Result<Response<DoGetStream>, Status> {
+        let permit = match self.admission.admit().await {
+            Ok(p) => p,
+            Err(e) => {
+                log.write(&format!("refused: {}", e.message()), 0, 0);
+                return Err(e);
+            }
+        };
         let schema: SchemaRef = Arc::new(plan.schema().as_arrow().clone());
-        let df = self.ctx.execute_logical_plan(plan).await.map_err(plan_status)?;
-        let stream = df.execute_stream().await.map_err(exec_status)?;
-        Ok(encoded(schema, stream.map_err(|e| FlightError::ExternalError(Box::new(e)))))
+        let state = self.ctx.state();
+        let state = match self.options.query_memory {
+            None => state,
+            Some(limit) => {
+                // The query's own pool inside the session's: its limit, the shared total.
+                let rt = state.runtime_env().clone();
+                let env = datafusion::execution::runtime_env::RuntimeEnv {
+                    memory_pool: Arc::new(QueryPool::new(rt.memory_pool.clone(), limit)),
+                    disk_manager: rt.disk_manager.clone(),
+                    cache_manager: rt.cache_manager.clone(),
+                    object_store_registry: rt.object_store_registry.clone(),
+                };
+                datafusion::execution::SessionStateBuilder::new_from_existing(state)
+                    .with_runtime_env(Arc::new(env))
+                    .build()
+            }
+        };
+        let df = datafusion::dataframe::DataFrame::new(state, plan);
+        let stream = match df.execute_stream().await {
+            Ok(s) => s,
+            Err(e) => {
+                log.write(&format!("failed: {e}"), 0, 0);
+                return Err(exec_status(e));
+            }
+        };
+        let guarded = Guarded::new(stream, permit, self.options.query_timeout, self.running.clone(), log);
+        Ok(encoded(schema, guarded))
+    }
+
+    fn log(&self, id: u64, sql: &str, remote: Option<SocketAddr>) -> QueryLog {
+        let peer = remote.map_or_else(|| "?".to_string(), |a| a.to_string());
+        QueryLog::new(id, sql, peer, self.options.log)
+    }
+
+    /// Cancels the queries the tickets of `info` started; whether any was running.
+    fn cancel_info(&self, info: &FlightInfo) -> bool {
+        let mut any = false;
+        for e in &info.endpoint {
+            if let Some(t) = &e.ticket
+                && let Ok(any_msg) = arrow_flight::sql::Any::decode(&*t.ticket)
+                && let Ok(Some(tq)) = any_msg.unpack::<TicketStatementQuery>()
+                && let Ok((Some(id), _)) = decode_ticket(&tq.statement_handle)
+            {
+                any |= self.running.cancel(id, "the client asked to cancel it");
+            }
+        }
+        any
     }
 
     /// The answer to `request`: a `FlightInfo` announcing `schema`, fetched with `ticket`.
@@ -307,19 +485,34 @@ impl FlightSqlService for TraceService {
         request: Request<FlightDescriptor>,
     ) -> Result<Response<FlightInfo>, Status> {
         let plan = self.plan(&query.query, None).await?;
-        let ticket = TicketStatementQuery { statement_handle: query.query.into_bytes().into() };
+        let id = self.running.new_id();
+        let ticket = TicketStatementQuery { statement_handle: encode_ticket(id, &TicketBody::Sql(query.query))? };
         Self::info(plan.schema().as_arrow(), &ticket, request)
     }
 
     async fn do_get_statement(
         &self,
         ticket: TicketStatementQuery,
-        _request: Request<Ticket>,
+        request: Request<Ticket>,
     ) -> Result<Response<DoGetStream>, Status> {
-        let sql = std::str::from_utf8(&ticket.statement_handle)
-            .map_err(|_| Status::invalid_argument("not a statement ticket of this server"))?;
-        let plan = self.plan(sql, None).await?;
-        self.execute(plan).await
+        let (id, body) = decode_ticket(&ticket.statement_handle)?;
+        let id = id.unwrap_or_else(|| self.running.new_id());
+        let (sql, params) = match body {
+            TicketBody::Sql(sql) => (sql, None),
+            TicketBody::Prepared(h) => {
+                let p = h.param_values()?;
+                (h.sql, p)
+            }
+        };
+        let log = self.log(id, &sql, request.remote_addr());
+        let plan = match self.plan(&sql, params).await {
+            Ok(p) => p,
+            Err(e) => {
+                log.write(&format!("refused: {}", e.message()), 0, 0);
+                return Err(e);
+            }
+        };
+        self.execute(plan, log).await
     }
 
     async fn do_action_create_prepared_statement(
@@ -371,17 +564,21 @@ impl FlightSqlService for TraceService {
     ) -> Result<Response<FlightInfo>, Status> {
         let handle = Handle::decode(&cmd.prepared_statement_handle)?;
         let plan = self.plan(&handle.sql, handle.param_values()?).await?;
-        Self::info(plan.schema().as_arrow(), &cmd, request)
+        // A ticket of its own (a query id for cancelling it), carrying the handle.
+        let id = self.running.new_id();
+        let ticket = TicketStatementQuery { statement_handle: encode_ticket(id, &TicketBody::Prepared(handle))? };
+        Self::info(plan.schema().as_arrow(), &ticket, request)
     }
 
     async fn do_get_prepared_statement(
         &self,
         cmd: CommandPreparedStatementQuery,
-        _request: Request<Ticket>,
+        request: Request<Ticket>,
     ) -> Result<Response<DoGetStream>, Status> {
         let handle = Handle::decode(&cmd.prepared_statement_handle)?;
+        let log = self.log(self.running.new_id(), &handle.sql, request.remote_addr());
         let plan = self.plan(&handle.sql, handle.param_values()?).await?;
-        self.execute(plan).await
+        self.execute(plan, log).await
     }
 
     async fn do_action_close_prepared_statement(
@@ -570,6 +767,68 @@ impl FlightSqlService for TraceService {
         _request: Request<arrow_flight::Action>,
     ) -> Result<ActionBeginSavepointResult, Status> {
         Err(read_only("a savepoint"))
+    }
+
+    async fn do_action_cancel_query(
+        &self,
+        query: arrow_flight::sql::ActionCancelQueryRequest,
+        _request: Request<arrow_flight::Action>,
+    ) -> Result<arrow_flight::sql::ActionCancelQueryResult, Status> {
+        // ActionCancelQueryResult.CancelResult: CANCELLED = 1, NOT_CANCELLABLE = 3 (the nested
+        // enum is not re-exported by arrow-flight).
+        let info = FlightInfo::decode(&*query.info)
+            .map_err(|e| Status::invalid_argument(format!("CancelQuery: not a FlightInfo: {e}")))?;
+        let result = if self.cancel_info(&info) { 1 } else { 3 };
+        Ok(arrow_flight::sql::ActionCancelQueryResult { result })
+    }
+
+    async fn do_action_fallback(
+        &self,
+        request: Request<arrow_flight::Action>,
+    ) -> Result<Response<<Self as FlightService>::DoActionStream>, Status> {
+        let action = request.into_inner();
+        if action.r#type != "CancelFlightInfo" {
+            return Err(Status::invalid_argument(format!(
+                "unknown action {:?}: this server takes CancelFlightInfo, CancelQuery and the prepared-statement actions",
+                action.r#type
+            )));
+        }
+        let req = arrow_flight::CancelFlightInfoRequest::decode(&*action.body)
+            .map_err(|e| Status::invalid_argument(format!("CancelFlightInfo: not a CancelFlightInfoRequest: {e}")))?;
+        let info = req.info.ok_or_else(|| Status::invalid_argument("CancelFlightInfo: no FlightInfo given"))?;
+        let status = if self.cancel_info(&info) {
+            arrow_flight::CancelStatus::Cancelled
+        } else {
+            arrow_flight::CancelStatus::NotCancellable
+        };
+        let body = arrow_flight::CancelFlightInfoResult { status: status as i32 }.encode_to_vec();
+        let out = arrow_flight::Result { body: body.into() };
+        Ok(Response::new(Box::pin(futures::stream::iter([Ok(out)]))))
+    }
+
+    async fn do_handshake(
+        &self,
+        _request: Request<tonic::Streaming<arrow_flight::HandshakeRequest>>,
+    ) -> Result<
+        Response<
+            std::pin::Pin<Box<dyn futures::Stream<Item = Result<arrow_flight::HandshakeResponse, Status>> + Send>>,
+        >,
+        Status,
+    > {
+        // Reached only with valid credentials (the interceptor checks them): answer with the
+        // bearer token to send from now on, in the payload and the `authorization` header.
+        let token = self.options.token.clone().unwrap_or_default();
+        let reply = arrow_flight::HandshakeResponse { protocol_version: 0, payload: token.clone().into_bytes().into() };
+        let mut response: Response<
+            std::pin::Pin<Box<dyn futures::Stream<Item = Result<arrow_flight::HandshakeResponse, Status>> + Send>>,
+        > = Response::new(Box::pin(futures::stream::iter([Ok(reply)])));
+        if !token.is_empty() {
+            let value = format!("Bearer {token}")
+                .parse()
+                .map_err(|_| Status::internal("the token is not a valid header value"))?;
+            response.metadata_mut().insert("authorization", value);
+        }
+        Ok(response)
     }
 
     async fn register_sql_info(&self, _id: i32, _result: &SqlInfo) {}

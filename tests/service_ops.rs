@@ -1,0 +1,309 @@
+#![allow(clippy::unwrap_used)]
+//! `rtvtk serve` as a shared service: bearer-token access, what statements can reach, limits on
+//! running/queued queries and on a query's time and memory, cancellation, per-query log lines
+//! and a graceful shutdown.
+
+use std::io::{BufRead, BufReader, Read};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use arrow_flight::sql::client::FlightSqlServiceClient;
+use arrow_flight::{FlightInfo, Ticket};
+use futures::{StreamExt, TryStreamExt};
+use tonic::transport::Channel;
+
+mod common;
+use common::{record, rtvtk};
+
+/// A slow query: the rays crossed with themselves (~10⁹ rows at this size), streamed batch by
+/// batch (so each step of its execution is short and stops soon after it is cancelled).
+const SLOW: &str = "SELECT a.tree_id, b.ray FROM rays a, rays b";
+
+/// The server process (killed when dropped) and what it wrote to stderr.
+struct Server {
+    child: Child,
+    stderr: Arc<Mutex<String>>,
+    url: String,
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Server {
+    fn log(&self) -> String {
+        self.stderr.lock().unwrap().clone()
+    }
+}
+
+fn serve(dataset: &Path, args: &[&str], env: &[(&str, &str)]) -> Server {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_rtvtk"));
+    cmd.args([&["serve", dataset.to_str().unwrap(), "--addr", "127.0.0.1:0"], args].concat())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .env_remove("RTVTK_TOKEN");
+    for (k, v) in env {
+        cmd.env(k, v);
+    }
+    let mut child = cmd.spawn().unwrap();
+    let stderr = Arc::new(Mutex::new(String::new()));
+    let sink = stderr.clone();
+    let mut err = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        let mut buf = [0u8; 4096];
+        while let Ok(n) = err.read(&mut buf) {
+            if n == 0 {
+                break;
+            }
+            sink.lock().unwrap().push_str(&String::from_utf8_lossy(&buf[..n]));
+        }
+    });
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let addr = line.split("grpc://").nth(1).and_then(|s| s.split_whitespace().next());
+    let addr = addr.unwrap_or_else(|| panic!("no address in {line:?}; stderr: {}", stderr.lock().unwrap())).to_string();
+    Server { child, stderr, url: format!("http://{addr}") }
+}
+
+fn trace(dir: &Path) -> std::path::PathBuf {
+    let t = dir.join("t");
+    record(&t, &["--scene", "cornell", "--size", "48x32", "--spp", "4", "--threads", "2"]);
+    t
+}
+
+async fn client(url: &str) -> FlightSqlServiceClient<Channel> {
+    FlightSqlServiceClient::new(Channel::from_shared(url.to_string()).unwrap().connect().await.unwrap())
+}
+
+async fn rows(c: &mut FlightSqlServiceClient<Channel>, info: FlightInfo) -> Result<usize, tonic::Status> {
+    let mut n = 0;
+    for e in info.endpoint {
+        let ticket: Ticket = e.ticket.unwrap();
+        let mut s = c.do_get(ticket).await.map_err(status)?;
+        while let Some(b) = s.next().await {
+            n += b.map_err(status)?.num_rows();
+        }
+    }
+    Ok(n)
+}
+
+fn status(e: impl std::fmt::Display) -> tonic::Status {
+    // The client wraps the server's status in its own error: keep its text, code by the text.
+    let text = e.to_string();
+    let code = [
+        tonic::Code::Unauthenticated,
+        tonic::Code::ResourceExhausted,
+        tonic::Code::DeadlineExceeded,
+        tonic::Code::Cancelled,
+        tonic::Code::InvalidArgument,
+    ]
+    .map(|c| (c.description(), c))
+    .iter()
+    .find(|(k, _)| text.contains(k))
+    .map_or(tonic::Code::Unknown, |(_, c)| *c);
+    tonic::Status::new(code, text)
+}
+
+async fn run_sql(c: &mut FlightSqlServiceClient<Channel>, sql: &str) -> Result<usize, tonic::Status> {
+    let info = c.execute(sql.to_string(), None).await.map_err(status)?;
+    rows(c, info).await
+}
+
+fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap()
+}
+
+#[test]
+fn off_loopback_a_token_is_required_and_checked() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = trace(tmp.path());
+    let out = rtvtk(&["serve", t.to_str().unwrap(), "--addr", "0.0.0.0:0"]);
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("a token is required") && e.contains("--token-file") && e.contains("RTVTK_TOKEN"), "{e}");
+    let token_file = tmp.path().join("token");
+    std::fs::write(&token_file, "s3cret-T0ken\n").unwrap();
+    let s = serve(&t, &["--token-file", token_file.to_str().unwrap()], &[]);
+    rt().block_on(async {
+        let mut anon = client(&s.url).await;
+        let e = run_sql(&mut anon, "SELECT 1").await.unwrap_err();
+        assert_eq!(e.code(), tonic::Code::Unauthenticated, "{e}");
+        let mut wrong = client(&s.url).await;
+        wrong.set_token("s3cret-T0kem".into());
+        assert_eq!(run_sql(&mut wrong, "SELECT 1").await.unwrap_err().code(), tonic::Code::Unauthenticated);
+        let mut bearer = client(&s.url).await;
+        bearer.set_token("s3cret-T0ken".into());
+        assert_eq!(run_sql(&mut bearer, "SELECT count(*) FROM rays").await.unwrap(), 1);
+        // The Flight handshake: basic auth with the token as password answers a bearer token.
+        let mut shake = client(&s.url).await;
+        shake.handshake("analyst", "s3cret-T0ken").await.unwrap();
+        assert_eq!(run_sql(&mut shake, "SELECT 1").await.unwrap(), 1);
+        let mut bad_shake = client(&s.url).await;
+        assert!(bad_shake.handshake("analyst", "guess").await.is_err());
+    });
+    std::thread::sleep(Duration::from_millis(200));
+    assert!(!s.log().contains("s3cret"), "the token is never logged: {}", s.log());
+    // The environment variable works too.
+    let s = serve(&t, &[], &[("RTVTK_TOKEN", "env-token")]);
+    rt().block_on(async {
+        let mut c = client(&s.url).await;
+        assert_eq!(run_sql(&mut c, "SELECT 1").await.unwrap_err().code(), tonic::Code::Unauthenticated);
+        c.set_token("env-token".into());
+        assert_eq!(run_sql(&mut c, "SELECT 1").await.unwrap(), 1);
+    });
+}
+
+#[test]
+fn statements_reach_nothing_but_the_served_datasets() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = trace(tmp.path());
+    let s = serve(&t, &["--quiet"], &[]);
+    rt().block_on(async {
+        let mut c = client(&s.url).await;
+        for sql in [
+            "SELECT * FROM '/etc/passwd'",
+            "SELECT * FROM 'file:///etc/passwd'",
+            "SELECT * FROM read_csv('/etc/passwd')",
+            "SELECT * FROM parquet_metadata('/etc/passwd')",
+            "CREATE EXTERNAL TABLE p STORED AS CSV LOCATION '/etc/passwd'",
+            "COPY (SELECT 1) TO '/tmp/rtvtk-ops-leak.csv'",
+            "EXPLAIN ANALYZE COPY (SELECT 1) TO '/tmp/rtvtk-ops-leak.csv'",
+            "EXPLAIN ANALYZE SELECT * FROM '/etc/passwd'",
+        ] {
+            let e = run_sql(&mut c, sql).await.unwrap_err();
+            let m = e.message().to_string();
+            assert!(!m.contains("root:"), "{sql}: the file's content leaked: {m}");
+            assert_ne!(e.code(), tonic::Code::Ok, "{sql}");
+        }
+        assert!(!Path::new("/tmp/rtvtk-ops-leak.csv").exists());
+        // Very long and very deeply nested statements: clear errors, no crash.
+        let long = format!("SELECT {} 1", "1 + ".repeat(300_000));
+        let e = run_sql(&mut c, &long).await.unwrap_err();
+        assert!(e.message().contains("at most"), "{}", e.message());
+        let nested = format!("SELECT {}1{}", "(".repeat(5000), ")".repeat(5000));
+        let e = run_sql(&mut c, &nested).await.unwrap_err();
+        assert!(e.message().to_lowercase().contains("recursion") || e.message().contains("nested"), "{}", e.message());
+        let subqueries = format!("SELECT * FROM {}(SELECT 1){}", "(SELECT * FROM ".repeat(2000), ") x".repeat(2000));
+        assert!(run_sql(&mut c, &subqueries).await.is_err());
+        assert_eq!(run_sql(&mut c, "SELECT count(*) FROM rays").await.unwrap(), 1, "still serving");
+    });
+}
+
+#[test]
+fn limits_and_cancellation_stop_one_query_and_spare_the_rest() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = trace(tmp.path());
+    let s = serve(
+        &t,
+        &["--max-concurrent", "1", "--max-queued", "1", "--query-timeout", "1500ms", "--log-format", "json"],
+        &[],
+    );
+    rt().block_on(async {
+        // One slow query runs, one waits, the third is refused naming the limits.
+        let url = s.url.clone();
+        let slow = tokio::spawn(async move { run_sql(&mut client(&url).await, SLOW).await });
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let url = s.url.clone();
+        let queued = tokio::spawn(async move { run_sql(&mut client(&url).await, "SELECT 1").await });
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let mut c = client(&s.url).await;
+        let e = run_sql(&mut c, "SELECT 2").await.unwrap_err();
+        assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e}");
+        assert!(e.message().contains("--max-concurrent 1") && e.message().contains("--max-queued 1"), "{e}");
+        // The slow one hits the time limit alone; the queued one then runs.
+        let t0 = Instant::now();
+        let e = slow.await.unwrap().unwrap_err();
+        assert_eq!(e.code(), tonic::Code::DeadlineExceeded, "{e}");
+        assert!(e.message().contains("--query-timeout"), "{e}");
+        assert!(t0.elapsed() < Duration::from_secs(5));
+        assert_eq!(queued.await.unwrap().unwrap(), 1);
+        // CancelFlightInfo stops a running query.
+        let mut c = client(&s.url).await;
+        let info = c.execute(SLOW.to_string(), None).await.unwrap();
+        let ticket = info.endpoint[0].ticket.clone().unwrap();
+        let mut c2 = client(&s.url).await;
+        let stream = tokio::spawn(async move {
+            let r = c2.do_get(ticket).await.map_err(status)?;
+            r.try_collect::<Vec<_>>().await.map_err(status)
+        });
+        tokio::time::sleep(Duration::from_millis(300)).await;
+        let mut flight =
+            arrow_flight::FlightClient::new(Channel::from_shared(s.url.clone()).unwrap().connect().await.unwrap());
+        // Cancelled once it runs (NotCancellable before its stream started).
+        let t0 = Instant::now();
+        loop {
+            let r = flight.cancel_flight_info(arrow_flight::CancelFlightInfoRequest::new(info.clone())).await.unwrap();
+            if r.status == arrow_flight::CancelStatus::Cancelled as i32 {
+                break;
+            }
+            assert_eq!(r.status, arrow_flight::CancelStatus::NotCancellable as i32);
+            assert!(t0.elapsed() < Duration::from_secs(10), "the query never ran: {}", s.log());
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        let e = stream.await.unwrap().unwrap_err();
+        assert_eq!(e.code(), tonic::Code::Cancelled, "{e}");
+        assert_eq!(run_sql(&mut c, "SELECT count(*) FROM rays").await.unwrap(), 1, "still serving");
+    });
+    std::thread::sleep(Duration::from_millis(300));
+    // One JSON line per query, with its outcome.
+    let log = s.log();
+    let lines: Vec<serde_json::Value> =
+        log.lines().filter(|l| l.starts_with('{')).map(|l| serde_json::from_str(l).unwrap()).collect();
+    let outcomes: Vec<&str> = lines.iter().map(|l| l["outcome"].as_str().unwrap()).collect();
+    assert!(
+        outcomes.contains(&"timed out") && outcomes.contains(&"cancelled") && outcomes.contains(&"finished"),
+        "{log}"
+    );
+    assert!(outcomes.iter().any(|o| o.starts_with("refused: the server is busy")), "{log}");
+    for l in &lines {
+        assert!(
+            l["secs"].is_number() && l["rows"].is_number() && l["bytes"].is_number() && l["sql"].is_string(),
+            "{l}"
+        );
+    }
+}
+
+#[test]
+fn a_query_over_its_memory_limit_fails_alone() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = trace(tmp.path());
+    let s = serve(&t, &["--query-memory", "64KiB", "--quiet"], &[]);
+    rt().block_on(async {
+        let mut c = client(&s.url).await;
+        let e = run_sql(&mut c, "SELECT tree_id, ray, t FROM rays ORDER BY t, tree_id, ray").await;
+        let e = e.unwrap_err();
+        assert!(e.message().contains("memory limit of 65536 bytes (--query-memory"), "{e}");
+        assert_eq!(run_sql(&mut c, "SELECT count(*) FROM rays").await.unwrap(), 1, "still serving");
+    });
+}
+
+#[test]
+fn sigterm_drains_then_cancels_and_exits_cleanly() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = trace(tmp.path());
+    let mut s = serve(&t, &["--drain-timeout", "1s"], &[]);
+    let url = s.url.clone();
+    let rt = rt();
+    let slow = rt.spawn(async move { run_sql(&mut client(&url).await, SLOW).await });
+    std::thread::sleep(Duration::from_millis(400));
+    // SAFETY: signalling our own child process.
+    unsafe { libc::kill(s.child.id() as libc::pid_t, libc::SIGTERM) };
+    let t0 = Instant::now();
+    let code = loop {
+        if let Some(c) = s.child.try_wait().unwrap() {
+            break c;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(20), "the server did not stop: {}", s.log());
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(code.success(), "exit status {code:?}: {}", s.log());
+    let e = rt.block_on(slow).unwrap().unwrap_err();
+    assert!(e.message().contains("shutting down") || e.code() == tonic::Code::Cancelled, "{e}");
+    let log = s.log();
+    assert!(log.contains("shutting down") && log.contains("cancelled"), "{log}");
+}
