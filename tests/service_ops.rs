@@ -307,3 +307,102 @@ fn sigterm_drains_then_cancels_and_exits_cleanly() {
     let log = s.log();
     assert!(log.contains("shutting down") && log.contains("cancelled"), "{log}");
 }
+
+/// Peak resident memory of a process (Linux), bytes.
+fn peak_rss(pid: u32) -> u64 {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let kb: u64 =
+        s.lines().find(|l| l.starts_with("VmHWM:")).unwrap().split_whitespace().nth(1).unwrap().parse().unwrap();
+    kb * 1024
+}
+
+/// The load test: 32 clients for 4 s mixing canned-analysis queries, one-tree lookups and a
+/// query over its memory limit; every answer is checked against the in-process session's by
+/// `rtvtk bench serve`, none is lost, the over-limit one fails alone, and the server stays
+/// within its total memory limit plus the process's own overhead.
+#[test]
+fn thirty_two_clients_get_right_answers_within_the_memory_limit() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = tmp.path().join("t");
+    record(&t, &["--scene", "cornell", "--size", "96x64", "--spp", "8", "--threads", "2"]);
+    let s = serve(&t, &["--memory-limit", "256MiB", "--query-memory", "4MiB", "--max-queued", "64", "--quiet"], &[]);
+    let before = peak_rss(s.child.id());
+    let out = rtvtk(&[
+        "bench",
+        "serve",
+        t.to_str().unwrap(),
+        "--connect",
+        &s.url,
+        "--clients",
+        "32",
+        "--seconds",
+        "4",
+        "--over-limit",
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains("0 wrong answers, 0 errors"), "{text}");
+    for kind in ["one tree", "coherence by kind and depth", "over its memory limit", "rays by kind"] {
+        assert!(text.contains(&format!("| {kind} |")), "{kind} ran: {text}");
+    }
+    let peak = peak_rss(s.child.id());
+    eprintln!("{text}server peak RSS {} MiB (idle {} MiB)", peak >> 20, before >> 20);
+    // The total pool bounds what queries hold; the process itself (code, tokio, tonic buffers,
+    // decoded pages the scans hold outside the pool) is the overhead: 192 MiB stated.
+    assert!(peak < (256 << 20) + (192 << 20), "peak RSS {} MiB", peak >> 20);
+    rt().block_on(async { assert_eq!(run_sql(&mut client(&s.url).await, "SELECT 1").await.unwrap(), 1) });
+}
+
+#[test]
+fn bad_input_gets_a_clear_status_and_nothing_else() {
+    use std::io::Write;
+    let tmp = tempfile::tempdir().unwrap();
+    let t = trace(tmp.path());
+    let s = serve(&t, &["--quiet"], &[]);
+    // Garbage bytes on the port, and a connection closed mid-frame.
+    let addr = s.url.trim_start_matches("http://").to_string();
+    for junk in
+        [&b"GET / HTTP/1.1\r\nHost: x\r\n\r\n"[..], &[0xffu8; 4096][..], b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n\x00\x00"]
+    {
+        let mut tcp = std::net::TcpStream::connect(&addr).unwrap();
+        let _ = tcp.write_all(junk);
+        drop(tcp);
+    }
+    rt().block_on(async {
+        let mut c = client(&s.url).await;
+        // An oversized message (over tonic's 4 MiB decoding limit).
+        let huge = format!("SELECT '{}'", "x".repeat(5 << 20));
+        let e = run_sql(&mut c, &huge).await.unwrap_err();
+        assert!(e.message().contains("message") || e.message().contains("at most"), "{e}");
+        // An unknown action.
+        let mut flight =
+            arrow_flight::FlightClient::new(Channel::from_shared(s.url.clone()).unwrap().connect().await.unwrap());
+        let e = flight.do_action(arrow_flight::Action::new("DropEverything", "")).await.err().unwrap().to_string();
+        assert!(e.contains("unknown action") && e.contains("DropEverything"), "{e}");
+        // A ticket that is not ours.
+        let e = flight.do_get(Ticket::new("not a ticket")).await.err().unwrap().to_string();
+        assert!(!e.is_empty());
+        // A prepared statement bound with the wrong number and type of parameters.
+        let mut ps = c.prepare("SELECT count(*) FROM rays WHERE depth >= $1".to_string(), None).await.unwrap();
+        let two = arrow::array::RecordBatch::try_from_iter([
+            ("$1", std::sync::Arc::new(arrow::array::Int64Array::from(vec![1])) as arrow::array::ArrayRef),
+            ("$2", std::sync::Arc::new(arrow::array::Int64Array::from(vec![2])) as arrow::array::ArrayRef),
+        ])
+        .unwrap();
+        ps.set_parameters(two).unwrap();
+        let e = ps.execute().await.err().map(|e| e.to_string());
+        assert!(
+            e.as_ref().is_some_and(|e| e.contains("takes 1") && e.contains("2 values")),
+            "two values for one parameter: {e:?}"
+        );
+        let text = arrow::array::RecordBatch::try_from_iter([(
+            "$1",
+            std::sync::Arc::new(arrow::array::StringArray::from(vec!["deep"])) as arrow::array::ArrayRef,
+        )])
+        .unwrap();
+        let mut ps = c.prepare("SELECT count(*) FROM rays WHERE depth >= $1".to_string(), None).await.unwrap();
+        ps.set_parameters(text).unwrap();
+        assert!(ps.execute().await.is_err(), "a string for a number");
+        assert_eq!(run_sql(&mut c, "SELECT count(*) FROM rays").await.unwrap(), 1, "still serving");
+    });
+}

@@ -5,7 +5,12 @@ mod embree;
 mod gpu;
 mod query;
 mod record;
+mod serve;
 mod trace;
+
+/// The paper's bug as a query: shadow rays that point at no emitter.
+pub const WRONG_SHADOWS_SQL: &str = "SELECT count(*) FROM rays WHERE kind = 'shadow' \
+     AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
 mod viz;
 
 use std::fs::File;
@@ -114,6 +119,27 @@ pub enum BenchCommand {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true, required = true)]
         args: Vec<String>,
     },
+    /// The query service under load: N Flight SQL clients for S seconds (queries per second,
+    /// p50/p99 latency per query type, every answer checked), beside the same queries alone
+    /// in-process.
+    Serve {
+        dataset: PathBuf,
+        #[arg(long, default_value_t = 32)]
+        clients: usize,
+        #[arg(long, default_value_t = 10.0)]
+        seconds: f64,
+        /// Against a running `rtvtk serve` (http://HOST:PORT) instead of one started in-process.
+        #[arg(long)]
+        connect: Option<String>,
+        /// Bearer token to send (default: RTVTK_TOKEN).
+        #[arg(long)]
+        token: Option<String>,
+        /// Mix in a query over the per-query memory limit (4 MiB in-process; with --connect,
+        /// start the server with --query-memory 4MiB; needs a trace of 200K rays or more): it
+        /// must fail alone.
+        #[arg(long)]
+        over_limit: bool,
+    },
     /// The visualizer's ray layer: load time of N rays beside `rtvtk sql` scanning the same
     /// columns, frame time of the layer, GPU memory per segment.
     Viz {
@@ -169,6 +195,11 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Trace { subdivide, rotate, width, spp, rounds } => {
             crate::bench::trace::run(subdivide, rotate, width, spp, rounds.max(1))
+        }
+        BenchCommand::Serve { dataset, clients, seconds, connect, token, over_limit } => {
+            let token = token.or_else(|| std::env::var("RTVTK_TOKEN").ok());
+            let o = crate::bench::serve::ServeBench { connect, token, clients, seconds, over_limit };
+            crate::bench::serve::run(&dataset, &o)
         }
         BenchCommand::Viz { dataset, rays, size, frames, rounds } => {
             crate::bench::viz::run(&dataset, &rays, size, frames.max(1), rounds.max(1))

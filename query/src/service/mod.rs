@@ -242,6 +242,39 @@ impl TraceService {
         let plan = self.ctx.state().create_logical_plan(&sql).await.map_err(plan_status)?;
         read_only_sql_options().verify_plan(&plan).map_err(plan_status)?;
         match params {
+            Some(ParamValues::List(values)) => {
+                let types = plan.get_parameter_types().map_err(plan_status)?;
+                let expected = types.len();
+                if values.len() != expected {
+                    return Err(Status::invalid_argument(format!(
+                        "parameters: the statement takes {expected} ($1 … ${expected}), {} values were bound",
+                        values.len()
+                    )));
+                }
+                // Each value as its placeholder's type (a value that does not convert is an error
+                // naming the parameter, not a comparison of mismatched types).
+                let mut cast = Vec::with_capacity(values.len());
+                for (i, v) in values.into_iter().enumerate() {
+                    let want = types.get(&format!("${}", i + 1)).cloned().flatten();
+                    let v = match want {
+                        Some(t) if v.value.data_type() != t && !v.value.is_null() => {
+                            let converted = v.value.cast_to(&t).ok().filter(|c| !c.is_null());
+                            let c = converted.ok_or_else(|| {
+                                Status::invalid_argument(format!(
+                                    "parameter ${}: expected {t}, got {} {}",
+                                    i + 1,
+                                    v.value.data_type(),
+                                    v.value
+                                ))
+                            })?;
+                            datafusion::common::metadata::ScalarAndMetadata::new(c, v.metadata)
+                        }
+                        _ => v,
+                    };
+                    cast.push(v);
+                }
+                plan.with_param_values(ParamValues::List(cast)).map_err(plan_status)
+            }
             Some(p) => plan.with_param_values(p).map_err(plan_status),
             None => Ok(plan),
         }
@@ -271,9 +304,14 @@ impl TraceService {
                     cache_manager: rt.cache_manager.clone(),
                     object_store_registry: rt.object_store_registry.clone(),
                 };
-                datafusion::execution::SessionStateBuilder::new_from_existing(state)
+                let mut state = datafusion::execution::SessionStateBuilder::new_from_existing(state)
                     .with_runtime_env(Arc::new(env))
-                    .build()
+                    .build();
+                // A sort reserves this much up front for merging its spills (10 MiB by default):
+                // within a small limit, a fraction of it, so that small sorts still run.
+                let spill = &mut state.config_mut().options_mut().execution.sort_spill_reservation_bytes;
+                *spill = (*spill).min(limit / 8);
+                state
             }
         };
         let df = datafusion::dataframe::DataFrame::new(state, plan);
