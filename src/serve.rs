@@ -52,6 +52,12 @@ pub struct ServeArgs {
     /// No per-query log lines.
     #[arg(long)]
     quiet: bool,
+    /// TLS: the server's certificate chain (PEM); with --tls-key.
+    #[arg(long, requires = "tls_key")]
+    tls_cert: Option<PathBuf>,
+    /// TLS: the certificate's private key (PEM); with --tls-cert.
+    #[arg(long, requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
 }
 
 /// `30s`, `500ms`, `5m`, `1h` or plain seconds (`2.5`).
@@ -97,6 +103,22 @@ pub fn run(a: &ServeArgs) -> Result<()> {
         bail!("{d}: not a dataset directory (expected {})", store::MANIFEST_FILE);
     }
     let token = token(a)?;
+    let tls = match (&a.tls_cert, &a.tls_key) {
+        (Some(c), Some(k)) => {
+            let read = |p: &PathBuf, what: &str| {
+                std::fs::read(p).with_context(|| format!("cannot read the TLS {what} {}", p.display()))
+            };
+            let (cert, key) = (read(c, "certificate")?, read(k, "key")?);
+            if !String::from_utf8_lossy(&cert).contains("-----BEGIN CERTIFICATE-----") {
+                bail!("{}: not a PEM certificate (expected -----BEGIN CERTIFICATE-----)", c.display());
+            }
+            if !String::from_utf8_lossy(&key).contains("PRIVATE KEY-----") {
+                bail!("{}: not a PEM private key (expected -----BEGIN ... PRIVATE KEY-----)", k.display());
+            }
+            Some((cert, key))
+        }
+        _ => None,
+    };
     let sources: Vec<query::TraceSource> = a.datasets.iter().map(|d| query::TraceSource::parse(d)).collect();
     let rt = crate::runtime()?;
     let served = rt.block_on(async {
@@ -116,6 +138,7 @@ pub fn run(a: &ServeArgs) -> Result<()> {
             max_queued: a.max_queued,
             query_memory: a.query_memory,
             drain_timeout: a.drain_timeout,
+            tls: tls.clone(),
             log: match (a.quiet, a.log_format) {
                 (true, _) => query::service::LogFormat::Quiet,
                 (false, LogFormatArg::Text) => query::service::LogFormat::Text,
@@ -130,7 +153,8 @@ pub fn run(a: &ServeArgs) -> Result<()> {
         let names: Vec<&str> = sources.iter().map(|s| s.name.as_str()).collect();
         // One line on stdout, flushed, so scripts and tests can read the address.
         println!(
-            "rtvtk serve: Arrow Flight SQL on grpc://{addr} (read-only; {}; datasets: {})",
+            "rtvtk serve: Arrow Flight SQL on {}://{addr} (read-only; {}; datasets: {})",
+            if tls.is_some() { "grpc+tls" } else { "grpc" },
             if token.is_some() { "bearer token required" } else { "no token: loopback only" },
             names.join(", ")
         );

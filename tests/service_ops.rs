@@ -65,7 +65,7 @@ fn serve(dataset: &Path, args: &[&str], env: &[(&str, &str)]) -> Server {
     });
     let mut line = String::new();
     BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    let addr = line.split("grpc://").nth(1).and_then(|s| s.split_whitespace().next());
+    let addr = line.split("://").nth(1).and_then(|s| s.split_whitespace().next());
     let addr = addr.unwrap_or_else(|| panic!("no address in {line:?}; stderr: {}", stderr.lock().unwrap())).to_string();
     Server { child, stderr, url: format!("http://{addr}") }
 }
@@ -468,4 +468,95 @@ print(json.dumps(out))
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert!(v["anon"].as_str().unwrap().to_lowercase().contains("unauthenticated"), "{v}");
     assert!(v["rays"].as_u64().unwrap() > 0, "{v}");
+}
+
+/// TLS with a self-signed certificate made here (openssl): a client trusting it gets answers, a
+/// plain-text client does not; a file that is not a certificate is refused at start.
+#[test]
+fn tls_serves_clients_that_trust_the_certificate() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = trace(tmp.path());
+    let p = |n: &str| tmp.path().join(n);
+    let (cert, key, ca) = (p("cert.pem"), p("key.pem"), p("ca.pem"));
+    std::fs::write(p("ext.cnf"), "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=CA:FALSE\n").unwrap();
+    let openssl = |args: &[&str]| {
+        let o = Command::new("openssl")
+            .current_dir(tmp.path())
+            .args(args)
+            .output()
+            .expect("openssl (apt-get install openssl)");
+        assert!(o.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+    };
+    // A test CA, and the server's certificate signed by it.
+    openssl(&[
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-days",
+        "1",
+        "-subj",
+        "/CN=rtvtk test CA",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+    ]);
+    openssl(&[
+        "req",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-subj",
+        "/CN=localhost",
+        "-keyout",
+        "key.pem",
+        "-out",
+        "srv.csr",
+    ]);
+    openssl(&[
+        "x509",
+        "-req",
+        "-in",
+        "srv.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-days",
+        "1",
+        "-out",
+        "cert.pem",
+        "-extfile",
+        "ext.cnf",
+    ]);
+    let bad = rtvtk(&[
+        "serve",
+        t.to_str().unwrap(),
+        "--addr",
+        "127.0.0.1:0",
+        "--tls-cert",
+        key.to_str().unwrap(),
+        "--tls-key",
+        key.to_str().unwrap(),
+    ]);
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("not a PEM certificate"));
+    let s = serve(&t, &["--tls-cert", cert.to_str().unwrap(), "--tls-key", key.to_str().unwrap(), "--quiet"], &[]);
+    let url = s.url.replace("http://", "https://");
+    let pem = std::fs::read(&ca).unwrap();
+    rt().block_on(async {
+        let tls = tonic::transport::ClientTlsConfig::new()
+            .ca_certificate(tonic::transport::Certificate::from_pem(&pem))
+            .domain_name("localhost");
+        let channel = Channel::from_shared(url.clone()).unwrap().tls_config(tls).unwrap().connect().await.unwrap();
+        let mut c = FlightSqlServiceClient::new(channel);
+        assert_eq!(run_sql(&mut c, "SELECT count(*) FROM rays").await.unwrap(), 1);
+        // Plain text to a TLS port: no answer.
+        let plain = Channel::from_shared(s.url.clone()).unwrap().connect().await;
+        if let Ok(ch) = plain {
+            assert!(run_sql(&mut FlightSqlServiceClient::new(ch), "SELECT 1").await.is_err());
+        }
+    });
 }

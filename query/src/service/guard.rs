@@ -47,6 +47,8 @@ pub struct ServiceOptions {
     /// After the shutdown signal, running queries may finish for this long, then are cancelled.
     pub drain_timeout: Duration,
     pub log: LogFormat,
+    /// TLS: the server's certificate chain and private key (PEM).
+    pub tls: Option<(Vec<u8>, Vec<u8>)>,
 }
 
 impl Default for ServiceOptions {
@@ -59,6 +61,7 @@ impl Default for ServiceOptions {
             query_memory: None,
             drain_timeout: Duration::from_secs(30),
             log: LogFormat::Quiet,
+            tls: None,
         }
     }
 }

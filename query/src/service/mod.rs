@@ -127,7 +127,14 @@ pub async fn serve_with(
         Some(t) => authorized(t, &request).map(|_| request),
         None => Ok(request),
     };
-    let server = tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some((cert, key)) = &service.options.tls {
+        let identity = tonic::transport::Identity::from_pem(cert, key);
+        builder = builder
+            .tls_config(tonic::transport::ServerTlsConfig::new().identity(identity))
+            .map_err(|e| Error::Service(format!("TLS: the certificate or key is not usable: {e}")))?;
+    }
+    let server = builder
         .add_service(FlightServiceServer::with_interceptor(service, check))
         .serve_with_incoming_shutdown(incoming, signal);
     // Connections that outlive the drain (a client holding an idle stream open) do not keep
