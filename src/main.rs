@@ -168,12 +168,23 @@ fn keep_freed_memory() {
 fn main() {
     // Rust ignores SIGPIPE, so printing into a closed pipe (`rtvtk tree ... | head`) would panic;
     // restore the default: the process ends quietly, like any Unix tool.
-    #[cfg(unix)]
-    // SAFETY: setting a signal disposition to its default at start-up, before any thread exists.
-    unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
-    }
     let cli = Cli::parse();
+    // Except for the commands that talk over sockets (the service, its clients): a peer closing
+    // its end under a write must be an error (EPIPE), not the end of the process.
+    #[cfg(feature = "sql")]
+    let sockets = matches!(
+        cli.command,
+        Command::Serve(_) | Command::View(_) | Command::Bench { what: bench::BenchCommand::Serve { .. } }
+    );
+    #[cfg(not(feature = "sql"))]
+    let sockets = false;
+    #[cfg(unix)]
+    if !sockets {
+        // SAFETY: setting a signal disposition to its default at start-up, before any thread exists.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     #[cfg(feature = "sql")]
     let bench_store = matches!(cli.command, Command::Bench { what: bench::BenchCommand::Store { .. } });
     #[cfg(not(feature = "sql"))]

@@ -152,14 +152,17 @@ pub fn run(a: &ServeArgs) -> Result<()> {
         let service = query::service::TraceService::with_options(ctx, options)?;
         let names: Vec<&str> = sources.iter().map(|s| s.name.as_str()).collect();
         // One line on stdout, flushed, so scripts and tests can read the address.
-        println!(
+        use std::io::Write as _;
+        let mut out = std::io::stdout();
+        writeln!(
+            out,
             "rtvtk serve: Arrow Flight SQL on {}://{addr} (read-only; {}; datasets: {})",
             if tls.is_some() { "grpc+tls" } else { "grpc" },
             if token.is_some() { "bearer token required" } else { "no token: loopback only" },
             names.join(", ")
-        );
-        use std::io::Write as _;
-        std::io::stdout().flush().context("writing the address")?;
+        )
+        .and_then(|_| out.flush())
+        .context("writing the address")?;
         query::service::serve_with(service, listener, shutdown_signal()).await?;
         Ok(())
     });
