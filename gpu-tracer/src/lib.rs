@@ -198,9 +198,9 @@ fn pipelines(
     (make("primary"), make("path"))
 }
 
-/// Opens a headless device on the preferred adapter (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` and
-/// `WGPU_POWER_PREF` choose another) with the adapter's largest storage buffers.
-pub fn headless_device() -> Result<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo)> {
+/// The preferred adapter of a headless instance (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` and
+/// `WGPU_POWER_PREF` choose another): the visualizer's and the tracer's.
+pub fn headless_adapter() -> Result<wgpu::Adapter> {
     let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
     let options = wgpu::RequestAdapterOptions {
         power_preference: wgpu::PowerPreference::from_env().unwrap_or(wgpu::PowerPreference::HighPerformance),
@@ -208,8 +208,12 @@ pub fn headless_device() -> Result<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo
         compatible_surface: None,
         apply_limit_buckets: false,
     };
-    let adapter =
-        pollster::block_on(instance.request_adapter(&options)).map_err(|e| Error::NoAdapter(e.to_string()))?;
+    pollster::block_on(instance.request_adapter(&options)).map_err(|e| Error::NoAdapter(e.to_string()))
+}
+
+/// Opens a headless device on [`headless_adapter`] with the adapter's largest storage buffers.
+pub fn headless_device() -> Result<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo)> {
+    let adapter = headless_adapter()?;
     let info = adapter.get_info();
     let have = adapter.limits();
     let desc = wgpu::DeviceDescriptor {

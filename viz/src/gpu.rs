@@ -27,15 +27,11 @@ impl Gpu {
     /// The first adapter wgpu finds (`WGPU_BACKEND`, `WGPU_ADAPTER_NAME` select one), with the
     /// adapter's own buffer limits so millions of segments fit in few buffers.
     pub fn headless() -> Result<Gpu> {
-        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-        let options = wgpu::RequestAdapterOptions {
-            power_preference: wgpu::PowerPreference::from_env().unwrap_or(wgpu::PowerPreference::HighPerformance),
-            force_fallback_adapter: false,
-            compatible_surface: None,
-            apply_limit_buckets: false,
-        };
-        let adapter =
-            pollster::block_on(instance.request_adapter(&options)).map_err(|e| Error::NoAdapter(e.to_string()))?;
+        // The GPU tracer's adapter choice, so both run on the same adapter.
+        let adapter = gpu_tracer::headless_adapter().map_err(|e| match e {
+            gpu_tracer::Error::NoAdapter(why) => Error::NoAdapter(why),
+            e => Error::NoAdapter(e.to_string()),
+        })?;
         let info = adapter.get_info();
         let have = adapter.limits();
         let limits = wgpu::Limits {
