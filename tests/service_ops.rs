@@ -302,8 +302,14 @@ fn sigterm_drains_then_cancels_and_exits_cleanly() {
         std::thread::sleep(Duration::from_millis(50));
     };
     assert!(code.success(), "exit status {code:?}: {}", s.log());
+    // The client's stream ends in an error: the cancellation's status, or (when the process has
+    // exited before the client read the trailers) the connection's end.
     let e = rt.block_on(slow).unwrap().unwrap_err();
-    assert!(e.message().contains("shutting down") || e.code() == tonic::Code::Cancelled, "{e}");
+    let m = e.message();
+    assert!(
+        m.contains("shutting down") || e.code() == tonic::Code::Cancelled || m.contains("error reading a body"),
+        "{e}"
+    );
     let log = s.log();
     assert!(log.contains("shutting down") && log.contains("cancelled"), "{log}");
 }
