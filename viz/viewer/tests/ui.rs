@@ -362,13 +362,16 @@ fn the_console_runs_against_a_flight_sql_service_and_survives_losing_it() {
         .to_string();
     let listener = query::service::bind("127.0.0.1:0").unwrap();
     let addr = query::service::local_addr(&listener).unwrap();
-    let server_ctx = ctx.clone();
-    rt.spawn(async move { query::service::serve(&server_ctx, listener, std::future::pending()).await });
+    // With a bearer token, as a shared service runs: the viewer must send it.
+    let options = query::service::ServiceOptions { token: Some("viewer-T0ken".into()), ..Default::default() };
+    let service = query::service::TraceService::with_options(ctx.clone(), options).unwrap();
+    rt.spawn(async move { query::service::serve_with(service, listener, std::future::pending()).await });
 
     let v = Viewer::new(
         ViewerOptions {
             sources: vec![Source::Dataset(dataset().to_path_buf())],
             connect: Some(format!("grpc://{addr}")),
+            token: Some("viewer-T0ken".into()),
             ..Default::default()
         },
         None,
