@@ -58,8 +58,7 @@ pub fn run(
         false => None,
     };
     eprintln!("rendering the {reference_spp}-spp CPU reference of {} at {w}x{h} ...", scene.name);
-    let reference_opts = renderers::RenderOptions { spp: reference_spp, seed: 1000, ..base.clone() };
-    let (reference, _) = renderers::render(&scene, &bvh, &reference_opts, None, &|_| {})?;
+    let reference = renderers::converge::reference(&scene, &bvh, &base, reference_spp)?;
     let mut curves: Vec<(Tracer, Vec<ConvergencePoint>)> = Vec::new();
     for &t in &tracers {
         eprintln!("measuring the {} tracer ...", t.name());

@@ -585,7 +585,9 @@ async fn register_subtrees(ctx: &SessionContext, level: u16) -> Result<()> {
     Ok(())
 }
 
-const WRONG_SHADOW: &str = "kind = 'shadow' AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
+/// The paper's bug as a predicate on `rays`: shadow rays that aim at no emitter.
+pub const WRONG_SHADOW: &str =
+    "kind = 'shadow' AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
 
 /// Suspicious rays: shadow rays aiming at no light, broken directions, self-intersections.
 pub async fn bugs(ctx: &SessionContext) -> Result<Report> {

@@ -51,13 +51,19 @@ pub fn convergence(
             "sample counts must be positive and below the reference's {reference_spp}"
         )));
     }
-    let reference_opts = RenderOptions { spp: reference_spp, seed: base.seed.wrapping_add(1000), ..base.clone() };
-    let (reference, _) = render(scene, bvh, &reference_opts, None, &|_| {})?;
+    let reference = reference(scene, bvh, base, reference_spp)?;
     let points = measure(&reference, base.seed, spps, |opts_spp, seed| {
         let opts = RenderOptions { spp: opts_spp, seed, ..base.clone() };
         render(scene, bvh, &opts, None, &|_| {}).map(|(img, _)| img)
     })?;
     Ok((reference, points))
+}
+
+/// The reference image every tracer's error is measured against: the CPU path tracer at
+/// `reference_spp` with seed `base.seed + 1000` (no measured image shares its samples).
+pub fn reference(scene: &Scene, bvh: &Bvh, base: &RenderOptions, reference_spp: u32) -> Result<Film> {
+    let opts = RenderOptions { spp: reference_spp, seed: base.seed.wrapping_add(1000), ..base.clone() };
+    Ok(render(scene, bvh, &opts, None, &|_| {})?.0)
 }
 
 /// Times `render(spp, seed)` for each of `spps` (seed `seed + i + 1` for the i-th) and measures

@@ -8,9 +8,6 @@ mod record;
 mod serve;
 mod trace;
 
-/// The paper's bug as a query: shadow rays that point at no emitter.
-pub const WRONG_SHADOWS_SQL: &str = "SELECT count(*) FROM rays WHERE kind = 'shadow' \
-     AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
 mod viz;
 
 use std::fs::File;

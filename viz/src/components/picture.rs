@@ -135,6 +135,8 @@ struct Progressive {
     key: Option<(crate::camera::ViewCamera, u32, u32)>,
     /// The GPU tracer (source `gpu`) and the samples per half batch it takes now.
     gpu: Option<(gpu_tracer::GpuTracer, u32)>,
+    /// The GPU's two accumulating images (even and odd batches), for the current camera.
+    halves: Option<[gpu_tracer::Progressive; 2]>,
 }
 
 /// The image layer.
@@ -271,6 +273,7 @@ impl Component for Image {
             curve: Vec::new(),
             key: None,
             gpu: None,
+            halves: None,
         });
         if p.key != Some(key) {
             p.key = Some(key);
@@ -279,6 +282,7 @@ impl Component for Image {
             p.spp = 0;
             p.secs = 0.0;
             p.curve.clear();
+            p.halves = None;
         }
         if p.spp >= self.settings.max_spp {
             return Ok(false);
@@ -299,20 +303,23 @@ impl Component for Image {
             let Some((g, k)) = p.gpu.as_mut() else { return Ok(false) };
             g.set_camera(s.camera);
             let k = (*k).min((self.settings.max_spp - p.spp).div_ceil(2)).max(1);
-            let depth = renderers::RenderOptions::default().max_depth;
             let gpu_err = |e: gpu_tracer::Error| Error::Layer { layer: "image".into(), message: e.to_string() };
-            for half in 0..2u32 {
-                let film = g
-                    .render(ctx.width, ctx.height, k, p.spp.wrapping_mul(2).wrapping_add(half), depth)
-                    .map_err(gpu_err)?;
-                for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
-                    *a += *b * k as f32;
-                }
-                if half == 0 {
-                    for (a, b) in p.even.iter_mut().zip(&film.pixels) {
-                        *a += *b * k as f32;
-                    }
-                }
+            if p.halves.is_none() {
+                let depth = renderers::RenderOptions::default().max_depth;
+                let half = |seed| g.progressive(ctx.width, ctx.height, seed, depth).map_err(gpu_err);
+                p.halves = Some([half(0)?, half(1)?]);
+            }
+            let Some(halves) = p.halves.as_mut() else { return Ok(false) };
+            // The sums stay on the GPU; the layer reads back each half's mean.
+            let mut films = Vec::with_capacity(2);
+            for h in halves.iter_mut() {
+                g.trace(h, k).map_err(gpu_err)?;
+                films.push((g.film(h).map_err(gpu_err)?, h.spp as f32));
+            }
+            let [(even, ne), (odd, no)] = [&films[0], &films[1]].map(|(f, n)| (f, *n));
+            for ((s, e), (a, b)) in p.sum.iter_mut().zip(p.even.iter_mut()).zip(even.pixels.iter().zip(&odd.pixels)) {
+                *e = *a * ne;
+                *s = *e + *b * no;
             }
             p.spp += 2 * k;
             // Aim at about 50 ms per idle call.
