@@ -74,10 +74,20 @@ def write(pins):
     lines = [header()]
     for section in ("[dependencies]", "[build-dependencies]"):
         lines.append("\n" + section)
+        versions = {}
+        for sec, name, ver in pins:
+            if sec == section:
+                versions.setdefault(name, set()).add(ver)
         for (sec, name, ver), feats in sorted(pins.items()):
             if sec != section:
                 continue
-            alias = name + ver.split(".")[0] if sec == "[build-dependencies]" else name
+            if sec == "[build-dependencies]":
+                alias = name + ver.split(".")[0]
+            elif len(versions[name]) > 1:
+                # Two versions of one crate in the graph (getrandom 0.3 and 0.4): one key each.
+                alias = name + "_" + ver.replace(".", "_")
+            else:
+                alias = name
             pkg = f'package = "{name}", ' if alias != name else ""
             fl = ", ".join(f'"{f}"' for f in sorted(feats - {"default"}))
             lines.append(

@@ -14,6 +14,9 @@ pub struct AnalyzeArgs {
     /// Directory for `report.md` and the PNG plots (the report goes to stdout without it).
     #[arg(long, global = true)]
     out: Option<PathBuf>,
+    /// Run the analysis's queries on a Ballista cluster (`df://HOST:PORT`, see `rtvtk cluster`).
+    #[arg(long, global = true, value_name = "df://HOST:PORT")]
+    cluster: Option<String>,
 }
 
 #[derive(Subcommand, Debug)]
@@ -53,24 +56,28 @@ enum Analysis {
 
 pub fn run(a: &AnalyzeArgs) -> Result<()> {
     let rt = crate::runtime()?;
+    let url = a.cluster.as_deref();
     let report = rt.block_on(async {
-        let report: query::Result<Report> = match &a.what {
+        let session = |sources: Vec<query::TraceSource>| async move {
+            crate::query_session(url, &sources, &query::SessionOptions::default()).await
+        };
+        let report: Result<Report> = match &a.what {
             Analysis::Coherence { dataset, width, orders, kind } => {
-                let ctx = query::session(&[source("trace", dataset)]).await?;
+                let ctx = session(vec![source("trace", dataset)]).await?;
                 let opts = CoherenceOptions { width: *width as usize, orders: orders.clone(), kind: kind.clone() };
-                analyze::coherence(&ctx, &opts).await
+                Ok(analyze::coherence(&ctx, &opts).await?)
             }
             Analysis::Bvh { dataset, level } => {
-                let ctx = query::session(&[source("trace", dataset)]).await?;
-                analyze::bvh(&ctx, *level).await
+                let ctx = session(vec![source("trace", dataset)]).await?;
+                Ok(analyze::bvh(&ctx, *level).await?)
             }
             Analysis::Bugs { dataset } => {
-                let ctx = query::session(&[source("trace", dataset)]).await?;
-                analyze::bugs(&ctx).await
+                let ctx = session(vec![source("trace", dataset)]).await?;
+                Ok(analyze::bugs(&ctx).await?)
             }
             Analysis::Diff { a, b, tile } => {
-                let ctx = query::session(&[source("a", a), source("b", b)]).await?;
-                analyze::diff(&ctx, "a", "b", *tile).await
+                let ctx = session(vec![source("a", a), source("b", b)]).await?;
+                Ok(analyze::diff(&ctx, "a", "b", *tile).await?)
             }
         };
         report

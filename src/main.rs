@@ -6,6 +6,8 @@ mod args;
 #[cfg(feature = "sql")]
 mod bench;
 mod check;
+#[cfg(feature = "cluster")]
+mod cluster;
 mod converge;
 mod demo;
 mod export;
@@ -123,6 +125,12 @@ enum Command {
     /// JDBC, arrow-flight), with the same tables and functions as `rtvtk sql`.
     #[cfg(feature = "sql")]
     Serve(serve::ServeArgs),
+    /// A Ballista cluster that runs rtvtk's queries: `cluster scheduler`, `cluster executor`.
+    #[cfg(feature = "cluster")]
+    Cluster {
+        #[command(subcommand)]
+        what: cluster::ClusterCommand,
+    },
     /// Benchmarks, each against a baseline in the same run.
     #[cfg(feature = "sql")]
     Bench {
@@ -138,6 +146,22 @@ enum Command {
 /// The commands a build without the `sql` feature leaves out.
 #[cfg(not(feature = "sql"))]
 const SQL_COMMANDS: [&str; 5] = ["view", "sql", "analyze", "serve", "bench"];
+
+/// A session over `sources`, in this process or (with `cluster`, `df://HOST:PORT`) on a cluster.
+#[cfg(feature = "sql")]
+pub(crate) async fn query_session(
+    cluster: Option<&str>,
+    sources: &[query::TraceSource],
+    options: &query::SessionOptions,
+) -> Result<datafusion::prelude::SessionContext> {
+    #[cfg(feature = "cluster")]
+    return cluster::session(cluster, sources, options).await;
+    #[cfg(not(feature = "cluster"))]
+    match cluster {
+        Some(_) => anyhow::bail!("--cluster: this rtvtk was built without the `cluster` feature"),
+        None => Ok(query::session_with(sources, options).await?),
+    }
+}
 
 /// The Tokio runtime the query commands run on.
 #[cfg(feature = "sql")]
@@ -213,6 +237,8 @@ fn main() {
         Command::Analyze(args) => analyze::run(&args).map(|_| 0),
         #[cfg(feature = "sql")]
         Command::Serve(args) => serve::run(&args).map(|_| 0),
+        #[cfg(feature = "cluster")]
+        Command::Cluster { what } => cluster::run(&what).map(|_| 0),
         #[cfg(feature = "sql")]
         Command::Bench { what } => bench::run(what).map(|_| 0),
         #[cfg(not(feature = "sql"))]

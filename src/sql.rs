@@ -40,6 +40,10 @@ pub struct SqlArgs {
     /// SmallGroups operators off), to compare the two.
     #[arg(long)]
     stock_aggregation: bool,
+    /// Run on a Ballista cluster (`df://HOST:PORT`, see `rtvtk cluster`): planned here, executed
+    /// by its executors, which read the datasets by the same paths.
+    #[arg(long, value_name = "df://HOST:PORT")]
+    pub cluster: Option<String>,
 }
 
 /// `123`, `512KiB`, `64MiB`, `2GiB` (also KB/MB/GB as powers of 1000).
@@ -78,7 +82,7 @@ pub fn run(a: &SqlArgs) -> Result<()> {
     let rt = crate::runtime()?;
     rt.block_on(async {
         let options = query::SessionOptions { memory_limit: a.memory_limit, stock_aggregation: a.stock_aggregation };
-        let ctx = query::session_with(&sources, &options).await?;
+        let ctx = crate::query_session(a.cluster.as_deref(), &sources, &options).await?;
         if interactive {
             return prompt(&ctx, a).await;
         }

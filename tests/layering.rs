@@ -108,6 +108,11 @@ fn dependency_direction_holds() {
     forbid(&g, "rl", &gpu);
     forbid(&g, "rtvtk-query", &["rl", "rtvtk-renderers", "rtvtk-viz"]);
     forbid(&g, "rtvtk-query", &gpu);
+    // Ballista lives in the cluster crate alone: the query crate's codec needs datafusion-proto only.
+    forbid(&g, "rtvtk-query", &["ballista"]);
+    forbid(&g, "rtvtk-cluster", &gpu);
+    forbid(&g, "rtvtk-cluster", &["rl", "rtvtk-renderers", "rtvtk-viz"]);
+    assert!(g.closure("rtvtk-cluster").contains("ballista-executor"));
     forbid(&g, "rtvtk-renderers", &["rtvtk-query", "rtvtk-viz", "datafusion"]);
     forbid(&g, "rtvtk-renderers", &["egui", "eframe", "winit"]);
     // The GPU tracer: wgpu over the renderers' scenes, nothing of the SQL engine, viz or GUI.
@@ -145,8 +150,17 @@ fn the_demo_build_has_no_sql_engine_and_no_gui() {
     for package in ["rtvtk", "rtvtk-viz"] {
         let c = minimal_build(package);
         assert!(c.contains("wgpu") && c.contains("parquet"), "{package}: {c:?}");
-        for banned in ["datafusion", "tonic", "arrow-flight", "egui", "eframe", "winit", "rtvtk-query", "rtvtk-viewer"]
-        {
+        for banned in [
+            "datafusion",
+            "tonic",
+            "arrow-flight",
+            "egui",
+            "eframe",
+            "winit",
+            "rtvtk-query",
+            "rtvtk-viewer",
+            "ballista",
+        ] {
             assert!(!c.contains(banned), "{package} --no-default-features must not build {banned}");
         }
     }

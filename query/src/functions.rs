@@ -143,6 +143,26 @@ fn documentation_of(name: &str) -> Option<datafusion::logical_expr::Documentatio
 struct Documented {
     inner: ScalarUDF,
     doc: Option<datafusion::logical_expr::Documentation>,
+    /// The scene a scene-dependent function was made for (sent with it to a cluster's nodes).
+    scene: Option<SceneRef>,
+}
+
+/// A scene, compared and hashed by identity (a function made for it is the same function).
+#[derive(Clone, Debug)]
+struct SceneRef(Arc<SceneContext>);
+
+impl PartialEq for SceneRef {
+    fn eq(&self, other: &Self) -> bool {
+        Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
+impl Eq for SceneRef {}
+
+impl std::hash::Hash for SceneRef {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        std::ptr::hash(Arc::as_ptr(&self.0), state);
+    }
 }
 
 impl datafusion::logical_expr::ScalarUDFImpl for Documented {
@@ -181,7 +201,26 @@ impl datafusion::logical_expr::ScalarUDFImpl for Documented {
 /// `udf` with its entry of [`RAY_FUNCTIONS`] as documentation.
 fn documented(udf: ScalarUDF) -> ScalarUDF {
     let doc = documentation_of(udf.name());
-    ScalarUDF::new_from_impl(Documented { inner: udf, doc })
+    ScalarUDF::new_from_impl(Documented { inner: udf, doc, scene: None })
+}
+
+/// [`documented`] for a function of `scene`.
+fn documented_for(udf: ScalarUDF, scene: &Arc<SceneContext>) -> ScalarUDF {
+    let doc = documentation_of(udf.name());
+    ScalarUDF::new_from_impl(Documented { inner: udf, doc, scene: Some(SceneRef(scene.clone())) })
+}
+
+/// Whether `udf` is one of the ray functions, and the scene it was made for (None for the
+/// scene-independent ones).
+pub(crate) fn ray_function_scene(udf: &ScalarUDF) -> Option<Option<Arc<SceneContext>>> {
+    let d = udf.inner().as_ref().downcast_ref::<Documented>()?;
+    Some(d.scene.as_ref().map(|s| s.0.clone()))
+}
+
+/// Whether `udaf` is one of the ray aggregates.
+pub(crate) fn is_ray_aggregate(udaf: &AggregateUDF) -> bool {
+    let inner = udaf.inner().as_ref();
+    inner.downcast_ref::<XyzUdaf<Coherence>>().is_some() || inner.downcast_ref::<XyzUdaf<Spread>>().is_some()
 }
 
 /// What scene-dependent functions know about the scene.
@@ -947,32 +986,47 @@ impl XyzStat for Spread {
     }
 }
 
+/// The ray aggregates.
+pub fn ray_aggregates() -> Vec<AggregateUDF> {
+    vec![xyz_aggregate::<Coherence>(), xyz_aggregate::<Spread>()]
+}
+
+/// The scalar ray functions, scene-dependent ones over `scene`.
+pub fn ray_scalar_functions(scene: Arc<SceneContext>) -> Vec<ScalarUDF> {
+    let mut out = vec![
+        documented(ray_point_udf()),
+        documented(octant_udf()),
+        documented(rowwise::<6, _, Float64Array>("angle_between", false, DataType::Float64, |v, _| {
+            angle([v[0], v[1], v[2]], [v[3], v[4], v[5]])
+        })),
+        documented(rowwise::<3, _, UInt32Array>("dir_bin", true, DataType::UInt32, |d, n| {
+            let n = n.filter(|n| (1..=65535).contains(n))? as u32;
+            octahedral_bin(d, n)
+        })),
+        documented(rowwise::<12, _, BooleanArray>("ray_aabb_hit", false, DataType::Boolean, |v, _| {
+            Some(slab_hit([v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]], [v[9], v[10], v[11]]))
+        })),
+        documented_for(morton_udf(scene.bounds), &scene),
+    ];
+    let lights = scene.clone();
+    out.push(documented_for(
+        rowwise::<6, _, BooleanArray>("aims_at_light", false, DataType::Boolean, move |v, _| {
+            let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
+            Some(lights.lights.iter().any(|t| hits_triangle(o, d, t)))
+        }),
+        &scene,
+    ));
+    out
+}
+
 /// Registers every ray function in `ctx`, scene-dependent ones over `scene`.
 pub fn register_functions(ctx: &SessionContext, scene: Arc<SceneContext>) {
-    ctx.register_udf(documented(ray_point_udf()));
-    ctx.register_udaf(xyz_aggregate::<Coherence>());
-    ctx.register_udaf(xyz_aggregate::<Spread>());
-    ctx.register_udf(documented(octant_udf()));
-    ctx.register_udf(documented(rowwise::<6, _, Float64Array>("angle_between", false, DataType::Float64, |v, _| {
-        angle([v[0], v[1], v[2]], [v[3], v[4], v[5]])
-    })));
-    ctx.register_udf(documented(rowwise::<3, _, UInt32Array>("dir_bin", true, DataType::UInt32, |d, n| {
-        let n = n.filter(|n| (1..=65535).contains(n))? as u32;
-        octahedral_bin(d, n)
-    })));
-    ctx.register_udf(documented(rowwise::<12, _, BooleanArray>("ray_aabb_hit", false, DataType::Boolean, |v, _| {
-        Some(slab_hit([v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]], [v[9], v[10], v[11]]))
-    })));
-    ctx.register_udf(documented(morton_udf(scene.bounds)));
-    ctx.register_udf(documented(rowwise::<6, _, BooleanArray>(
-        "aims_at_light",
-        false,
-        DataType::Boolean,
-        move |v, _| {
-            let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
-            Some(scene.lights.iter().any(|t| hits_triangle(o, d, t)))
-        },
-    )));
+    for f in ray_scalar_functions(scene) {
+        ctx.register_udf(f);
+    }
+    for f in ray_aggregates() {
+        ctx.register_udaf(f);
+    }
 }
 
 #[cfg(test)]

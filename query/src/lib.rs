@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod analyze;
+pub mod codec;
 mod count_by_key;
 mod error;
 mod functions;
@@ -12,6 +13,11 @@ mod tables;
 
 pub use count_by_key::{CountByKey, CountByKeyExec};
 pub use error::{Error, Result};
-pub use functions::{RAY_FUNCTIONS, RayFunction, SceneContext, register_functions};
+pub use functions::{
+    RAY_FUNCTIONS, RayFunction, SceneContext, ray_aggregates, ray_scalar_functions, register_functions,
+};
 pub use small_groups::{SmallGroups, SmallGroupsExec};
-pub use tables::{SessionOptions, TraceSource, physical_optimizer_rules, register_dataset, session, session_with};
+pub use tables::{
+    SessionOptions, TraceSource, physical_optimizer_rules, register_dataset, register_sources, session, session_config,
+    session_state, session_with,
+};

@@ -45,7 +45,7 @@ const TREE_FILTER_COLUMNS: [&str; 4] = [col::TREE_ID, col::PIXEL_X, col::PIXEL_Y
 
 /// The `rays` table of a dataset (any encoding).
 pub(crate) struct RaysTable {
-    ds: Arc<Dataset>,
+    pub(crate) ds: Arc<Dataset>,
     schema: SchemaRef,
 }
 
@@ -167,7 +167,7 @@ fn literal(e: &Expr) -> Option<&ScalarValue> {
     }
 }
 
-fn range_column(name: &str) -> Option<&'static str> {
+pub(crate) fn range_column(name: &str) -> Option<&'static str> {
     RANGE_COLUMNS.into_iter().find(|c| *c == name)
 }
 
@@ -292,23 +292,23 @@ fn overlaps(ranges: Option<&Vec<(u64, u64)>>, lo: u64, hi: u64) -> bool {
 
 /// The filters the scan uses, combined.
 #[derive(Clone, Debug, Default)]
-struct Pushdown {
-    ranges: BTreeMap<&'static str, Vec<(u64, u64)>>,
-    kinds: Option<BTreeSet<String>>,
+pub(crate) struct Pushdown {
+    pub(crate) ranges: BTreeMap<&'static str, Vec<(u64, u64)>>,
+    pub(crate) kinds: Option<BTreeSet<String>>,
     /// The pushed filters as SQL, for `EXPLAIN`.
-    shown: Vec<String>,
+    pub(crate) shown: Vec<String>,
 }
 
 /// One segment to read, with the rows to read when not all.
 #[derive(Clone, Debug)]
-struct SegmentPlan {
-    segment: usize,
-    rows: Option<Arc<Vec<Range<u64>>>>,
-    trees: u64,
-    rays: u64,
+pub(crate) struct SegmentPlan {
+    pub(crate) segment: usize,
+    pub(crate) rows: Option<Arc<Vec<Range<u64>>>>,
+    pub(crate) trees: u64,
+    pub(crate) rays: u64,
     /// The kept trees' entries when only those were read (a few tree ids); the scan then adds
     /// pixel columns from them instead of reading the whole tree table.
-    entries: Option<Arc<Vec<TreeEntry>>>,
+    pub(crate) entries: Option<Arc<Vec<TreeEntry>>>,
 }
 
 /// Tree-id filters at most this wide read only the tree-table pages that hold those ids.
@@ -454,10 +454,10 @@ impl Pushdown {
 
 /// Reads the `rays` table's partitions: one per segment left after pruning.
 pub(crate) struct RaysScanExec {
-    ds: Arc<Dataset>,
-    schema: SchemaRef,
-    pushdown: Pushdown,
-    parts: Vec<SegmentPlan>,
+    pub(crate) ds: Arc<Dataset>,
+    pub(crate) schema: SchemaRef,
+    pub(crate) pushdown: Pushdown,
+    pub(crate) parts: Vec<SegmentPlan>,
     properties: Arc<PlanProperties>,
 }
 
@@ -468,7 +468,7 @@ impl std::fmt::Debug for RaysScanExec {
 }
 
 impl RaysScanExec {
-    fn new(ds: Arc<Dataset>, schema: SchemaRef, pushdown: Pushdown, parts: Vec<SegmentPlan>) -> Self {
+    pub(crate) fn new(ds: Arc<Dataset>, schema: SchemaRef, pushdown: Pushdown, parts: Vec<SegmentPlan>) -> Self {
         let properties = Arc::new(PlanProperties::new(
             EquivalenceProperties::new(schema.clone()),
             Partitioning::UnknownPartitioning(parts.len().max(1)),

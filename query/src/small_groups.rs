@@ -30,7 +30,7 @@ use datafusion::logical_expr::{EmitTo, GroupsAccumulator};
 use datafusion::physical_expr::aggregate::AggregateFunctionExpr;
 use datafusion::physical_expr::{EquivalenceProperties, PhysicalExpr};
 use datafusion::physical_optimizer::PhysicalOptimizerRule;
-use datafusion::physical_plan::aggregates::{AggregateExec, AggregateMode};
+use datafusion::physical_plan::aggregates::{AggregateExec, AggregateMode, PhysicalGroupBy};
 use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
 use datafusion::physical_plan::metrics::{BaselineMetrics, ExecutionPlanMetricsSet, MetricsSet};
 use datafusion::physical_plan::{
@@ -103,7 +103,7 @@ pub struct SmallGroupsExec {
 
 impl SmallGroupsExec {
     /// The replacement of a partial aggregate of the right shape; None otherwise.
-    fn replacing(node: &Arc<dyn ExecutionPlan>) -> Result<Option<Self>> {
+    pub(crate) fn replacing(node: &Arc<dyn ExecutionPlan>) -> Result<Option<Self>> {
         let Some(agg) = node.downcast_ref::<AggregateExec>() else { return Ok(None) };
         if *agg.mode() != AggregateMode::Partial
             || agg.group_expr().has_grouping_set()
@@ -145,6 +145,28 @@ impl SmallGroupsExec {
             properties,
             metrics: ExecutionPlanMetricsSet::new(),
         }))
+    }
+}
+
+impl SmallGroupsExec {
+    /// The stock partial aggregate this operator stands for, over `input` (what a plan codec
+    /// carries: [`SmallGroupsExec::replacing`] of the decoded aggregate gives this operator back).
+    pub(crate) fn partial_aggregate(&self, input: Arc<dyn ExecutionPlan>) -> Result<Arc<dyn ExecutionPlan>> {
+        let group_by =
+            PhysicalGroupBy::new_single(self.groups.iter().map(|(e, n, _)| (e.clone(), n.clone())).collect());
+        let schema = input.schema();
+        Ok(Arc::new(AggregateExec::try_new(
+            AggregateMode::Partial,
+            group_by,
+            self.aggr.clone(),
+            self.filters.clone(),
+            input,
+            schema,
+        )?))
+    }
+
+    pub(crate) fn input(&self) -> &Arc<dyn ExecutionPlan> {
+        &self.input
     }
 }
 

@@ -14,17 +14,20 @@ use std::sync::Arc;
 use arrow::array::RecordBatch;
 use arrow::datatypes::SchemaRef;
 use datafusion::catalog::MemorySchemaProvider;
-use datafusion::catalog::streaming::StreamingTable;
 use datafusion::common::TableReference;
+use datafusion::common::tree_node::TreeNodeRecursion;
 use datafusion::datasource::TableProvider;
 use datafusion::datasource::file_format::parquet::ParquetFormat;
 use datafusion::datasource::listing::{ListingOptions, ListingTable, ListingTableConfig, ListingTableUrl};
 use datafusion::execution::TaskContext;
 use datafusion::execution::session_state::SessionStateBuilder;
+use datafusion::physical_expr::{EquivalenceProperties, PhysicalExpr};
 use datafusion::physical_optimizer::PhysicalOptimizerRule;
 use datafusion::physical_optimizer::optimizer::PhysicalOptimizer;
-use datafusion::physical_plan::SendableRecordBatchStream;
-use datafusion::physical_plan::streaming::PartitionStream;
+use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
+use datafusion::physical_plan::{
+    DisplayAs, DisplayFormatType, ExecutionPlan, Partitioning, PlanProperties, SendableRecordBatchStream,
+};
 use datafusion::prelude::{SessionConfig, SessionContext};
 use store::Dataset;
 
@@ -83,17 +86,29 @@ pub struct SessionOptions {
 
 /// [`session`] with settings.
 pub async fn session_with(sources: &[TraceSource], options: &SessionOptions) -> Result<SessionContext> {
-    let config = SessionConfig::new()
+    let ctx = SessionContext::new_with_state(session_state(options)?);
+    register_sources(&ctx, sources).await?;
+    Ok(ctx)
+}
+
+/// The configuration of rtvtk's sessions: information schema, Parquet pruning and filter pushdown.
+pub fn session_config() -> SessionConfig {
+    SessionConfig::new()
         .with_information_schema(true)
         .with_parquet_pruning(true)
         .with_parquet_page_index_pruning(true)
-        .set_bool("datafusion.execution.parquet.pushdown_filters", true);
+        .set_bool("datafusion.execution.parquet.pushdown_filters", true)
+}
+
+/// A session state with rtvtk's settings and physical operators, no tables or ray functions yet
+/// (see [`register_sources`]).
+pub fn session_state(options: &SessionOptions) -> Result<datafusion::execution::SessionState> {
     let mut runtime = datafusion::execution::runtime_env::RuntimeEnvBuilder::new();
     if let Some(limit) = options.memory_limit {
         runtime = runtime.with_memory_limit(limit, 1.0);
     }
-    let state = SessionStateBuilder::new()
-        .with_config(config)
+    Ok(SessionStateBuilder::new()
+        .with_config(session_config())
         .with_runtime_env(runtime.build_arc()?)
         .with_default_features()
         .with_physical_optimizer_rules(if options.stock_aggregation {
@@ -101,21 +116,25 @@ pub async fn session_with(sources: &[TraceSource], options: &SessionOptions) -> 
         } else {
             physical_optimizer_rules()
         })
-        .build();
-    let ctx = SessionContext::new_with_state(state);
+        .build())
+}
+
+/// Registers the tables of `sources` in `ctx` (each dataset in the schema named after it, the
+/// first one's also unqualified) and the ray functions over the first dataset's scene.
+pub async fn register_sources(ctx: &SessionContext, sources: &[TraceSource]) -> Result<()> {
     let mut names = std::collections::HashSet::new();
     let mut scene = None;
     for (i, src) in sources.iter().enumerate() {
         if !names.insert(src.name.clone()) {
             return Err(Error::DuplicateName { name: src.name.clone() });
         }
-        let ds = register_dataset(&ctx, src, i == 0).await?;
+        let ds = register_dataset(ctx, src, i == 0).await?;
         if i == 0 {
             scene = Some(SceneContext::of(&ds)?);
         }
     }
-    register_functions(&ctx, Arc::new(scene.unwrap_or_default()));
-    Ok(ctx)
+    register_functions(ctx, Arc::new(scene.unwrap_or_default()));
+    Ok(())
 }
 
 /// DataFusion's physical optimizer rules with rtvtk's: [`CountByKey`] (counting group-bys on one
@@ -148,7 +167,7 @@ pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualifi
     let mut tables: Vec<(&str, Arc<dyn TableProvider>)> = vec![
         ("rays", Arc::new(RaysTable::new(ds.clone()))),
         ("trees", listing(ctx, &src.path.join("segments"), ".trees.parquet", Some(store::tree_schema())).await?),
-        ("ray_paths", ray_paths_table(&ds)?),
+        ("ray_paths", Arc::new(RayPathsTable::new(ds.clone())?)),
     ];
     for name in ["bvh_nodes", "lights", "ray_nodes"] {
         if let Some(path) = ds.table_path(name) {
@@ -280,32 +299,149 @@ impl PathPartition {
     }
 }
 
-impl PartitionStream for PathPartition {
-    fn schema(&self) -> &SchemaRef {
-        &self.schema
-    }
+/// The `ray_paths` table of a dataset (emitters from its `lights` table): one partition per
+/// segment, built when read.
+pub(crate) struct RayPathsTable {
+    pub(crate) ds: Arc<Dataset>,
+    emitters: Arc<std::collections::HashSet<u32>>,
+}
 
-    fn execute(&self, _ctx: Arc<TaskContext>) -> SendableRecordBatchStream {
-        stream(&self.schema, self.batches().map(|b| b.into_iter().map(Ok)))
+impl std::fmt::Debug for RayPathsTable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "RayPathsTable({})", self.ds.dir().display())
     }
 }
 
-/// The `ray_paths` table of a dataset (emitters from its `lights` table).
-fn ray_paths_table(ds: &Arc<Dataset>) -> Result<Arc<dyn TableProvider>> {
-    use arrow::array::AsArray;
-    let mut emitters = std::collections::HashSet::new();
-    if let Some(lights) = ds.table("lights")?
-        && let Some(prims) =
-            lights.column_by_name("prim").and_then(|c| c.as_primitive_opt::<arrow::datatypes::UInt32Type>())
-    {
-        emitters.extend(prims.values().iter().copied());
+impl RayPathsTable {
+    pub(crate) fn new(ds: Arc<Dataset>) -> Result<Self> {
+        use arrow::array::AsArray;
+        let mut emitters = std::collections::HashSet::new();
+        if let Some(lights) = ds.table("lights")?
+            && let Some(prims) =
+                lights.column_by_name("prim").and_then(|c| c.as_primitive_opt::<arrow::datatypes::UInt32Type>())
+        {
+            emitters.extend(prims.values().iter().copied());
+        }
+        Ok(Self { ds, emitters: Arc::new(emitters) })
     }
-    let emitters = Arc::new(emitters);
-    let schema = ray_paths_schema();
-    let partitions: Vec<Arc<dyn PartitionStream>> = (0..ds.manifest().segments.len())
-        .map(|segment| {
-            Arc::new(PathPartition { ds: ds.clone(), segment, schema: schema.clone(), emitters: emitters.clone() }) as _
-        })
-        .collect();
-    Ok(Arc::new(StreamingTable::try_new(schema, partitions)?))
+
+    /// The scan of the columns `projection` (all when None).
+    pub(crate) fn exec(&self, projection: Option<Vec<usize>>) -> datafusion::error::Result<RayPathsExec> {
+        let full = ray_paths_schema();
+        let schema = match &projection {
+            Some(p) => Arc::new(full.project(p)?),
+            None => full.clone(),
+        };
+        let partitions = self.ds.manifest().segments.len().max(1);
+        let properties = Arc::new(PlanProperties::new(
+            EquivalenceProperties::new(schema.clone()),
+            Partitioning::UnknownPartitioning(partitions),
+            EmissionType::Incremental,
+            Boundedness::Bounded,
+        ));
+        Ok(RayPathsExec { ds: self.ds.clone(), emitters: self.emitters.clone(), projection, schema, properties })
+    }
+}
+
+#[async_trait::async_trait]
+impl TableProvider for RayPathsTable {
+    fn schema(&self) -> SchemaRef {
+        ray_paths_schema()
+    }
+
+    fn table_type(&self) -> datafusion::datasource::TableType {
+        datafusion::datasource::TableType::Base
+    }
+
+    async fn scan(
+        &self,
+        _state: &dyn datafusion::catalog::Session,
+        projection: Option<&Vec<usize>>,
+        _filters: &[datafusion::logical_expr::Expr],
+        _limit: Option<usize>,
+    ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
+        Ok(Arc::new(self.exec(projection.cloned())?))
+    }
+}
+
+/// Reads `ray_paths`: partition `i` is segment `i`'s paths.
+pub(crate) struct RayPathsExec {
+    ds: Arc<Dataset>,
+    emitters: Arc<std::collections::HashSet<u32>>,
+    pub(crate) projection: Option<Vec<usize>>,
+    schema: SchemaRef,
+    properties: Arc<PlanProperties>,
+}
+
+impl RayPathsExec {
+    pub(crate) fn dataset(&self) -> &Arc<Dataset> {
+        &self.ds
+    }
+}
+
+impl std::fmt::Debug for RayPathsExec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "RayPathsExec({})", self.ds.dir().display())
+    }
+}
+
+impl DisplayAs for RayPathsExec {
+    fn fmt_as(&self, _t: DisplayFormatType, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        let names: Vec<&str> = self.schema.fields().iter().map(|f| f.name().as_str()).collect();
+        write!(f, "RayPathsExec: dataset={}, projection=[{}]", self.ds.dir().display(), names.join(", "))
+    }
+}
+
+impl ExecutionPlan for RayPathsExec {
+    fn name(&self) -> &str {
+        "RayPathsExec"
+    }
+
+    fn properties(&self) -> &Arc<PlanProperties> {
+        &self.properties
+    }
+
+    fn children(&self) -> Vec<&Arc<dyn ExecutionPlan>> {
+        Vec::new()
+    }
+
+    fn apply_expressions(
+        &self,
+        _f: &mut dyn FnMut(&Arc<dyn PhysicalExpr>) -> datafusion::error::Result<TreeNodeRecursion>,
+    ) -> datafusion::error::Result<TreeNodeRecursion> {
+        Ok(TreeNodeRecursion::Continue)
+    }
+
+    fn with_new_children(
+        self: Arc<Self>,
+        _children: Vec<Arc<dyn ExecutionPlan>>,
+    ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
+        Ok(self)
+    }
+
+    fn execute(
+        &self,
+        partition: usize,
+        _ctx: Arc<TaskContext>,
+    ) -> datafusion::error::Result<SendableRecordBatchStream> {
+        let part = PathPartition {
+            ds: self.ds.clone(),
+            segment: partition,
+            schema: ray_paths_schema(),
+            emitters: self.emitters.clone(),
+        };
+        let batches = if partition < self.ds.manifest().segments.len() { part.batches() } else { Ok(Vec::new()) };
+        let projection = self.projection.clone();
+        let batches = batches.and_then(|b| {
+            b.into_iter()
+                .map(|b| match &projection {
+                    Some(p) => b
+                        .project(p)
+                        .map_err(|e| store::Error::Arrow { context: "ray_paths projection".into(), source: e }),
+                    None => Ok(b),
+                })
+                .collect::<store::Result<Vec<_>>>()
+        });
+        Ok(stream(&self.schema, batches.map(|b| b.into_iter().map(Ok))))
+    }
 }

@@ -104,6 +104,13 @@ pub enum BenchCommand {
         memory_limit: Option<String>,
         #[arg(long)]
         no_duckdb: bool,
+        /// Instead of DuckDB: the suite on Ballista clusters of this many executors (comma
+        /// separated, e.g. 1,2,4) started on this machine, beside the in-process session.
+        #[arg(long, value_delimiter = ',')]
+        cluster: Vec<usize>,
+        /// Task slots per executor with --cluster.
+        #[arg(long, default_value_t = 1)]
+        executor_cores: usize,
     },
     /// Recording overhead: wall time of `rtvtk record ARGS` with write-mode recording over the
     /// same command with `--no-record` (same scene, seed and threads), alternating pairs of runs.
@@ -207,9 +214,12 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         }
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
         BenchCommand::Record { runs, args } => crate::bench::record::run(runs, &args),
-        BenchCommand::Query { dataset, plain, runs, memory_limit, no_duckdb } => {
+        BenchCommand::Query { dataset, plain, runs, memory_limit, no_duckdb, cluster, executor_cores } => {
             if let Some(m) = &memory_limit {
                 crate::sql::parse_bytes(m).map_err(anyhow::Error::msg)?;
+            }
+            if !cluster.is_empty() {
+                return crate::bench::query::run_cluster(&dataset, &cluster, executor_cores.max(1), runs.max(1));
             }
             crate::bench::query::run(&dataset, plain, runs.max(1), memory_limit.as_deref(), !no_duckdb)
         }

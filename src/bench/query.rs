@@ -213,6 +213,16 @@ pub(crate) fn median(v: &[f64]) -> f64 {
 
 /// rtvtk's answer as CSV rows, or with `json` as JSON lines (for nested payload columns).
 fn ours(dataset: &Path, case: &Case, runs: usize, memory_limit: Option<&str>) -> Result<Measured> {
+    ours_on(dataset, case, runs, memory_limit, None)
+}
+
+fn ours_on(
+    dataset: &Path,
+    case: &Case,
+    runs: usize,
+    memory_limit: Option<&str>,
+    cluster: Option<&str>,
+) -> Result<Measured> {
     let (query, json) = (case.ours.as_str(), case.counts_only);
     let exe = std::env::current_exe().context("finding the rtvtk executable")?;
     let mut times = Vec::new();
@@ -224,6 +234,10 @@ fn ours(dataset: &Path, case: &Case, runs: usize, memory_limit: Option<&str>) ->
         cmd.args(case.ours_args);
         if let Some(m) = memory_limit {
             cmd.args(["--memory-limit", m]);
+        }
+        if let Some(url) = cluster {
+            // Ballista's own aggregation on the cluster: compare with the same in-process.
+            cmd.args(["--cluster", url]);
         }
         let (out, peak) = run_measured(&mut cmd)?;
         if !out.status.success() {
@@ -420,6 +434,120 @@ pub fn run(
         println!("\nrtvtk (plain and encoded) and DuckDB gave the same answers to every query.");
     }
     Ok(())
+}
+
+/// A scheduler and executors started by `run_cluster`, stopped when dropped.
+#[cfg(feature = "cluster")]
+struct LocalCluster(Vec<std::process::Child>);
+
+#[cfg(feature = "cluster")]
+impl Drop for LocalCluster {
+    fn drop(&mut self) {
+        for c in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+#[cfg(feature = "cluster")]
+impl LocalCluster {
+    /// `executors` executors of `cores` slots and a scheduler on free loopback ports; the address.
+    fn start(executors: usize, cores: usize) -> Result<(Self, String)> {
+        use std::io::BufRead;
+        let exe = std::env::current_exe().context("finding the rtvtk executable")?;
+        let spawn = |args: &[&str]| -> Result<(std::process::Child, String)> {
+            let mut c = Command::new(&exe)
+                .args(args)
+                .stdout(std::process::Stdio::piped())
+                .stderr(std::process::Stdio::null())
+                .spawn()
+                .context("starting rtvtk cluster")?;
+            let mut line = String::new();
+            let out = c.stdout.take().context("no stdout")?;
+            std::io::BufReader::new(out).read_line(&mut line)?;
+            Ok((c, line))
+        };
+        let (s, line) = spawn(&["cluster", "scheduler", "--addr", "127.0.0.1:0"])?;
+        let mut me = Self(vec![s]);
+        let addr = line
+            .strip_prefix("scheduler listening on ")
+            .and_then(|l| l.split_whitespace().next())
+            .with_context(|| format!("scheduler said {line:?}"))?
+            .to_string();
+        let cores = cores.to_string();
+        for _ in 0..executors {
+            me.0.push(spawn(&["cluster", "executor", "--scheduler", &addr, "--cores", &cores])?.0);
+        }
+        Ok((me, format!("df://{addr}")))
+    }
+}
+
+/// The suite in-process and on local clusters of `counts` executors: time ratios against the
+/// in-process session in the same run (answers checked).
+#[cfg(feature = "cluster")]
+pub fn run_cluster(dataset: &Path, counts: &[usize], cores: usize, runs: usize) -> Result<()> {
+    let ds = store::Dataset::open(dataset).with_context(|| format!("opening {}", dataset.display()))?;
+    let (lo, hi) = query::SceneContext::of(&ds)?.bounds.unwrap_or(([0.0; 3], [1.0; 3]));
+    let tree = ds.tree_entry_at(ds.tree_count() as usize / 2)?.map_or(0, |e| e.info.id.0);
+    let dataset = std::path::absolute(dataset)?;
+    println!(
+        "query suite on {} ({} rays, {} segments): in-process (rtvtk's operators) vs Ballista clusters of {:?} executors x {cores} slots on this machine; median of {runs} warm runs",
+        dataset.display(),
+        ds.ray_count(),
+        ds.manifest().segments.len(),
+        counts
+    );
+    let cases = suite(tree, lo, hi);
+    let mut base = Vec::new();
+    for case in &cases {
+        base.push(ours_on(&dataset, case, runs, None, None)?);
+    }
+    let mut columns = Vec::new();
+    for &n in counts {
+        let (cluster, url) = LocalCluster::start(n, cores)?;
+        // Executors register on their first poll: wait for a first answer.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        loop {
+            let out = Command::new(std::env::current_exe()?)
+                .arg("sql")
+                .arg(&dataset)
+                .args(["SELECT count(*) FROM rays", "--cluster", &url])
+                .output()?;
+            if out.status.success() {
+                break;
+            }
+            if std::time::Instant::now() > deadline {
+                bail!("the cluster of {n} executors never answered: {}", String::from_utf8_lossy(&out.stderr));
+            }
+            std::thread::sleep(std::time::Duration::from_millis(500));
+        }
+        let mut col = Vec::new();
+        for (case, b) in cases.iter().zip(&base) {
+            let m = ours_on(&dataset, case, runs, None, Some(&url))?;
+            if !case.agree(&m, b) {
+                bail!("{}: the cluster of {n} answers differently from the in-process session", case.name);
+            }
+            col.push(m.secs);
+        }
+        drop(cluster);
+        columns.push(col);
+    }
+    let heads: Vec<String> = counts.iter().map(|n| format!(" {n} exec s | ratio |")).collect();
+    println!("\n| query | in-process s |{}", heads.concat());
+    println!("|---|---|{}", "---|---|".repeat(counts.len()));
+    for (i, (case, b)) in cases.iter().zip(&base).enumerate() {
+        let cells: Vec<String> =
+            columns.iter().map(|c| format!(" {:.3} | {:.2}x |", c[i], c[i] / b.secs.max(1e-9))).collect();
+        println!("| {} | {:.3} |{}", case.name, b.secs, cells.concat());
+    }
+    println!("\nratio: cluster time / in-process time (below 1: the cluster is faster). Every answer matched.");
+    Ok(())
+}
+
+#[cfg(not(feature = "cluster"))]
+pub fn run_cluster(_: &Path, _: &[usize], _: usize, _: usize) -> Result<()> {
+    bail!("--cluster: this rtvtk was built without the `cluster` feature")
 }
 
 #[cfg(test)]

@@ -1,0 +1,219 @@
+//! rtvtk on a Ballista cluster: a scheduler and executors that know the trace tables, the ray
+//! functions and aggregates and rtvtk's scan operators (through [`query::codec::TraceCodec`]
+//! layered over Ballista's own codecs), and a client session that plans locally and runs there.
+//!
+//! Datasets are plain directories every node reads by the same path (a shared file system);
+//! the `rays` scan has one partition per segment left after pruning, so the scan stage spreads
+//! over the executors' task slots and only aggregated rows are shuffled.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use ballista::prelude::{SessionConfigExt, SessionContextExt};
+use ballista_core::serde::{BallistaLogicalExtensionCodec, BallistaPhysicalExtensionCodec};
+use datafusion::execution::SessionState;
+use datafusion::execution::runtime_env::RuntimeEnvBuilder;
+use datafusion::execution::session_state::SessionStateBuilder;
+use datafusion::physical_optimizer::optimizer::PhysicalOptimizer;
+use datafusion::prelude::{SessionConfig, SessionContext};
+use query::TraceSource;
+use query::codec::TraceCodec;
+
+/// What can go wrong starting or using a cluster.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("{0}")]
+    Query(#[from] query::Error),
+    #[error("{0}")]
+    DataFusion(#[from] datafusion::error::DataFusionError),
+    #[error("ballista: {0}")]
+    Ballista(#[from] ballista_core::error::BallistaError),
+    #[error("cluster address `{url}`: {message} (expected df://HOST:PORT)")]
+    Url { url: String, message: String },
+    #[error("cannot reach the scheduler at {addr}: {source} (is `rtvtk cluster scheduler` running there?)")]
+    Unreachable { addr: String, source: std::io::Error },
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// The codec every node and client uses: rtvtk's nodes, then Ballista's.
+pub fn codec() -> Arc<TraceCodec> {
+    Arc::new(TraceCodec::with_fallback(
+        Arc::new(BallistaLogicalExtensionCodec::default()),
+        Arc::new(BallistaPhysicalExtensionCodec::default()),
+    ))
+}
+
+/// The scheduler's sessions: DataFusion's and Ballista's rules, and rtvtk's `SmallGroups` (the
+/// partial half of small-domain group-bys, one task per scan partition, so it spreads over the
+/// executors like the stock operator). `CountByKey` is left out: it gathers every partition into
+/// one task, which would put a whole scan on one executor; the stock two-phase aggregation
+/// shuffles its partial counts instead.
+fn scheduler_session(config: SessionConfig) -> datafusion::common::Result<SessionState> {
+    let mut rules = PhysicalOptimizer::new().rules;
+    rules.push(Arc::new(query::SmallGroups));
+    Ok(SessionStateBuilder::new()
+        .with_default_features()
+        .with_config(config)
+        .with_runtime_env(Arc::new(RuntimeEnvBuilder::new().build()?))
+        .with_optimizer_rules(ballista_core::optimizer::ballista_default_optimizer_rules())
+        .with_physical_optimizer_rules(rules)
+        .build())
+}
+
+/// Settings of a scheduler.
+#[derive(Clone, Debug)]
+pub struct SchedulerOptions {
+    /// Seconds without a heartbeat after which an executor is taken for dead (its tasks run again
+    /// elsewhere).
+    pub executor_timeout_s: u64,
+}
+
+impl Default for SchedulerOptions {
+    fn default() -> Self {
+        Self { executor_timeout_s: 15 }
+    }
+}
+
+/// Runs a scheduler on `listener` until the process ends.
+pub async fn run_scheduler(listener: tokio::net::TcpListener, options: &SchedulerOptions) -> Result<()> {
+    use ballista_scheduler::cluster::BallistaCluster;
+    use ballista_scheduler::config::SchedulerConfig;
+    use datafusion_proto::protobuf::{LogicalPlanNode, PhysicalPlanNode};
+    let addr = listener.local_addr().map_err(ballista_core::error::BallistaError::from)?;
+    let codec = codec();
+    let config = SchedulerConfig {
+        bind_host: addr.ip().to_string(),
+        bind_port: addr.port(),
+        external_host: addr.ip().to_string(),
+        executor_timeout_seconds: options.executor_timeout_s.max(2),
+        expire_dead_executor_interval_seconds: 1,
+        no_executors_grace_period_seconds: options.executor_timeout_s.max(2),
+        override_logical_codec: Some(codec.clone()),
+        override_physical_codec: Some(codec),
+        override_session_builder: Some(Arc::new(scheduler_session)),
+        ..SchedulerConfig::default()
+    };
+    config.validate()?;
+    let cluster = BallistaCluster::new_from_config(&config).await?;
+    let scheduler = ballista_scheduler::scheduler_process::create_scheduler::<LogicalPlanNode, PhysicalPlanNode>(
+        cluster,
+        Arc::new(config),
+    )
+    .await?;
+    ballista_scheduler::scheduler_process::start_grpc_service_with_listener(listener, scheduler).await?;
+    Ok(())
+}
+
+/// Settings of an executor.
+#[derive(Clone, Debug)]
+pub struct ExecutorOptions {
+    pub scheduler_host: String,
+    pub scheduler_port: u16,
+    /// Address the executor's Arrow Flight service (results and shuffle data) listens on.
+    pub bind: SocketAddr,
+    /// Task slots (0: every core).
+    pub cores: usize,
+    /// Where shuffle files go (a temporary directory when None).
+    pub work_dir: Option<String>,
+}
+
+/// Runs an executor until it is stopped (SIGTERM, Ctrl-C or the scheduler).
+pub async fn run_executor(options: &ExecutorOptions) -> Result<()> {
+    use ballista_executor::executor_process::{ExecutorProcessConfig, start_executor_process};
+    let codec = codec();
+    let config = ExecutorProcessConfig {
+        bind_host: options.bind.ip().to_string(),
+        external_host: Some(options.bind.ip().to_string()),
+        port: options.bind.port(),
+        grpc_port: 0,
+        scheduler_host: options.scheduler_host.clone(),
+        scheduler_port: options.scheduler_port,
+        scheduler_connect_timeout_seconds: 10,
+        vcores: options.cores,
+        work_dir: options.work_dir.clone(),
+        executor_heartbeat_interval_seconds: 2,
+        job_data_clean_up_interval_seconds: 300,
+        job_data_ttl_seconds: 3600,
+        override_logical_codec: Some(codec.clone()),
+        override_physical_codec: Some(codec),
+        ..ExecutorProcessConfig::default()
+    };
+    start_executor_process(Arc::new(config)).await?;
+    Ok(())
+}
+
+/// Ballista's log lines on stderr, at the level `RUST_LOG` names (`error`, `warn`, `info`,
+/// `debug`, `trace`; `warn` by default), so a scheduler or executor says why a task failed.
+pub fn init_logging() {
+    struct Stderr;
+    impl log::Log for Stderr {
+        fn enabled(&self, m: &log::Metadata) -> bool {
+            m.level() <= log::max_level()
+        }
+        fn log(&self, r: &log::Record) {
+            if self.enabled(r.metadata()) {
+                eprintln!("[{} {}] {}", r.level(), r.target(), r.args());
+            }
+        }
+        fn flush(&self) {}
+    }
+    static LOGGER: Stderr = Stderr;
+    let level = std::env::var("RUST_LOG")
+        .ok()
+        .and_then(|v| v.trim().parse::<log::LevelFilter>().ok())
+        .unwrap_or(log::LevelFilter::Warn);
+    if log::set_logger(&LOGGER).is_ok() {
+        log::set_max_level(level);
+    }
+}
+
+/// `df://HOST:PORT` as (host, port).
+pub fn parse_url(url: &str) -> Result<(String, u16)> {
+    let err = |message: &str| Error::Url { url: url.to_string(), message: message.to_string() };
+    let rest = url.strip_prefix("df://").ok_or_else(|| err("not a df:// address"))?;
+    let rest = rest.trim_end_matches('/');
+    let (host, port) = rest.rsplit_once(':').ok_or_else(|| err("no port"))?;
+    let port: u16 = port.parse().map_err(|_| err("the port is not a number in 1..=65535"))?;
+    if host.is_empty() || port == 0 {
+        return Err(err("no host or port 0"));
+    }
+    Ok((host.trim_start_matches('[').trim_end_matches(']').to_string(), port))
+}
+
+/// A session whose queries are planned here and run on the cluster at `url` (`df://HOST:PORT`),
+/// over the tables of `sources` (each a directory every executor can read by the same path).
+pub async fn connect(url: &str, sources: &[TraceSource]) -> Result<SessionContext> {
+    let (host, port) = parse_url(url)?;
+    // Ballista connects on the first query; say now when nobody listens there.
+    let addr = format!("{host}:{port}");
+    tokio::net::TcpStream::connect(&addr).await.map_err(|source| Error::Unreachable { addr, source })?;
+    let codec = codec();
+    let config = query::session_config()
+        .with_ballista_logical_extension_codec(codec.clone())
+        .with_ballista_physical_extension_codec(codec);
+    let state = SessionStateBuilder::new().with_config(config).with_default_features().build();
+    let ctx = SessionContext::remote_with_state(url, state).await?;
+    // After the upgrade to Ballista (which resets the function list): tables and ray functions.
+    let sources: Vec<TraceSource> = sources
+        .iter()
+        .map(|s| TraceSource { name: s.name.clone(), path: std::path::absolute(&s.path).unwrap_or(s.path.clone()) })
+        .collect();
+    query::register_sources(&ctx, &sources).await?;
+    Ok(ctx)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn urls_are_checked() {
+        assert_eq!(parse_url("df://localhost:50050").unwrap(), ("localhost".into(), 50050));
+        assert_eq!(parse_url("df://127.0.0.1:7/").unwrap(), ("127.0.0.1".into(), 7));
+        for bad in ["localhost:50050", "df://localhost", "df://:1", "df://h:0", "df://h:x", "df://h:70000"] {
+            let e = parse_url(bad).unwrap_err().to_string();
+            assert!(e.contains(bad) && e.contains("df://HOST:PORT"), "{bad}: {e}");
+        }
+    }
+}

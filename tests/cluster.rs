@@ -1,0 +1,191 @@
+#![cfg(feature = "cluster")]
+#![allow(clippy::unwrap_used)]
+//! rtvtk on a Ballista cluster: a scheduler and two executors as `rtvtk cluster` processes on
+//! loopback (free ports, all stopped by the test). The `.slt` suite and the canned analyses run
+//! against it with the in-process answers; a query's plan survives the codec; an executor killed
+//! during a long query gives a clear error or a retried answer, and the cluster keeps serving.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use datafusion::error::DataFusionError;
+
+mod common;
+mod slt_db;
+
+/// Child processes, killed when dropped (also when the test fails).
+struct Procs(Vec<Child>);
+
+impl Drop for Procs {
+    fn drop(&mut self) {
+        for c in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+/// Starts `rtvtk ARGS`; the child and its first stdout line.
+fn start(args: &[&str]) -> (Child, String) {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
+        .args(args)
+        .stdout(Stdio::piped())
+        // Their log lines (Ballista's warnings) show with a failing test's output.
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    (child, line)
+}
+
+fn executor(scheduler: &str) -> Child {
+    let (child, line) = start(&["cluster", "executor", "--scheduler", scheduler, "--cores", "2"]);
+    assert!(line.starts_with("executor on 127.0.0.1:"), "{line}");
+    child
+}
+
+async fn cluster_session(url: &str, sources: &[query::TraceSource]) -> datafusion::prelude::SessionContext {
+    cluster::connect(url, sources).await.unwrap()
+}
+
+async fn rows(ctx: &datafusion::prelude::SessionContext, sql: &str) -> Result<String, DataFusionError> {
+    let batches = ctx.sql_with_options(sql, query::service::read_only_sql_options()).await?.collect().await?;
+    Ok(arrow::util::pretty::pretty_format_batches(&batches)?.to_string())
+}
+
+#[test]
+fn queries_run_on_a_cluster_with_the_in_process_answers() {
+    let tmp = tempfile::tempdir().unwrap();
+    let sources = slt_db::sources(tmp.path());
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+
+    let (scheduler, line) = start(&["cluster", "scheduler", "--addr", "127.0.0.1:0", "--executor-timeout", "4"]);
+    let mut procs = Procs(vec![scheduler]);
+    let addr = line.strip_prefix("scheduler listening on ").unwrap().split_whitespace().next().unwrap().to_string();
+    let url = format!("df://{addr}");
+    procs.0.push(executor(&addr));
+    procs.0.push(executor(&addr));
+
+    // The executors register on their first poll: wait until a query runs.
+    let ctx = rt.block_on(cluster_session(&url, &sources));
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let r = rt.block_on(async {
+            tokio::time::timeout(Duration::from_secs(10), rows(&ctx, "SELECT count(*) FROM rays")).await
+        });
+        match r {
+            Ok(Ok(_)) => break,
+            other => assert!(Instant::now() < deadline, "the cluster never answered: {other:?}"),
+        }
+    }
+
+    // The plan of a query with the ray functions, the scan and a scene payload crosses the codec
+    // and runs with the same answer.
+    let direct = rt.block_on(query::session(&sources)).unwrap();
+    let check = "SELECT kind, count(*) AS n, sum(CASE WHEN aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z) THEN 1 ELSE 0 END) AS lit, \
+                 count(DISTINCT morton3(origin_x, origin_y, origin_z, 4)) AS cells, round(dir_coherence(dir_x, dir_y, dir_z), 6) AS c \
+                 FROM rays WHERE depth >= 1 GROUP BY kind ORDER BY kind";
+    let small = "SELECT kind, depth, count(*) AS n, avg(nodes_visited) AS nodes FROM rays GROUP BY kind, depth ORDER BY kind, depth";
+    let codec = cluster::codec();
+    for (sql, operator) in [(check, "RaysScanExec"), (small, "SmallGroupsExec")] {
+        let plan = rt.block_on(async { direct.sql(sql).await.unwrap().create_physical_plan().await.unwrap() });
+        let shown = datafusion::physical_plan::displayable(plan.as_ref()).indent(false).to_string();
+        assert!(shown.contains(operator), "{sql}: {shown}");
+        let bytes = datafusion_proto::bytes::physical_plan_to_bytes_with_extension_codec(plan, codec.as_ref()).unwrap();
+        let back = datafusion_proto::bytes::physical_plan_from_bytes_with_extension_codec(
+            &bytes,
+            &direct.task_ctx(),
+            codec.as_ref(),
+        )
+        .unwrap();
+        let back_shown = datafusion::physical_plan::displayable(back.as_ref()).indent(false).to_string();
+        assert!(back_shown.contains(operator), "{sql} decoded: {back_shown}");
+        let decoded = rt.block_on(datafusion::physical_plan::collect(back, direct.task_ctx())).unwrap();
+        let want = rt.block_on(rows(&direct, sql)).unwrap();
+        assert_eq!(arrow::util::pretty::pretty_format_batches(&decoded).unwrap().to_string(), want);
+        assert_eq!(rt.block_on(rows(&ctx, sql)).unwrap(), want, "{sql} on the cluster");
+    }
+
+    // The whole .slt suite, with the answers the in-process sessions give.
+    let (u, s) = (url.clone(), sources.clone());
+    let factory: slt_db::Factory = Arc::new(move || {
+        let (u, s) = (u.clone(), s.clone());
+        Box::pin(async move { cluster::connect(&u, &s).await.map_err(|e| DataFusionError::External(Box::new(e))) })
+    });
+    let failures = slt_db::run_all(&rt, factory);
+    assert!(failures.is_empty(), "{}", failures.join("\n\n"));
+
+    // The canned analyses: the same reports.
+    let good = sources[0].path.to_str().unwrap().to_string();
+    let bad = sources[1].path.to_str().unwrap().to_string();
+    for args in [
+        vec!["analyze", "coherence", good.as_str()],
+        vec!["analyze", "bvh", good.as_str()],
+        vec!["analyze", "bugs", bad.as_str()],
+        vec!["analyze", "diff", good.as_str(), bad.as_str()],
+    ] {
+        let here = common::ok(&args);
+        let there = common::ok(&[args.as_slice(), &["--cluster", url.as_str()]].concat());
+        assert_eq!(here, there, "{args:?}");
+    }
+
+    // Read-only, as `rtvtk serve`; bad SQL gets DataFusion's error.
+    for (sql, says) in [
+        ("CREATE TABLE t AS SELECT 1", "not supported"),
+        ("SET datafusion.execution.batch_size = 1", "not supported"),
+        ("SELECT no_such_column FROM rays", "no_such_column"),
+    ] {
+        let e = rt.block_on(rows(&ctx, sql)).unwrap_err().to_string();
+        assert!(e.contains(says), "{sql}: {e}");
+    }
+
+    // An executor dies during a long query: the query fails with an error that says so, or is
+    // retried on the other one; either way the next query runs.
+    let long = "SELECT count(*) FROM good.rays a JOIN good.rays b ON a.depth = b.depth AND a.kind = b.kind";
+    let expected = rt.block_on(rows(&direct, long)).unwrap();
+    let ctx2 = ctx.clone();
+    let handle = rt.spawn(async move { rows(&ctx2, long).await });
+    std::thread::sleep(Duration::from_millis(700));
+    let mut victim = procs.0.remove(1);
+    victim.kill().unwrap();
+    victim.wait().unwrap();
+    let outcome = rt.block_on(async { tokio::time::timeout(Duration::from_secs(120), handle).await });
+    match outcome {
+        Ok(Ok(Ok(answer))) => assert_eq!(answer, expected, "a retried query's answer"),
+        Ok(Ok(Err(e))) => {
+            let text = e.to_string();
+            assert!(!text.is_empty(), "an error that says what failed");
+            eprintln!("the query with a killed executor failed: {text}");
+        }
+        other => panic!("the query with a killed executor neither answered nor failed: {other:?}"),
+    }
+    let after = rt.block_on(async {
+        tokio::time::timeout(
+            Duration::from_secs(60),
+            rows(&ctx, "SELECT kind, count(*) FROM rays GROUP BY kind ORDER BY kind"),
+        )
+        .await
+    });
+    let want = rt.block_on(rows(&direct, "SELECT kind, count(*) FROM rays GROUP BY kind ORDER BY kind")).unwrap();
+    assert_eq!(after.expect("the cluster answers after losing an executor").unwrap(), want);
+    drop(procs);
+}
+
+#[test]
+fn a_cluster_nobody_runs_is_a_clear_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let ds = tmp.path().join("t");
+    common::record(&ds, &["--scene", "cornell", "--size", "4x4", "--spp", "1"]);
+    let out = common::rtvtk(&["sql", ds.to_str().unwrap(), "SELECT 1", "--cluster", "df://127.0.0.1:1"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cannot reach the scheduler at 127.0.0.1:1"), "{err}");
+    let out = common::rtvtk(&["sql", ds.to_str().unwrap(), "SELECT 1", "--cluster", "http://x:1"]);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("expected df://HOST:PORT"));
+    let out = common::rtvtk(&["cluster", "executor", "--scheduler", "nowhere"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("HOST:PORT"));
+}
