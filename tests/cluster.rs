@@ -89,7 +89,7 @@ fn queries_run_on_a_cluster_with_the_in_process_answers() {
                  count(DISTINCT morton3(origin_x, origin_y, origin_z, 4)) AS cells, round(dir_coherence(dir_x, dir_y, dir_z), 6) AS c \
                  FROM rays WHERE depth >= 1 GROUP BY kind ORDER BY kind";
     let small = "SELECT kind, depth, count(*) AS n, avg(nodes_visited) AS nodes FROM rays GROUP BY kind, depth ORDER BY kind, depth";
-    let codec = cluster::codec();
+    let codec = cluster::physical_codec();
     for (sql, operator) in [(check, "RaysScanExec"), (small, "SmallGroupsExec")] {
         let plan = rt.block_on(async { direct.sql(sql).await.unwrap().create_physical_plan().await.unwrap() });
         let shown = datafusion::physical_plan::displayable(plan.as_ref()).indent(false).to_string();

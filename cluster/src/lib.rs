@@ -6,16 +6,23 @@
 //! the `rays` scan has one partition per segment left after pruning, so the scan stage spreads
 //! over the executors' task slots and only aggregated rows are shuffled.
 
+mod dictionaries;
+mod subqueries;
+
 use std::net::SocketAddr;
 use std::sync::Arc;
 
 use ballista::prelude::{SessionConfigExt, SessionContextExt};
+use ballista_core::config::TaskSchedulingPolicy;
+use ballista_core::error::BallistaError;
 use ballista_core::serde::{BallistaLogicalExtensionCodec, BallistaPhysicalExtensionCodec};
 use datafusion::execution::SessionState;
 use datafusion::execution::runtime_env::RuntimeEnvBuilder;
 use datafusion::execution::session_state::SessionStateBuilder;
 use datafusion::physical_optimizer::optimizer::PhysicalOptimizer;
 use datafusion::prelude::{SessionConfig, SessionContext};
+use datafusion_proto::logical_plan::LogicalExtensionCodec;
+use datafusion_proto::physical_plan::PhysicalExtensionCodec;
 use query::TraceSource;
 use query::codec::TraceCodec;
 
@@ -27,7 +34,7 @@ pub enum Error {
     #[error("{0}")]
     DataFusion(#[from] datafusion::error::DataFusionError),
     #[error("ballista: {0}")]
-    Ballista(#[from] ballista_core::error::BallistaError),
+    Ballista(#[from] BallistaError),
     #[error("cluster address `{url}`: {message} (expected df://HOST:PORT)")]
     Url { url: String, message: String },
     #[error("cannot reach the scheduler at {addr}: {source} (is `rtvtk cluster scheduler` running there?)")]
@@ -36,12 +43,23 @@ pub enum Error {
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
-/// The codec every node and client uses: rtvtk's nodes, then Ballista's.
-pub fn codec() -> Arc<TraceCodec> {
+/// The logical codec every node and client uses: rtvtk's tables and functions, then Ballista's.
+pub fn logical_codec() -> Arc<dyn LogicalExtensionCodec> {
     Arc::new(TraceCodec::with_fallback(
         Arc::new(BallistaLogicalExtensionCodec::default()),
         Arc::new(BallistaPhysicalExtensionCodec::default()),
     ))
+}
+
+/// The physical codec every node and client uses: the cluster's own operator
+/// ([`dictionaries::CastBackExec`]), rtvtk's operators and functions, then Ballista's.
+pub fn physical_codec() -> Arc<dyn PhysicalExtensionCodec> {
+    Arc::new(dictionaries::ClusterCodec {
+        inner: Arc::new(TraceCodec::with_fallback(
+            Arc::new(BallistaLogicalExtensionCodec::default()),
+            Arc::new(BallistaPhysicalExtensionCodec::default()),
+        )),
+    })
 }
 
 /// The scheduler's sessions: DataFusion's and Ballista's rules, and rtvtk's `SmallGroups` (the
@@ -52,6 +70,7 @@ pub fn codec() -> Arc<TraceCodec> {
 fn scheduler_session(config: SessionConfig) -> datafusion::common::Result<SessionState> {
     let mut rules = PhysicalOptimizer::new().rules;
     rules.push(Arc::new(query::SmallGroups));
+    rules.push(Arc::new(dictionaries::PlainAcrossStages));
     Ok(SessionStateBuilder::new()
         .with_default_features()
         .with_config(config)
@@ -80,8 +99,7 @@ pub async fn run_scheduler(listener: tokio::net::TcpListener, options: &Schedule
     use ballista_scheduler::cluster::BallistaCluster;
     use ballista_scheduler::config::SchedulerConfig;
     use datafusion_proto::protobuf::{LogicalPlanNode, PhysicalPlanNode};
-    let addr = listener.local_addr().map_err(ballista_core::error::BallistaError::from)?;
-    let codec = codec();
+    let addr = listener.local_addr().map_err(BallistaError::from)?;
     let config = SchedulerConfig {
         bind_host: addr.ip().to_string(),
         bind_port: addr.port(),
@@ -89,9 +107,12 @@ pub async fn run_scheduler(listener: tokio::net::TcpListener, options: &Schedule
         executor_timeout_seconds: options.executor_timeout_s.max(2),
         expire_dead_executor_interval_seconds: 1,
         no_executors_grace_period_seconds: options.executor_timeout_s.max(2),
-        override_logical_codec: Some(codec.clone()),
-        override_physical_codec: Some(codec),
+        override_logical_codec: Some(logical_codec()),
+        override_physical_codec: Some(physical_codec()),
         override_session_builder: Some(Arc::new(scheduler_session)),
+        // Executors ask for work (Spark's way): the scheduler never dials an executor, so one
+        // that registers while a job waits cannot be dropped for a failed push.
+        scheduling_policy: TaskSchedulingPolicy::PullStaged,
         ..SchedulerConfig::default()
     };
     config.validate()?;
@@ -121,25 +142,53 @@ pub struct ExecutorOptions {
 /// Runs an executor until it is stopped (SIGTERM, Ctrl-C or the scheduler).
 pub async fn run_executor(options: &ExecutorOptions) -> Result<()> {
     use ballista_executor::executor_process::{ExecutorProcessConfig, start_executor_process};
-    let codec = codec();
+    // Ballista advertises the ports it is given, so a 0 (any free port) is settled here: the
+    // Flight port (results, shuffle data) and the gRPC port the scheduler pushes tasks to.
+    let free_port = |port: u16| -> Result<u16> {
+        if port != 0 {
+            return Ok(port);
+        }
+        let probe = std::net::TcpListener::bind((options.bind.ip(), 0)).map_err(BallistaError::from)?;
+        Ok(probe.local_addr().map_err(BallistaError::from)?.port())
+    };
+    let port = free_port(options.bind.port())?;
+    let grpc_port = free_port(0)?;
+    // Ballista's own default work directory is deleted as soon as it is made; keep one for the
+    // executor's lifetime.
+    let temp = match &options.work_dir {
+        Some(_) => None,
+        None => Some(tempfile::Builder::new().prefix("rtvtk-executor-").tempdir().map_err(BallistaError::from)?),
+    };
+    let work_dir = match (&options.work_dir, &temp) {
+        (Some(dir), _) => Some(dir.clone()),
+        (None, Some(t)) => Some(t.path().to_string_lossy().into_owned()),
+        (None, None) => None,
+    };
     let config = ExecutorProcessConfig {
         bind_host: options.bind.ip().to_string(),
         external_host: Some(options.bind.ip().to_string()),
-        port: options.bind.port(),
-        grpc_port: 0,
+        port,
+        grpc_port,
         scheduler_host: options.scheduler_host.clone(),
         scheduler_port: options.scheduler_port,
         scheduler_connect_timeout_seconds: 10,
         vcores: options.cores,
-        work_dir: options.work_dir.clone(),
+        work_dir,
         executor_heartbeat_interval_seconds: 2,
+        task_scheduling_policy: TaskSchedulingPolicy::PullStaged,
         job_data_clean_up_interval_seconds: 300,
         job_data_ttl_seconds: 3600,
-        override_logical_codec: Some(codec.clone()),
-        override_physical_codec: Some(codec),
+        // Every built-in function of DataFusion's default session (Ballista's default registry
+        // lacks the nested ones, `cardinality` among them); rtvtk's travel with the plan.
+        override_function_registry: Some(Arc::new(ballista_core::registry::BallistaFunctionRegistry::from(
+            &SessionStateBuilder::new().with_default_features().build(),
+        ))),
+        override_logical_codec: Some(logical_codec()),
+        override_physical_codec: Some(physical_codec()),
         ..ExecutorProcessConfig::default()
     };
     start_executor_process(Arc::new(config)).await?;
+    drop(temp);
     Ok(())
 }
 
@@ -188,12 +237,23 @@ pub async fn connect(url: &str, sources: &[TraceSource]) -> Result<SessionContex
     // Ballista connects on the first query; say now when nobody listens there.
     let addr = format!("{host}:{port}");
     tokio::net::TcpStream::connect(&addr).await.map_err(|source| Error::Unreachable { addr, source })?;
-    let codec = codec();
+    // Ballista's defaults for distributed plans first (scalar subqueries as joins, no dynamic
+    // filters across stages, ...): setting a codec marks a config as already upgraded.
     let config = query::session_config()
-        .with_ballista_logical_extension_codec(codec.clone())
-        .with_ballista_physical_extension_codec(codec);
+        .upgrade_for_ballista()
+        // The static stage planner: it plans with the scheduler session's physical rules (rtvtk's
+        // `SmallGroups` and `PlainAcrossStages`); the adaptive one swaps in its own rule list.
+        .with_ballista_adaptive_query_planner(false)
+        .with_ballista_logical_extension_codec(logical_codec())
+        .with_ballista_physical_extension_codec(physical_codec());
     let state = SessionStateBuilder::new().with_config(config).with_default_features().build();
     let ctx = SessionContext::remote_with_state(url, state).await?;
+    // Ballista's planner, behind one that runs the scalar subqueries it cannot stage first.
+    let inner = ctx.state().query_planner().clone();
+    let state = SessionStateBuilder::new_from_existing(ctx.state())
+        .with_query_planner(Arc::new(subqueries::SubqueriesFirst { inner }))
+        .build();
+    let ctx = SessionContext::new_with_state(state);
     // After the upgrade to Ballista (which resets the function list): tables and ray functions.
     let sources: Vec<TraceSource> = sources
         .iter()
