@@ -2,7 +2,8 @@
 //! trace datasets can cross the wire (a Ballista cluster, or any engine built on
 //! `datafusion-proto`):
 //!
-//! - logical: the `rays` and `ray_paths` table providers (a dataset's path; every node opens it);
+//! - logical: the `rays` and `ray_paths` table providers (a dataset's path; every node opens it)
+//!   and in-memory tables (the analyses' helper tables, as Arrow IPC);
 //! - physical: [`RaysScanExec`](crate::scan) with its pruned segment plan (segments, row ranges,
 //!   pushed filters: the scheduler's pruning is not redone per task), `RayPathsExec` and
 //!   [`SmallGroupsExec`] (as the stock partial aggregate it replaces, rebuilt on decoding);
@@ -45,6 +46,7 @@ pub const MAGIC: &[u8] = b"\0rtvtk1";
 
 const TABLE_RAYS: u8 = b'R';
 const TABLE_PATHS: u8 = b'P';
+const TABLE_MEMORY: u8 = b'M';
 const EXEC_SCAN: u8 = b's';
 const EXEC_PATHS: u8 = b'p';
 const EXEC_SMALL_GROUPS: u8 = b'g';
@@ -55,6 +57,13 @@ const AGGREGATE: u8 = b'A';
 struct TableNode {
     #[prost(string, tag = "1")]
     path: String,
+}
+
+/// An in-memory table (the analyses' small helper tables): each partition as an Arrow IPC stream.
+#[derive(Clone, PartialEq, Message)]
+struct MemoryNode {
+    #[prost(bytes = "vec", repeated, tag = "1")]
+    partitions: Vec<Vec<u8>>,
 }
 
 #[derive(Clone, PartialEq, Message)]
@@ -155,6 +164,10 @@ fn frame(tag: u8, msg: &impl Message, buf: &mut Vec<u8>) {
 
 fn bad(what: &str, e: impl std::fmt::Display) -> DataFusionError {
     DataFusionError::Internal(format!("rtvtk codec: cannot decode {what}: {e}"))
+}
+
+fn bad_encode(what: &str, e: impl std::fmt::Display) -> DataFusionError {
+    DataFusionError::Internal(format!("rtvtk codec: cannot encode {what}: {e}"))
 }
 
 fn external(e: impl std::error::Error + Send + Sync + 'static) -> DataFusionError {
@@ -332,6 +345,15 @@ impl LogicalExtensionCodec for TraceCodec {
                     Ok(Arc::new(RayPathsTable::new(ds).map_err(external)?))
                 }
             }
+            Some((TABLE_MEMORY, body)) => {
+                let n = MemoryNode::decode(body).map_err(|e| bad("an in-memory table", e))?;
+                let mut partitions = Vec::with_capacity(n.partitions.len());
+                for p in &n.partitions {
+                    let reader = arrow::ipc::reader::StreamReader::try_new(std::io::Cursor::new(p), None)?;
+                    partitions.push(reader.collect::<std::result::Result<Vec<_>, _>>()?);
+                }
+                Ok(Arc::new(datafusion::datasource::MemTable::try_new(schema, partitions)?))
+            }
             Some((tag, _)) => Err(bad("a table", format!("unknown node {tag}"))),
             None => self.logical.try_decode_table_provider(buf, table_ref, schema, ctx),
         }
@@ -343,6 +365,23 @@ impl LogicalExtensionCodec for TraceCodec {
         node: Arc<dyn TableProvider>,
         buf: &mut Vec<u8>,
     ) -> Result<()> {
+        if let Some(t) = node.as_ref().downcast_ref::<datafusion::datasource::MemTable>() {
+            let schema = t.schema();
+            let mut partitions = Vec::with_capacity(t.batches.len());
+            for p in &t.batches {
+                let batches = p.try_read().map_err(|_| bad_encode("an in-memory table", "it is being written"))?;
+                let mut bytes = Vec::new();
+                let mut w = arrow::ipc::writer::StreamWriter::try_new(&mut bytes, &schema)?;
+                for b in batches.iter() {
+                    w.write(b)?;
+                }
+                w.finish()?;
+                drop(w);
+                partitions.push(bytes);
+            }
+            frame(TABLE_MEMORY, &MemoryNode { partitions }, buf);
+            return Ok(());
+        }
         if let Some(t) = node.as_ref().downcast_ref::<RaysTable>() {
             frame(TABLE_RAYS, &TableNode { path: path_text(&t.ds)? }, buf);
             return Ok(());
