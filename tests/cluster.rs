@@ -196,6 +196,14 @@ fn a_cluster_nobody_runs_is_a_clear_error() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot reach the scheduler at 127.0.0.1:1"), "{err}");
+    // A dataset of several segments is refused (Ballista 55 would read every segment in each
+    // task of the scan stage), naming the dataset.
+    let many = tmp.path().join("many");
+    common::record(&many, &["--scene", "cornell", "--size", "8x8", "--spp", "2", "--segment-rays", "100"]);
+    let out = common::rtvtk(&["sql", many.to_str().unwrap(), "SELECT 1", "--cluster", "df://127.0.0.1:1"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains(many.to_str().unwrap()) && err.contains("segments"), "{err}");
     let out = common::rtvtk(&["sql", ds.to_str().unwrap(), "SELECT 1", "--cluster", "http://x:1"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("expected df://HOST:PORT"));
     let out = common::rtvtk(&["cluster", "executor", "--scheduler", "nowhere"]);

@@ -37,6 +37,12 @@ pub enum Error {
     Ballista(#[from] BallistaError),
     #[error("cluster address `{url}`: {message} (expected df://HOST:PORT)")]
     Url { url: String, message: String },
+    #[error(
+        "{path}: {segments} segments; on Ballista 55 every task of a scan stage would read all of \
+         them (Ballista restricts only its own scans to a task's partitions), so the answers would \
+         be wrong: rtvtk runs only single-segment datasets on a cluster for now (issue 28)"
+    )]
+    ManySegments { path: String, segments: usize },
     #[error("cannot reach the scheduler at {addr}: {source} (is `rtvtk cluster scheduler` running there?)")]
     Unreachable { addr: String, source: std::io::Error },
 }
@@ -234,6 +240,16 @@ pub fn parse_url(url: &str) -> Result<(String, u16)> {
 /// over the tables of `sources` (each a directory every executor can read by the same path).
 pub async fn connect(url: &str, sources: &[TraceSource]) -> Result<SessionContext> {
     let (host, port) = parse_url(url)?;
+    // Ballista's task builder restricts a stage's leaves to the task's partitions only for its
+    // own scans (files, memory, shuffle reads); a `RaysScanExec` of N segments would be read whole
+    // by each of its N tasks. Refuse rather than answer wrongly.
+    for s in sources {
+        let ds = store::Dataset::open(&s.path).map_err(query::Error::from)?;
+        let segments = ds.manifest().segments.len();
+        if segments > 1 {
+            return Err(Error::ManySegments { path: s.path.display().to_string(), segments });
+        }
+    }
     // Ballista connects on the first query; say now when nobody listens there.
     let addr = format!("{host}:{port}");
     tokio::net::TcpStream::connect(&addr).await.map_err(|source| Error::Unreachable { addr, source })?;
