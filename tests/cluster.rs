@@ -5,8 +5,7 @@
 //! against it with the in-process answers; a query's plan survives the codec; an executor killed
 //! during a long query gives a clear error or a retried answer, and the cluster keeps serving.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::Child;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -27,18 +26,9 @@ impl Drop for Procs {
     }
 }
 
-/// Starts `rtvtk ARGS`; the child and its first stdout line.
 fn start(args: &[&str]) -> (Child, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
-        .args(args)
-        .stdout(Stdio::piped())
-        // Their log lines (Ballista's warnings) show with a failing test's output.
-        .stderr(Stdio::inherit())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    (child, line)
+    // Their log lines (Ballista's warnings) show with a failing test's output.
+    common::start_with_first_line(args)
 }
 
 fn executor(scheduler: &str) -> Child {

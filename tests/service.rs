@@ -4,9 +4,8 @@
 //! `rtvtk sql` gives, the catalog lists the datasets' tables, and anything that would write is
 //! refused with a clear status while the server keeps serving.
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 
 use arrow::array::{Array, RecordBatch, StringArray, UInt64Array};
 use arrow::compute::concat_batches;
@@ -37,14 +36,7 @@ impl Drop for Server {
 
 /// Starts `rtvtk serve` on a free port; returns it and its `http://HOST:PORT` address.
 fn serve(datasets: &[&str]) -> (Server, String) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
-        .args([&["serve"], datasets, &["--addr", "127.0.0.1:0"]].concat())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let (child, line) = common::start_with_first_line(&[&["serve"], datasets, &["--addr", "127.0.0.1:0"]].concat());
     let server = Server(child);
     let addr = line.split("grpc://").nth(1).and_then(|s| s.split_whitespace().next());
     let addr = addr.unwrap_or_else(|| panic!("no address in {line:?}")).to_string();

@@ -43,35 +43,27 @@ use prost::Message;
 #[derive(Debug, Default)]
 pub struct PlainAcrossStages;
 
-/// A projection of `input` casting the columns whose type `to` gives; None when none changes.
-fn cast_columns(
-    input: &Arc<dyn ExecutionPlan>,
-    to: impl Fn(&DataType) -> Option<DataType>,
-) -> Result<Option<Arc<dyn ExecutionPlan>>> {
+/// A projection of `input` with its dictionary columns cast to their value types; None when it
+/// has none.
+fn dictionaries_as_values(input: &Arc<dyn ExecutionPlan>) -> Result<Option<Arc<dyn ExecutionPlan>>> {
     let schema = input.schema();
-    let mut changed = false;
-    let mut exprs: Vec<(Arc<dyn PhysicalExpr>, String)> = Vec::with_capacity(schema.fields().len());
-    for (i, f) in schema.fields().iter().enumerate() {
-        let col: Arc<dyn PhysicalExpr> = Arc::new(Column::new(f.name(), i));
-        match to(f.data_type()) {
-            Some(t) => {
-                changed = true;
-                exprs.push((Arc::new(CastExpr::new(col, t, None)), f.name().clone()));
-            }
-            None => exprs.push((col, f.name().clone())),
-        }
-    }
-    if !changed {
+    if !schema.fields().iter().any(|f| matches!(f.data_type(), DataType::Dictionary(..))) {
         return Ok(None);
     }
+    let exprs: Vec<(Arc<dyn PhysicalExpr>, String)> = schema
+        .fields()
+        .iter()
+        .enumerate()
+        .map(|(i, f)| {
+            let col: Arc<dyn PhysicalExpr> = Arc::new(Column::new(f.name(), i));
+            let expr: Arc<dyn PhysicalExpr> = match f.data_type() {
+                DataType::Dictionary(_, v) => Arc::new(CastExpr::new(col, v.as_ref().clone(), None)),
+                _ => col,
+            };
+            (expr, f.name().clone())
+        })
+        .collect();
     Ok(Some(Arc::new(ProjectionExec::try_new(exprs, input.clone())?)))
-}
-
-fn value_type(t: &DataType) -> Option<DataType> {
-    match t {
-        DataType::Dictionary(_, v) => Some(v.as_ref().clone()),
-        _ => None,
-    }
 }
 
 impl PhysicalOptimizerRule for PlainAcrossStages {
@@ -84,7 +76,7 @@ impl PhysicalOptimizerRule for PlainAcrossStages {
                 return Ok(Transformed::no(node));
             }
             let [input] = node.children()[..] else { return Ok(Transformed::no(node)) };
-            let Some(plain) = cast_columns(input, value_type)? else { return Ok(Transformed::no(node)) };
+            let Some(plain) = dictionaries_as_values(input)? else { return Ok(Transformed::no(node)) };
             let crossed = node
                 .clone()
                 .replace_children(vec![plain], ReplaceChildrenOptions::new(ChildrenPropertiesMode::Recompute))?;

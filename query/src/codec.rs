@@ -309,6 +309,41 @@ fn decode_aggregate(name: &str) -> Result<Arc<AggregateUDF>> {
         .ok_or_else(|| bad(name, "not a ray aggregate"))
 }
 
+/// A ray function from rtvtk's bytes, or what `fallback` makes of bytes that are not rtvtk's.
+fn decode_udf(
+    name: &str,
+    buf: &[u8],
+    fallback: impl FnOnce(&[u8]) -> Result<Arc<ScalarUDF>>,
+) -> Result<Arc<ScalarUDF>> {
+    match ours(buf) {
+        Some((FUNCTION, body)) => decode_function(name, body),
+        Some((tag, _)) => Err(bad(name, format!("unknown node {tag}"))),
+        None => fallback(buf),
+    }
+}
+
+/// A ray aggregate from rtvtk's bytes, or what `fallback` makes of bytes that are not rtvtk's.
+fn decode_udaf(
+    name: &str,
+    buf: &[u8],
+    fallback: impl FnOnce(&[u8]) -> Result<Arc<AggregateUDF>>,
+) -> Result<Arc<AggregateUDF>> {
+    match ours(buf) {
+        Some((AGGREGATE, _)) => decode_aggregate(name),
+        Some((tag, _)) => Err(bad(name, format!("unknown node {tag}"))),
+        None => fallback(buf),
+    }
+}
+
+/// Writes a ray aggregate's tag; false for any other aggregate.
+fn encode_aggregate(node: &AggregateUDF, buf: &mut Vec<u8>) -> bool {
+    let ray = is_ray_aggregate(node);
+    if ray {
+        frame(AGGREGATE, &TableNode::default(), buf);
+    }
+    ray
+}
+
 fn encode_function(node: &ScalarUDF, buf: &mut Vec<u8>) -> bool {
     match ray_function_scene(node) {
         Some(scene) => {
@@ -410,11 +445,7 @@ impl LogicalExtensionCodec for TraceCodec {
     }
 
     fn try_decode_udf(&self, name: &str, buf: &[u8]) -> Result<Arc<ScalarUDF>> {
-        match ours(buf) {
-            Some((FUNCTION, body)) => decode_function(name, body),
-            Some((tag, _)) => Err(bad(name, format!("unknown node {tag}"))),
-            None => self.logical.try_decode_udf(name, buf),
-        }
+        decode_udf(name, buf, |b| self.logical.try_decode_udf(name, b))
     }
 
     fn try_encode_udf(&self, node: &ScalarUDF, buf: &mut Vec<u8>) -> Result<()> {
@@ -422,20 +453,11 @@ impl LogicalExtensionCodec for TraceCodec {
     }
 
     fn try_decode_udaf(&self, name: &str, buf: &[u8]) -> Result<Arc<AggregateUDF>> {
-        match ours(buf) {
-            Some((AGGREGATE, _)) => decode_aggregate(name),
-            Some((tag, _)) => Err(bad(name, format!("unknown node {tag}"))),
-            None => self.logical.try_decode_udaf(name, buf),
-        }
+        decode_udaf(name, buf, |b| self.logical.try_decode_udaf(name, b))
     }
 
     fn try_encode_udaf(&self, node: &AggregateUDF, buf: &mut Vec<u8>) -> Result<()> {
-        if is_ray_aggregate(node) {
-            frame(AGGREGATE, &TableNode::default(), buf);
-            Ok(())
-        } else {
-            self.logical.try_encode_udaf(node, buf)
-        }
+        if encode_aggregate(node, buf) { Ok(()) } else { self.logical.try_encode_udaf(node, buf) }
     }
 }
 
@@ -503,20 +525,14 @@ impl PhysicalExtensionCodec for TraceCodec {
             // As the partial aggregate it replaces; its input travels as the node's input.
             let placeholder = Arc::new(EmptyExec::new(exec.input().schema()));
             let proto = proto_converter.execution_plan_to_proto(&exec.partial_aggregate(placeholder)?, self)?;
-            buf.extend_from_slice(MAGIC);
-            buf.push(EXEC_SMALL_GROUPS);
-            proto.encode(buf).map_err(|e| bad("a small-domain group-by", e))?;
+            frame(EXEC_SMALL_GROUPS, &proto, buf);
             return Ok(());
         }
         self.physical.try_encode(node, buf, proto_converter)
     }
 
     fn try_decode_udf(&self, name: &str, buf: &[u8]) -> Result<Arc<ScalarUDF>> {
-        match ours(buf) {
-            Some((FUNCTION, body)) => decode_function(name, body),
-            Some((tag, _)) => Err(bad(name, format!("unknown node {tag}"))),
-            None => self.physical.try_decode_udf(name, buf),
-        }
+        decode_udf(name, buf, |b| self.physical.try_decode_udf(name, b))
     }
 
     fn try_encode_udf(&self, node: &ScalarUDF, buf: &mut Vec<u8>) -> Result<()> {
@@ -524,19 +540,10 @@ impl PhysicalExtensionCodec for TraceCodec {
     }
 
     fn try_decode_udaf(&self, name: &str, buf: &[u8]) -> Result<Arc<AggregateUDF>> {
-        match ours(buf) {
-            Some((AGGREGATE, _)) => decode_aggregate(name),
-            Some((tag, _)) => Err(bad(name, format!("unknown node {tag}"))),
-            None => self.physical.try_decode_udaf(name, buf),
-        }
+        decode_udaf(name, buf, |b| self.physical.try_decode_udaf(name, b))
     }
 
     fn try_encode_udaf(&self, node: &AggregateUDF, buf: &mut Vec<u8>) -> Result<()> {
-        if is_ray_aggregate(node) {
-            frame(AGGREGATE, &TableNode::default(), buf);
-            Ok(())
-        } else {
-            self.physical.try_encode_udaf(node, buf)
-        }
+        if encode_aggregate(node, buf) { Ok(()) } else { self.physical.try_encode_udaf(node, buf) }
     }
 }

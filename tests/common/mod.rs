@@ -5,6 +5,21 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+/// Starts `rtvtk ARGS` as a child process (its stderr shown with a failing test's output); the
+/// child and the first line it prints (a server's address).
+pub fn start_with_first_line(args: &[&str]) -> (std::process::Child, String) {
+    use std::io::BufRead;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    (child, line)
+}
+
 /// Runs `rtvtk ARGS`.
 pub fn rtvtk(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_rtvtk")).args(args).output().unwrap()
