@@ -189,7 +189,14 @@ fn a_cluster_nobody_runs_is_a_clear_error() {
     // A dataset of several segments is refused (Ballista 55 would read every segment in each
     // task of the scan stage), naming the dataset.
     let many = tmp.path().join("many");
-    common::record(&many, &["--scene", "cornell", "--size", "8x8", "--spp", "2", "--segment-rays", "100"]);
+    common::record(&many, &["--scene", "cornell", "--size", "64x64", "--spp", "2", "--segment-rays", "1000"]);
+    let info = common::ok(&["info", many.to_str().unwrap()]);
+    let segments: usize = info
+        .lines()
+        .find_map(|l| l.strip_prefix("segments"))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no segment count in {info}"));
+    assert!(segments > 1, "the test needs a dataset of several segments: {info}");
     let out = common::rtvtk(&["sql", many.to_str().unwrap(), "SELECT 1", "--cluster", "df://127.0.0.1:1"]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
