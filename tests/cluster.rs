@@ -46,6 +46,124 @@ async fn rows(ctx: &datafusion::prelude::SessionContext, sql: &str) -> Result<St
     Ok(arrow::util::pretty::pretty_format_batches(&batches)?.to_string())
 }
 
+/// Records a trace of several segments (about 60K rays in chunks of at most 1,000-ray segments'
+/// worth) into `dir` and returns how many segments it has.
+fn record_many(dir: &std::path::Path) -> usize {
+    common::record(
+        dir,
+        &[
+            "--scene",
+            "cornell",
+            "--size",
+            "64x64",
+            "--spp",
+            "4",
+            "--seed",
+            "3",
+            "--threads",
+            "1",
+            "--segment-rays",
+            "1000",
+            "--record-visits",
+        ],
+    );
+    let info = common::ok(&["info", dir.to_str().unwrap()]);
+    let segments: usize = info
+        .lines()
+        .find_map(|l| l.strip_prefix("segments"))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no segment count in {info}"));
+    assert!(segments > 2, "the test needs a dataset of several segments: {info}");
+    segments
+}
+
+/// Queries over the many-segment dataset whose cluster answers must equal the in-process ones:
+/// whole scans, pushed-down pixel and tree filters (row ranges within segments), the counts
+/// answered from segment statistics, a ray function, a self-join, `ray_paths`, a limit.
+const MANY_SEGMENT_QUERIES: [&str; 9] = [
+    "SELECT count(*) AS n, sum(nodes_visited) AS v, min(tree_id) AS lo, max(tree_id) AS hi FROM rays",
+    "SELECT kind, depth, count(*) AS n FROM rays GROUP BY kind, depth ORDER BY kind, depth",
+    "SELECT count(*) AS n, sum(pixel_x + pixel_y) AS p FROM rays WHERE pixel_y BETWEEN 20 AND 40 AND depth >= 1",
+    "SELECT tree_id, depth, count(*) AS n FROM rays WHERE tree_id IN (3, 5000, 9000, 15000) GROUP BY tree_id, depth ORDER BY tree_id, depth",
+    "SELECT count(DISTINCT morton3(origin_x, origin_y, origin_z, 5)) AS cells, round(dir_coherence(dir_x, dir_y, dir_z), 6) AS c FROM rays",
+    "SELECT count(*) AS n FROM rays a JOIN rays b ON a.tree_id = b.tree_id AND b.depth = a.depth + 1",
+    "SELECT path, count(*) AS n FROM ray_paths GROUP BY path ORDER BY n DESC, path LIMIT 10",
+    "SELECT count(*) AS n FROM (SELECT tree_id FROM rays LIMIT 100)",
+    "SELECT pixel_x % 4 AS px, count(*) AS n FROM rays WHERE kind = 'shadow' GROUP BY px ORDER BY px",
+];
+
+#[test]
+fn each_task_of_a_scan_stage_reads_only_its_segments() {
+    // What the scheduler does to a scan stage: `SliceableScans` plans the scans as file scans of
+    // one group per segment, Ballista's task builder cuts a task's plan down to its partitions,
+    // and the plan crosses the codec. Each task must then read its own segments only: the tasks'
+    // rows add up to the table's, whatever the pruning kept.
+    use datafusion::physical_optimizer::PhysicalOptimizerRule;
+    let tmp = tempfile::tempdir().unwrap();
+    let many = tmp.path().join("many");
+    let segments = record_many(&many);
+    let sources = vec![query::TraceSource { name: "many".into(), path: many.clone() }];
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let direct = rt.block_on(query::session(&sources)).unwrap();
+    let codec = cluster::physical_codec();
+    let count = |sql: &str| -> usize {
+        let b = rt.block_on(async { direct.sql(sql).await.unwrap().collect().await.unwrap() });
+        b.iter().map(|b| b.num_rows()).sum()
+    };
+    // The scan leaf of a query's plan (these plans are chains).
+    let leaf_of = |sql: &str| {
+        let mut plan = rt.block_on(async { direct.sql(sql).await.unwrap().create_physical_plan().await.unwrap() });
+        while let Some(child) = plan.children().first().map(|c| (*c).clone()) {
+            plan = child;
+        }
+        plan
+    };
+    let rows_of = |plan: std::sync::Arc<dyn datafusion::physical_plan::ExecutionPlan>| -> usize {
+        let b = rt.block_on(datafusion::physical_plan::collect(plan, direct.task_ctx())).unwrap();
+        b.iter().map(|b| b.num_rows()).sum()
+    };
+    let total: usize = count("SELECT tree_id FROM rays");
+    for (sql, kept) in [
+        ("SELECT tree_id, depth FROM rays", segments),
+        ("SELECT pixel_x, t FROM rays WHERE depth >= 1", segments),
+        ("SELECT tree_id FROM rays WHERE tree_id < 2000", 0),
+        ("SELECT path FROM ray_paths", segments),
+    ] {
+        let scan = leaf_of(sql);
+        let sliceable = query::SliceableScans.optimize(scan.clone(), direct.state().config_options()).unwrap();
+        let partitions = sliceable.properties().output_partitioning().partition_count();
+        if kept > 0 {
+            assert_eq!(partitions, kept, "{sql}: one partition per segment");
+        } else {
+            assert!(partitions >= 1 && partitions < segments, "{sql}: pruned to {partitions} of {segments}");
+        }
+        let mut rows = 0;
+        for p in 0..partitions {
+            let task = cluster::restrict_plan_to_partitions(sliceable.clone(), &[p]).unwrap();
+            let bytes =
+                datafusion_proto::bytes::physical_plan_to_bytes_with_extension_codec(task, codec.as_ref()).unwrap();
+            let task = datafusion_proto::bytes::physical_plan_from_bytes_with_extension_codec(
+                &bytes,
+                &direct.task_ctx(),
+                codec.as_ref(),
+            )
+            .unwrap();
+            let shown = datafusion::physical_plan::displayable(task.as_ref()).indent(false).to_string();
+            assert!(
+                shown.contains("file_type=rtvtk_segments") && shown.contains("{1 group: "),
+                "{sql}, task {p}: {shown}"
+            );
+            assert_eq!(task.properties().output_partitioning().partition_count(), 1, "{sql}, task {p}: {shown}");
+            rows += rows_of(task);
+        }
+        // Every task read its own segments: together, what the whole scan reads in-process.
+        assert_eq!(rows, rows_of(scan), "{sql}: the tasks' rows add up to the scan's");
+        if !sql.contains("WHERE") {
+            assert_eq!(rows, total, "{sql}: every ray once");
+        }
+    }
+}
+
 #[test]
 fn queries_run_on_a_cluster_with_the_in_process_answers() {
     let tmp = tempfile::tempdir().unwrap();
@@ -122,6 +240,24 @@ fn queries_run_on_a_cluster_with_the_in_process_answers() {
         assert_eq!(here, there, "{args:?}");
     }
 
+    // A dataset of several segments: every task of a scan stage reads its own segments, so the
+    // answers are the in-process ones.
+    let many = tmp.path().join("many");
+    record_many(&many);
+    let many_sources = vec![query::TraceSource { name: "many".into(), path: many.clone() }];
+    let many_ctx = rt.block_on(cluster_session(&url, &many_sources));
+    let many_direct = rt.block_on(query::session(&many_sources)).unwrap();
+    for sql in MANY_SEGMENT_QUERIES {
+        let want = rt.block_on(rows(&many_direct, sql)).unwrap();
+        assert_eq!(rt.block_on(rows(&many_ctx, sql)).unwrap(), want, "{sql} on the cluster");
+    }
+    let many_path = many.to_str().unwrap();
+    for args in [vec!["analyze", "coherence", many_path], vec!["analyze", "bvh", many_path]] {
+        let here = common::ok(&args);
+        let there = common::ok(&[args.as_slice(), &["--cluster", url.as_str()]].concat());
+        assert_eq!(here, there, "{args:?}");
+    }
+
     // Read-only, as `rtvtk serve`; bad SQL gets DataFusion's error.
     for (sql, says) in [
         ("CREATE TABLE t AS SELECT 1", "not supported"),
@@ -186,21 +322,6 @@ fn a_cluster_nobody_runs_is_a_clear_error() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot reach the scheduler at 127.0.0.1:1"), "{err}");
-    // A dataset of several segments is refused (Ballista 55 would read every segment in each
-    // task of the scan stage), naming the dataset.
-    let many = tmp.path().join("many");
-    common::record(&many, &["--scene", "cornell", "--size", "64x64", "--spp", "2", "--segment-rays", "1000"]);
-    let info = common::ok(&["info", many.to_str().unwrap()]);
-    let segments: usize = info
-        .lines()
-        .find_map(|l| l.strip_prefix("segments"))
-        .and_then(|v| v.trim().parse().ok())
-        .unwrap_or_else(|| panic!("no segment count in {info}"));
-    assert!(segments > 1, "the test needs a dataset of several segments: {info}");
-    let out = common::rtvtk(&["sql", many.to_str().unwrap(), "SELECT 1", "--cluster", "df://127.0.0.1:1"]);
-    assert!(!out.status.success());
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains(many.to_str().unwrap()) && err.contains("segments"), "{err}");
     let out = common::rtvtk(&["sql", ds.to_str().unwrap(), "SELECT 1", "--cluster", "http://x:1"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("expected df://HOST:PORT"));
     let out = common::rtvtk(&["cluster", "executor", "--scheduler", "nowhere"]);

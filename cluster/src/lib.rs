@@ -3,8 +3,10 @@
 //! layered over Ballista's own codecs), and a client session that plans locally and runs there.
 //!
 //! Datasets are plain directories every node reads by the same path (a shared file system);
-//! the `rays` scan has one partition per segment left after pruning, so the scan stage spreads
-//! over the executors' task slots and only aggregated rows are shuffled.
+//! the `rays` scan has one partition per segment left after pruning, planned as a file scan of
+//! one file group per segment ([`query::SliceableScans`]) so that Ballista hands each task only
+//! its own segments; the scan stage spreads over the executors' task slots and only aggregated
+//! rows are shuffled.
 
 mod dictionaries;
 mod subqueries;
@@ -37,17 +39,16 @@ pub enum Error {
     Ballista(#[from] BallistaError),
     #[error("cluster address `{url}`: {message} (expected df://HOST:PORT)")]
     Url { url: String, message: String },
-    #[error(
-        "{path}: {segments} segments; on Ballista 55 every task of a scan stage would read all of \
-         them (Ballista restricts only its own scans to a task's partitions), so the answers would \
-         be wrong: rtvtk runs only single-segment datasets on a cluster for now (issue 28)"
-    )]
-    ManySegments { path: String, segments: usize },
     #[error("cannot reach the scheduler at {addr}: {source} (is `rtvtk cluster scheduler` running there?)")]
     Unreachable { addr: String, source: std::io::Error },
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// What the scheduler does to a stage's plan before it ships a task: cut the leaves down to the
+/// task's partitions (Ballista's own function, re-exported so that tests and tools can check
+/// that a task of a scan stage reads only its own segments).
+pub use ballista_scheduler::state::task_builder::restrict_plan_to_partitions;
 
 /// The logical codec every node and client uses: rtvtk's tables and functions, then Ballista's.
 pub fn logical_codec() -> Arc<dyn LogicalExtensionCodec> {
@@ -70,13 +71,16 @@ pub fn physical_codec() -> Arc<dyn PhysicalExtensionCodec> {
 
 /// The scheduler's sessions: DataFusion's and Ballista's rules, and rtvtk's `SmallGroups` (the
 /// partial half of small-domain group-bys, one task per scan partition, so it spreads over the
-/// executors like the stock operator). `CountByKey` is left out: it gathers every partition into
+/// executors like the stock operator) and `SliceableScans` (each task of a scan stage reads
+/// only its own segments). `CountByKey` is left out: it gathers every partition into
 /// one task, which would put a whole scan on one executor; the stock two-phase aggregation
 /// shuffles its partial counts instead.
 fn scheduler_session(config: SessionConfig) -> datafusion::common::Result<SessionState> {
     let mut rules = PhysicalOptimizer::new().rules;
     rules.push(Arc::new(query::SmallGroups));
     rules.push(Arc::new(dictionaries::PlainAcrossStages));
+    // Last: the segment scans as file scans, which Ballista cuts down to each task's segments.
+    rules.push(Arc::new(query::SliceableScans));
     Ok(SessionStateBuilder::new()
         .with_default_features()
         .with_config(config)
@@ -240,16 +244,6 @@ pub fn parse_url(url: &str) -> Result<(String, u16)> {
 /// over the tables of `sources` (each a directory every executor can read by the same path).
 pub async fn connect(url: &str, sources: &[TraceSource]) -> Result<SessionContext> {
     let (host, port) = parse_url(url)?;
-    // Ballista's task builder restricts a stage's leaves to the task's partitions only for its
-    // own scans (files, memory, shuffle reads); a `RaysScanExec` of N segments would be read whole
-    // by each of its N tasks. Refuse rather than answer wrongly.
-    for s in sources {
-        let ds = store::Dataset::open(&s.path).map_err(query::Error::from)?;
-        let segments = ds.manifest().segments.len();
-        if segments > 1 {
-            return Err(Error::ManySegments { path: s.path.display().to_string(), segments });
-        }
-    }
     // Ballista connects on the first query; say now when nobody listens there.
     let addr = format!("{host}:{port}");
     tokio::net::TcpStream::connect(&addr).await.map_err(|source| Error::Unreachable { addr, source })?;

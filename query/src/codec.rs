@@ -6,7 +6,9 @@
 //!   and in-memory tables (the analyses' helper tables, as Arrow IPC);
 //! - physical: [`RaysScanExec`](crate::scan) with its pruned segment plan (segments, row ranges,
 //!   pushed filters: the scheduler's pruning is not redone per task), `RayPathsExec` and
-//!   [`SmallGroupsExec`] (as the stock partial aggregate it replaces, rebuilt on decoding);
+//!   [`SmallGroupsExec`] (as the stock partial aggregate it replaces, rebuilt on decoding); a
+//!   segment scan rewritten by [`SliceableScans`](crate::SliceableScans) as the scan and the
+//!   partitions of the file groups left to the task;
 //!   [`CountByKeyExec`](crate::CountByKeyExec) is not carried: it gathers every partition into one
 //!   task, so a distributed plan keeps the stock two-phase aggregation there;
 //! - functions: every ray function and aggregate, the scene-dependent ones (`morton3`,
@@ -50,6 +52,7 @@ const TABLE_MEMORY: u8 = b'M';
 const EXEC_SCAN: u8 = b's';
 const EXEC_PATHS: u8 = b'p';
 const EXEC_SMALL_GROUPS: u8 = b'g';
+const EXEC_SEGMENT_FILES: u8 = b'f';
 const FUNCTION: u8 = b'F';
 const AGGREGATE: u8 = b'A';
 
@@ -106,6 +109,23 @@ struct ScanNode {
     shown: Vec<String>,
     #[prost(message, repeated, tag = "7")]
     parts: Vec<PartNode>,
+}
+
+/// A segment scan as the file scan a distributed engine slices ([`crate::SliceableScans`]): the
+/// scan (an rtvtk node) and the scan partitions of the file groups the task kept.
+#[derive(Clone, PartialEq, Message)]
+struct SegmentFilesNode {
+    #[prost(bytes = "vec", tag = "1")]
+    leaf: Vec<u8>,
+    /// Files per group; the groups' partitions follow one another in `partitions`.
+    #[prost(uint32, repeated, tag = "2")]
+    group_sizes: Vec<u32>,
+    #[prost(uint64, repeated, tag = "3")]
+    partitions: Vec<u64>,
+    #[prost(bool, tag = "4")]
+    some_limit: bool,
+    #[prost(uint64, tag = "5")]
+    limit: u64,
 }
 
 #[derive(Clone, PartialEq, Message)]
@@ -479,6 +499,37 @@ impl PhysicalExtensionCodec for TraceCodec {
                 let projection = n.some_projection.then(|| n.projection.iter().map(|&i| i as usize).collect());
                 Ok(Arc::new(table.exec(projection)?))
             }
+            Some((EXEC_SEGMENT_FILES, body)) => {
+                let what = "a segment file scan";
+                let n = SegmentFilesNode::decode(body).map_err(|e| bad(what, e))?;
+                let leaf = PhysicalExtensionCodec::try_decode(self, &n.leaf, &[], ctx, proto_converter)?;
+                let leaf = crate::sliced::SegmentLeaf::of(&leaf)
+                    .ok_or_else(|| bad(what, format!("its scan is a {}", leaf.name())))?;
+                let count = leaf.partitions();
+                let mut partitions = n.partitions.iter();
+                let mut groups = Vec::with_capacity(n.group_sizes.len());
+                for &size in &n.group_sizes {
+                    let group = partitions
+                        .by_ref()
+                        .take(size as usize)
+                        .map(|&p| {
+                            usize::try_from(p)
+                                .ok()
+                                .filter(|p| *p < count)
+                                .ok_or_else(|| bad(what, format!("partition {p} of a scan with {count}")))
+                        })
+                        .collect::<Result<Vec<_>>>()?;
+                    if group.len() != size as usize {
+                        return Err(bad(what, "fewer partitions than its groups hold"));
+                    }
+                    groups.push(group);
+                }
+                let limit = match n.some_limit {
+                    true => Some(usize::try_from(n.limit).map_err(|e| bad(what, e))?),
+                    false => None,
+                };
+                Ok(crate::sliced::file_scan(leaf, &groups, limit))
+            }
             Some((EXEC_SMALL_GROUPS, body)) => {
                 // The stock partial aggregate it stands for, over a placeholder input.
                 let node = PhysicalPlanNode::decode(body).map_err(|e| bad("a small-domain group-by", e))?;
@@ -509,6 +560,19 @@ impl PhysicalExtensionCodec for TraceCodec {
     ) -> Result<()> {
         if let Some(exec) = node.downcast_ref::<RaysScanExec>() {
             frame(EXEC_SCAN, &encode_scan(exec)?, buf);
+            return Ok(());
+        }
+        if let Some(crate::sliced::FileScanParts { files, groups, limit }) = crate::sliced::parts_of(&node) {
+            let mut leaf = Vec::new();
+            PhysicalExtensionCodec::try_encode(self, files.leaf().plan(), &mut leaf, proto_converter)?;
+            let n = SegmentFilesNode {
+                leaf,
+                group_sizes: groups.iter().map(|g| g.len() as u32).collect(),
+                partitions: groups.iter().flatten().map(|&p| p as u64).collect(),
+                some_limit: limit.is_some(),
+                limit: limit.unwrap_or_default() as u64,
+            };
+            frame(EXEC_SEGMENT_FILES, &n, buf);
             return Ok(());
         }
         if let Some(exec) = node.downcast_ref::<RayPathsExec>() {

@@ -8,6 +8,7 @@ mod functions;
 mod plan_util;
 mod scan;
 pub mod service;
+mod sliced;
 mod small_groups;
 mod tables;
 
@@ -16,6 +17,7 @@ pub use error::{Error, Result};
 pub use functions::{
     RAY_FUNCTIONS, RayFunction, SceneContext, ray_aggregates, ray_scalar_functions, register_functions,
 };
+pub use sliced::{SegmentFiles, SliceableScans};
 pub use small_groups::{SmallGroups, SmallGroupsExec};
 pub use tables::{
     SessionOptions, TraceSource, physical_optimizer_rules, register_dataset, register_sources, session, session_config,

@@ -453,6 +453,7 @@ impl Pushdown {
 }
 
 /// Reads the `rays` table's partitions: one per segment left after pruning.
+#[derive(Clone)]
 pub(crate) struct RaysScanExec {
     pub(crate) ds: Arc<Dataset>,
     pub(crate) schema: SchemaRef,
@@ -538,6 +539,11 @@ impl RaysScanExec {
                 source: e,
             })
         }))
+    }
+
+    /// Partition `partition`'s rows (what `execute` runs; the task context is not needed).
+    pub(crate) fn read(&self, partition: usize) -> SendableRecordBatchStream {
+        stream(&self.schema, self.batches(partition))
     }
 
     /// The batches of one partition, with the tree columns added.
@@ -672,7 +678,7 @@ impl ExecutionPlan for RaysScanExec {
         partition: usize,
         _context: Arc<TaskContext>,
     ) -> datafusion::error::Result<SendableRecordBatchStream> {
-        Ok(stream(&self.schema, self.batches(partition)))
+        Ok(self.read(partition))
     }
 }
 

@@ -365,6 +365,7 @@ impl TableProvider for RayPathsTable {
 }
 
 /// Reads `ray_paths`: partition `i` is segment `i`'s paths.
+#[derive(Clone)]
 pub(crate) struct RayPathsExec {
     ds: Arc<Dataset>,
     emitters: Arc<std::collections::HashSet<u32>>,
@@ -376,6 +377,29 @@ pub(crate) struct RayPathsExec {
 impl RayPathsExec {
     pub(crate) fn dataset(&self) -> &Arc<Dataset> {
         &self.ds
+    }
+
+    /// Partition `partition`'s paths (what `execute` runs; the task context is not needed).
+    pub(crate) fn read(&self, partition: usize) -> SendableRecordBatchStream {
+        let part = PathPartition {
+            ds: self.ds.clone(),
+            segment: partition,
+            schema: ray_paths_schema(),
+            emitters: self.emitters.clone(),
+        };
+        let batches = if partition < self.ds.manifest().segments.len() { part.batches() } else { Ok(Vec::new()) };
+        let projection = self.projection.clone();
+        let batches = batches.and_then(|b| {
+            b.into_iter()
+                .map(|b| match &projection {
+                    Some(p) => b
+                        .project(p)
+                        .map_err(|e| store::Error::Arrow { context: "ray_paths projection".into(), source: e }),
+                    None => Ok(b),
+                })
+                .collect::<store::Result<Vec<_>>>()
+        });
+        stream(&self.schema, batches.map(|b| b.into_iter().map(Ok)))
     }
 }
 
@@ -424,24 +448,6 @@ impl ExecutionPlan for RayPathsExec {
         partition: usize,
         _ctx: Arc<TaskContext>,
     ) -> datafusion::error::Result<SendableRecordBatchStream> {
-        let part = PathPartition {
-            ds: self.ds.clone(),
-            segment: partition,
-            schema: ray_paths_schema(),
-            emitters: self.emitters.clone(),
-        };
-        let batches = if partition < self.ds.manifest().segments.len() { part.batches() } else { Ok(Vec::new()) };
-        let projection = self.projection.clone();
-        let batches = batches.and_then(|b| {
-            b.into_iter()
-                .map(|b| match &projection {
-                    Some(p) => b
-                        .project(p)
-                        .map_err(|e| store::Error::Arrow { context: "ray_paths projection".into(), source: e }),
-                    None => Ok(b),
-                })
-                .collect::<store::Result<Vec<_>>>()
-        });
-        Ok(stream(&self.schema, batches.map(|b| b.into_iter().map(Ok))))
+        Ok(self.read(partition))
     }
 }
