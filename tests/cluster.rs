@@ -46,6 +46,17 @@ async fn rows(ctx: &datafusion::prelude::SessionContext, sql: &str) -> Result<St
     Ok(arrow::util::pretty::pretty_format_batches(&batches)?.to_string())
 }
 
+/// `plan` encoded and decoded with the cluster's codec, as a task's plan travels.
+fn through_codec(
+    plan: Arc<dyn datafusion::physical_plan::ExecutionPlan>,
+    ctx: &datafusion::prelude::SessionContext,
+) -> Arc<dyn datafusion::physical_plan::ExecutionPlan> {
+    let codec = cluster::physical_codec();
+    let bytes = datafusion_proto::bytes::physical_plan_to_bytes_with_extension_codec(plan, codec.as_ref()).unwrap();
+    datafusion_proto::bytes::physical_plan_from_bytes_with_extension_codec(&bytes, &ctx.task_ctx(), codec.as_ref())
+        .unwrap()
+}
+
 /// Records a trace of several segments (about 60K rays in chunks of at most 1,000-ray segments'
 /// worth) into `dir` and returns how many segments it has.
 fn record_many(dir: &std::path::Path) -> usize {
@@ -105,7 +116,6 @@ fn each_task_of_a_scan_stage_reads_only_its_segments() {
     let sources = vec![query::TraceSource { name: "many".into(), path: many.clone() }];
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let direct = rt.block_on(query::session(&sources)).unwrap();
-    let codec = cluster::physical_codec();
     let count = |sql: &str| -> usize {
         let b = rt.block_on(async { direct.sql(sql).await.unwrap().collect().await.unwrap() });
         b.iter().map(|b| b.num_rows()).sum()
@@ -118,7 +128,7 @@ fn each_task_of_a_scan_stage_reads_only_its_segments() {
         }
         plan
     };
-    let rows_of = |plan: std::sync::Arc<dyn datafusion::physical_plan::ExecutionPlan>| -> usize {
+    let rows_of = |plan: Arc<dyn datafusion::physical_plan::ExecutionPlan>| -> usize {
         let b = rt.block_on(datafusion::physical_plan::collect(plan, direct.task_ctx())).unwrap();
         b.iter().map(|b| b.num_rows()).sum()
     };
@@ -140,14 +150,7 @@ fn each_task_of_a_scan_stage_reads_only_its_segments() {
         let mut rows = 0;
         for p in 0..partitions {
             let task = cluster::restrict_plan_to_partitions(sliceable.clone(), &[p]).unwrap();
-            let bytes =
-                datafusion_proto::bytes::physical_plan_to_bytes_with_extension_codec(task, codec.as_ref()).unwrap();
-            let task = datafusion_proto::bytes::physical_plan_from_bytes_with_extension_codec(
-                &bytes,
-                &direct.task_ctx(),
-                codec.as_ref(),
-            )
-            .unwrap();
+            let task = through_codec(task, &direct);
             let shown = datafusion::physical_plan::displayable(task.as_ref()).indent(false).to_string();
             assert!(
                 shown.contains("file_type=rtvtk_segments") && shown.contains("{1 group: "),
@@ -197,18 +200,11 @@ fn queries_run_on_a_cluster_with_the_in_process_answers() {
                  count(DISTINCT morton3(origin_x, origin_y, origin_z, 4)) AS cells, round(dir_coherence(dir_x, dir_y, dir_z), 6) AS c \
                  FROM rays WHERE depth >= 1 GROUP BY kind ORDER BY kind";
     let small = "SELECT kind, depth, count(*) AS n, avg(nodes_visited) AS nodes FROM rays GROUP BY kind, depth ORDER BY kind, depth";
-    let codec = cluster::physical_codec();
     for (sql, operator) in [(check, "RaysScanExec"), (small, "SmallGroupsExec")] {
         let plan = rt.block_on(async { direct.sql(sql).await.unwrap().create_physical_plan().await.unwrap() });
         let shown = datafusion::physical_plan::displayable(plan.as_ref()).indent(false).to_string();
         assert!(shown.contains(operator), "{sql}: {shown}");
-        let bytes = datafusion_proto::bytes::physical_plan_to_bytes_with_extension_codec(plan, codec.as_ref()).unwrap();
-        let back = datafusion_proto::bytes::physical_plan_from_bytes_with_extension_codec(
-            &bytes,
-            &direct.task_ctx(),
-            codec.as_ref(),
-        )
-        .unwrap();
+        let back = through_codec(plan, &direct);
         let back_shown = datafusion::physical_plan::displayable(back.as_ref()).indent(false).to_string();
         assert!(back_shown.contains(operator), "{sql} decoded: {back_shown}");
         let decoded = rt.block_on(datafusion::physical_plan::collect(back, direct.task_ctx())).unwrap();
