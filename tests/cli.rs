@@ -340,10 +340,17 @@ fn view_opens_a_window_and_writes_a_screenshot() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("t");
     demo(&dir);
-    let display = format!(":{}", 90 + std::process::id() % 100);
-    let mut x =
-        Command::new(xvfb).args([display.as_str(), "-screen", "0", "1400x900x24", "-nolisten", "tcp"]).spawn().unwrap();
-    std::thread::sleep(std::time::Duration::from_millis(800));
+    // Xvfb picks a free display and writes its number once it accepts connections (-displayfd):
+    // no guessing at a display nobody holds, nor at how long a loaded machine takes to start it.
+    let mut x = Command::new(xvfb)
+        .args(["-displayfd", "1", "-screen", "0", "1400x900x24", "-nolisten", "tcp"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut number = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(x.stdout.take().unwrap()), &mut number).unwrap();
+    assert!(number.trim().parse::<u32>().is_ok(), "Xvfb did not start (it said {number:?})");
+    let display = format!(":{}", number.trim());
     let shot = tmp.path().join("window.png");
     let out = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
         .args(["view", dir.to_str().unwrap(), "--screenshot", shot.to_str().unwrap()])
