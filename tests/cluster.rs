@@ -263,6 +263,13 @@ fn queries_run_on_a_cluster_with_the_in_process_answers() {
         let e = rt.block_on(rows(&ctx, sql)).unwrap_err().to_string();
         assert!(e.contains(says), "{sql}: {e}");
     }
+    // A path that is no dataset: the CLI names it once (no cause repeated in the chain).
+    let none = many.with_file_name("no-such-dataset");
+    let out = common::rtvtk(&["sql", none.to_str().unwrap(), "SELECT 1", "--cluster", url.as_str()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert_eq!(err.matches("expected a dataset directory").count(), 1, "{err}");
+    assert!(err.contains("no-such-dataset"), "{err}");
 
     // An executor dies during a long query: the query fails with an error that says so, or is
     // retried on the other one; either way the next query runs. The query (a three-way join on
@@ -318,6 +325,7 @@ fn a_cluster_nobody_runs_is_a_clear_error() {
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot reach the scheduler at 127.0.0.1:1"), "{err}");
+    assert_eq!(err.matches("os error").count(), 1, "the cause once: {err}");
     let out = common::rtvtk(&["sql", ds.to_str().unwrap(), "SELECT 1", "--cluster", "http://x:1"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("expected df://HOST:PORT"));
     let out = common::rtvtk(&["cluster", "executor", "--scheduler", "nowhere"]);

@@ -31,15 +31,15 @@ use query::codec::TraceCodec;
 /// What can go wrong starting or using a cluster.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error("{0}")]
+    #[error(transparent)]
     Query(#[from] query::Error),
-    #[error("{0}")]
+    #[error(transparent)]
     DataFusion(#[from] datafusion::error::DataFusionError),
     #[error("ballista: {0}")]
     Ballista(#[from] BallistaError),
     #[error("cluster address `{url}`: {message} (expected df://HOST:PORT)")]
     Url { url: String, message: String },
-    #[error("cannot reach the scheduler at {addr}: {source} (is `rtvtk cluster scheduler` running there?)")]
+    #[error("cannot reach the scheduler at {addr} (is `rtvtk cluster scheduler` running there?)")]
     Unreachable { addr: String, source: std::io::Error },
 }
 
