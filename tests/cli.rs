@@ -342,13 +342,8 @@ fn view_opens_a_window_and_writes_a_screenshot() {
     demo(&dir);
     // Xvfb picks a free display and writes its number once it accepts connections (-displayfd):
     // no guessing at a display nobody holds, nor at how long a loaded machine takes to start it.
-    let mut x = Command::new(xvfb)
-        .args(["-displayfd", "1", "-screen", "0", "1400x900x24", "-nolisten", "tcp"])
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut number = String::new();
-    std::io::BufRead::read_line(&mut std::io::BufReader::new(x.stdout.take().unwrap()), &mut number).unwrap();
+    let args = ["-displayfd", "1", "-screen", "0", "1400x900x24", "-nolisten", "tcp"];
+    let (mut x, number) = common::spawn_with_first_line(Command::new(xvfb).args(args));
     assert!(number.trim().parse::<u32>().is_ok(), "Xvfb did not start (it said {number:?})");
     let display = format!(":{}", number.trim());
     let shot = tmp.path().join("window.png");

@@ -35,7 +35,7 @@ pub enum Error {
     Query(#[from] query::Error),
     #[error(transparent)]
     DataFusion(#[from] datafusion::error::DataFusionError),
-    #[error("ballista: {0}")]
+    #[error(transparent)]
     Ballista(#[from] BallistaError),
     #[error("cluster address `{url}`: {message} (expected df://HOST:PORT)")]
     Url { url: String, message: String },

@@ -8,13 +8,16 @@ use std::process::{Command, Output};
 /// Starts `rtvtk ARGS` as a child process (its stderr shown with a failing test's output); the
 /// child and the first line it prints (a server's address).
 pub fn start_with_first_line(args: &[&str]) -> (std::process::Child, String) {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_rtvtk"));
+    cmd.args(args);
+    spawn_with_first_line(&mut cmd)
+}
+
+/// Starts `cmd` with its stdout piped (its stderr shown with a failing test's output); the child
+/// and the first line it prints.
+pub fn spawn_with_first_line(cmd: &mut Command) -> (std::process::Child, String) {
     use std::io::BufRead;
-    let mut child = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
-        .args(args)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::inherit())
-        .spawn()
-        .unwrap();
+    let mut child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::inherit()).spawn().unwrap();
     let mut line = String::new();
     std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
     (child, line)
