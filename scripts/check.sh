@@ -3,6 +3,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# Every system package the tests need: installed, or named and the script stops (system-deps.sh).
+source scripts/system-deps.sh
+
 if ! python3 -c "import duckdb" 2>/dev/null; then
   echo "installing duckdb (PyPI) for the plain-Parquet reader test"
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore duckdb ||
@@ -13,7 +16,6 @@ if ! python3 -c "import adbc_driver_flightsql.dbapi, pyarrow" 2>/dev/null; then
   python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore adbc-driver-flightsql pyarrow ||
     python3 -m pip install --quiet --disable-pip-version-check --break-system-packages adbc-driver-flightsql pyarrow
 fi
-command -v cc >/dev/null || { echo "a C compiler (cc) is needed for the C ABI test" >&2; exit 1; }
 if ! command -v cargo-nextest >/dev/null; then
   cargo install --locked cargo-nextest
 fi
@@ -28,4 +30,9 @@ python3 scripts/feature-pins.py --check
 source scripts/lint-env.sh
 cargo build --workspace --all-targets --locked
 cargo nextest run --workspace --locked --no-fail-fast
+# The same pictures on wgpu's GL backend (Mesa's llvmpipe, as on a machine with no Vulkan driver):
+# the layer snapshots, against the same stored pictures, and the demo's picture. The run above
+# took the Vulkan adapter (lavapipe), which is preferred where both are installed.
+WGPU_BACKEND=gl cargo nextest run --locked --no-fail-fast -p rtvtk-viz --test layers
+WGPU_BACKEND=gl cargo nextest run --locked --no-fail-fast -p rtvtk --test cli -E 'test(demo_draws_a_picture)'
 cargo test --workspace --doc --locked

@@ -51,7 +51,8 @@ pub fn run(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) -
         "--out".into(),
         picture.to_string_lossy().to_string(),
     ])?;
-    match crate::render::render_to_png(&render) {
+    let drawn = crate::render::render_to_png(&render);
+    match &drawn {
         Ok(_) => println!(
             "picture: {} (that tree's rays over the path-traced image, hidden behind geometry)",
             picture.display()
@@ -73,5 +74,8 @@ pub fn run(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) -
         h / 2
     );
     println!("     rtvtk check {}", dir.display());
-    Ok(())
+    // The trace is written either way; a missing picture still fails the command (exit 1).
+    drawn
+        .map(|_| ())
+        .map_err(|e| anyhow::anyhow!("the trace is written ({}), but demo.png is not: {e:#}", dir.display()))
 }

@@ -57,6 +57,13 @@ pub struct RenderArgs {
     /// Ray line width in pixels.
     #[arg(long, default_value_t = 1.5)]
     pub line_width: f32,
+    /// The image layer's source: auto (the recorded picture at the recorded camera, else traced
+    /// from the view: on the GPU where the adapter allows, else on the CPU), dataset, cpu or gpu.
+    #[arg(long, default_value = "auto", value_parser = ["auto", "dataset", "cpu", "gpu"])]
+    pub image_source: String,
+    /// Samples per pixel of an image traced from the view (`--camera` away from the recorded one).
+    #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub image_spp: u32,
     /// No legends or colour bars.
     #[arg(long)]
     pub no_legend: bool,
@@ -111,6 +118,7 @@ fn layer_settings(kind: &str, a: &RenderArgs, has_query_layer: bool) -> Result<V
             "gradient": true,
             "selected_tree": null,
         }),
+        "image" => json!({"source": a.image_source, "max_spp": a.image_spp}),
         "geometry" => json!({"style": a.geometry, "opacity": 0.8, "line_width": 1.2}),
         "bvh" => {
             let mut s = json!({"only_visited": a.bvh_visited, "tree": a.tree});
@@ -150,7 +158,7 @@ pub fn render_to_png(a: &RenderArgs) -> Result<Vec<String>> {
         rtvtk_viz::registry::info(l)?;
     }
     let has_query = layers.iter().any(|l| l == "query");
-    let gpu = Gpu::headless()?;
+    let gpu = Gpu::shared()?;
     let mut p = Pipeline::new(gpu, sources);
     match a.size {
         Some((w, h)) => p.resize(w, h)?,
@@ -169,6 +177,8 @@ pub fn render_to_png(a: &RenderArgs) -> Result<Vec<String>> {
         let s = layer_settings(l, a, has_query)?;
         p.add(l, &s).with_context(|| format!("adding the {l} layer"))?;
     }
+    // Progressive layers (an image traced from the view) refine to their sample count.
+    while p.idle()? {}
     let img = p.snapshot(!a.no_legend)?;
     save(&img, &a.out)?;
     Ok(p.report())

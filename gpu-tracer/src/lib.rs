@@ -9,15 +9,9 @@ mod record;
 /// What the GPU tracer can report.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error(
-        "no GPU adapter found ({0}); install a Vulkan driver, e.g. Mesa's software rasterizer lavapipe: \
-         `apt-get install mesa-vulkan-drivers libvulkan1` (Debian/Ubuntu)"
-    )]
-    NoAdapter(String),
-    #[error("cannot open the GPU device: {0}")]
-    Device(String),
-    #[error("GPU error: {0}")]
-    Gpu(String),
+    /// No adapter, an adapter that cannot run the tracer, a device error (`rtvtk_gpu`).
+    #[error(transparent)]
+    Gpu(#[from] rtvtk_gpu::Error),
     #[error("invalid input: {0}")]
     Input(String),
 }
@@ -129,6 +123,20 @@ pub struct Progressive {
     pub rays_by_kind: [u64; 5],
 }
 
+impl Progressive {
+    /// The accumulated radiance: per pixel (rows top to bottom) four f32, the sum of the
+    /// samples' RGB and the number of samples. Bound read-only, it is tone-mapped on the GPU
+    /// (`viz`'s image layer) with no read-back.
+    pub fn accumulation(&self) -> &wgpu::Buffer {
+        &self.accum
+    }
+
+    /// The image's size in pixels.
+    pub fn size(&self) -> [u32; 2] {
+        [self.width, self.height]
+    }
+}
+
 /// The buffers a recording dispatch writes its rays to.
 struct RecordBuffers {
     scratch: wgpu::Buffer,
@@ -156,9 +164,9 @@ fn check_size(w: u32, h: u32) -> Result<()> {
 
 /// A scene and its BVH on the GPU, with the compute pipelines that trace them.
 pub struct GpuTracer {
+    gpu: rtvtk_gpu::Gpu,
     device: wgpu::Device,
     queue: wgpu::Queue,
-    adapter: String,
     nodes: wgpu::Buffer,
     tris: wgpu::Buffer,
     primary: wgpu::ComputePipeline,
@@ -198,72 +206,24 @@ fn pipelines(
     (make("primary"), make("path"))
 }
 
-/// The preferred adapter of a headless instance (`WGPU_ADAPTER_NAME`, `WGPU_BACKEND` and
-/// `WGPU_POWER_PREF` choose another): the visualizer's and the tracer's.
-pub fn headless_adapter() -> Result<wgpu::Adapter> {
-    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
-    let options = wgpu::RequestAdapterOptions {
-        power_preference: wgpu::PowerPreference::from_env().unwrap_or(wgpu::PowerPreference::HighPerformance),
-        force_fallback_adapter: false,
-        compatible_surface: None,
-        apply_limit_buckets: false,
-    };
-    pollster::block_on(instance.request_adapter(&options)).map_err(|e| Error::NoAdapter(e.to_string()))
-}
-
-/// Opens a headless device on [`headless_adapter`] with the adapter's largest storage buffers.
-pub fn headless_device() -> Result<(wgpu::Device, wgpu::Queue, wgpu::AdapterInfo)> {
-    let adapter = headless_adapter()?;
-    let info = adapter.get_info();
-    let have = adapter.limits();
-    let desc = wgpu::DeviceDescriptor {
-        label: Some("rtvtk gpu tracer"),
-        required_features: wgpu::Features::empty(),
-        required_limits: wgpu::Limits {
-            max_storage_buffer_binding_size: have.max_storage_buffer_binding_size,
-            max_buffer_size: have.max_buffer_size,
-            max_storage_buffers_per_shader_stage: have.max_storage_buffers_per_shader_stage.max(12),
-            ..Default::default()
-        },
-        experimental_features: wgpu::ExperimentalFeatures::disabled(),
-        memory_hints: wgpu::MemoryHints::Performance,
-        trace: wgpu::Trace::Off,
-    };
-    let (device, queue) =
-        pollster::block_on(adapter.request_device(&desc)).map_err(|e| Error::Device(e.to_string()))?;
-    Ok((device, queue, info))
-}
+/// Storage buffers the path tracer binds in its compute stage.
+pub const STORAGE_BUFFERS: u32 = 12;
 
 impl GpuTracer {
-    /// Uploads `scene` (its triangles in `bvh`'s leaf order) and its BVH to a headless device.
+    /// Uploads `scene` (its triangles in `bvh`'s leaf order) and its BVH to the process's GPU
+    /// (`rtvtk_gpu::Gpu::shared`, the device the visualizer draws with).
     pub fn new(scene: &Scene, bvh: &Bvh) -> Result<GpuTracer> {
-        let (device, queue, info) = headless_device()?;
-        Self::with_device(device, queue, &info, scene, bvh)
+        Self::with_gpu(&rtvtk_gpu::Gpu::shared()?, scene, bvh)
     }
 
-    /// The same on a device the caller opened (the visualizer's): it needs 12 storage buffers
-    /// per shader stage (wgpu's default limit is 8; `headless_device` asks for the adapter's).
-    pub fn with_device(
-        device: wgpu::Device,
-        queue: wgpu::Queue,
-        info: &wgpu::AdapterInfo,
-        scene: &Scene,
-        bvh: &Bvh,
-    ) -> Result<GpuTracer> {
-        let limits = device.limits();
-        if limits.max_storage_buffers_per_shader_stage < 12 {
-            return Err(Error::Device(format!(
-                "the device allows {} storage buffers per shader stage; the path tracer needs 12",
-                limits.max_storage_buffers_per_shader_stage
-            )));
-        }
-        let max_binding = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
-        // Validation errors (a shader the driver refuses) come back as errors, not panics.
-        let errors: std::sync::Arc<std::sync::Mutex<Vec<String>>> = Default::default();
-        let sink = errors.clone();
-        device.on_uncaptured_error(std::sync::Arc::new(move |e: wgpu::Error| {
-            sink.lock().unwrap_or_else(|p| p.into_inner()).push(e.to_string());
-        }));
+    /// The same on a given device. Refuses (`rtvtk_gpu::Error::Unsupported`) an adapter with no
+    /// compute shaders or fewer than [`STORAGE_BUFFERS`] storage buffers per stage (an old GL
+    /// driver): the caller traces on the CPU instead.
+    pub fn with_gpu(gpu: &rtvtk_gpu::Gpu, scene: &Scene, bvh: &Bvh) -> Result<GpuTracer> {
+        gpu.compute_support(STORAGE_BUFFERS)?;
+        let device = gpu.device.clone();
+        let queue = gpu.queue.clone();
+        let max_binding = gpu.max_storage_binding();
         let mut nodes: Vec<GpuNode> =
             bvh.binary_nodes().into_iter().map(|(min, max, first, count)| GpuNode { min, first, max, count }).collect();
         let mut tris: Vec<GpuTri> = bvh
@@ -361,7 +321,7 @@ impl GpuTracer {
             label: Some("trace"),
             source: wgpu::ShaderSource::Wgsl(include_str!("trace.wgsl").into()),
         });
-        let (primary, path) = pipelines(&device, &module, true);
+        let (primary, path) = gpu.capture("the tracing shaders", || pipelines(&device, &module, true))?;
         let small = |label: &str, size: u64| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -376,13 +336,10 @@ impl GpuTracer {
             spans: small("no spans", 8),
             slots: 0,
         };
-        if let Some(e) = errors.lock().unwrap_or_else(|p| p.into_inner()).first() {
-            return Err(Error::Gpu(format!("the tracing shaders: {e}")));
-        }
         Ok(GpuTracer {
+            gpu: gpu.clone(),
             device,
             queue,
-            adapter: format!("{} ({:?})", info.name, info.backend),
             nodes,
             tris,
             primary,
@@ -441,12 +398,22 @@ impl GpuTracer {
         Ok(Progressive { width: w, height: h, accum, totals, spp: 0, seed, max_depth, rays_by_kind: [0; 5] })
     }
 
-    /// Adds `samples` path-traced samples per pixel to `p` (one dispatch each).
+    /// Adds `samples` path-traced samples per pixel to `p` (one dispatch each) and waits for
+    /// them, counting the rays traced by kind (`Progressive::rays_by_kind`).
     pub fn trace(&self, p: &mut Progressive, samples: u32) -> Result<()> {
         let batch: Vec<(u32, u32)> = (p.spp..p.spp.saturating_add(samples)).map(|s| (s, 0)).collect();
         self.dispatch(p, [0, 0, p.width, p.height], &batch, None, false)?;
         p.spp = p.spp.saturating_add(samples);
         Ok(())
+    }
+
+    /// Adds `samples` samples per pixel to `p` without waiting: nothing is read back and the
+    /// rays are not counted (the visualizer's progressive image, tone-mapped on the GPU from
+    /// [`Progressive::accumulation`]).
+    pub fn accumulate(&self, p: &mut Progressive, samples: u32) {
+        let batch: Vec<(u32, u32)> = (p.spp..p.spp.saturating_add(samples)).map(|s| (s, 0)).collect();
+        self.submit(p, [0, 0, p.width, p.height], &batch, None, false);
+        p.spp = p.spp.saturating_add(samples);
     }
 
     /// Traces one sample per `(sample index, index in the batch)` over the window
@@ -460,6 +427,26 @@ impl GpuTracer {
         rec: Option<&RecordBuffers>,
         bug: bool,
     ) -> Result<u32> {
+        let mut clear = self.device.create_command_encoder(&Default::default());
+        clear.clear_buffer(&p.totals, 0, None);
+        self.queue.submit([clear.finish()]);
+        self.submit(p, window, samples, rec, bug);
+        let totals: Vec<u32> = self.read_back(&p.totals, 32)?;
+        for (k, n) in p.rays_by_kind.iter_mut().zip(&totals[1..6]) {
+            *k += u64::from(*n);
+        }
+        Ok(totals[0])
+    }
+
+    /// Submits the dispatches of [`GpuTracer::dispatch`] without waiting for them.
+    fn submit(
+        &self,
+        p: &Progressive,
+        window: [u32; 4],
+        samples: &[(u32, u32)],
+        rec: Option<&RecordBuffers>,
+        bug: bool,
+    ) {
         let cam = self.camera_uniform(p.width, p.height);
         let frame = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("frame"),
@@ -487,9 +474,6 @@ impl GpuTracer {
                 wgpu::BindGroupEntry { binding: 13, resource: p.totals.as_entire_binding() },
             ],
         });
-        let mut clear = self.device.create_command_encoder(&Default::default());
-        clear.clear_buffer(&p.totals, 0, None);
-        self.queue.submit([clear.finish()]);
         for &(s, batch_index) in samples {
             let f = GpuFrame {
                 counts: [s, p.seed, p.max_depth, self.light_count],
@@ -507,11 +491,6 @@ impl GpuTracer {
             }
             self.queue.submit([enc.finish()]);
         }
-        let totals: Vec<u32> = self.read_back(&p.totals, 32)?;
-        for (k, n) in p.rays_by_kind.iter_mut().zip(&totals[1..6]) {
-            *k += u64::from(*n);
-        }
-        Ok(totals[0])
     }
 
     /// The mean of the samples so far, as the CPU tracer's film.
@@ -533,30 +512,8 @@ impl GpuTracer {
 
     /// The first `bytes` of a storage buffer (made with `COPY_SRC`).
     fn read_back<T: Pod>(&self, buf: &wgpu::Buffer, bytes: u64) -> Result<Vec<T>> {
-        if bytes == 0 {
-            return Ok(Vec::new());
-        }
-        let read = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("read back"),
-            size: bytes,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let mut enc = self.device.create_command_encoder(&Default::default());
-        enc.copy_buffer_to_buffer(buf, 0, &read, 0, bytes);
-        self.queue.submit([enc.finish()]);
-        let slice = read.slice(..);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        self.device.poll(wgpu::PollType::wait_indefinitely()).map(|_| ()).map_err(|e| Error::Gpu(e.to_string()))?;
-        rx.recv().map_err(|e| Error::Gpu(e.to_string()))?.map_err(|e| Error::Gpu(e.to_string()))?;
-        let data = slice.get_mapped_range().map_err(|e| Error::Gpu(e.to_string()))?;
-        let out = bytemuck::cast_slice::<u8, T>(&data).to_vec();
-        drop(data);
-        read.unmap();
-        Ok(out)
+        let data = self.gpu.read_buffer(buf, bytes)?;
+        Ok(data.chunks_exact(std::mem::size_of::<T>()).map(bytemuck::pod_read_unaligned).collect())
     }
 
     /// Visits the nearer of two hit BVH children first (the default) or always the first one
@@ -571,8 +528,13 @@ impl GpuTracer {
     }
 
     /// The adapter in words (`llvmpipe (Vulkan)`).
-    pub fn adapter(&self) -> &str {
-        &self.adapter
+    pub fn adapter(&self) -> String {
+        self.gpu.describe()
+    }
+
+    /// The device the tracer runs on.
+    pub fn gpu(&self) -> &rtvtk_gpu::Gpu {
+        &self.gpu
     }
 
     /// The closest hit of the primary ray through the centre of every pixel of a `w` × `h`

@@ -178,7 +178,7 @@ fn emit_tile(
         }
     });
     if bad.load(std::sync::atomic::Ordering::Relaxed) {
-        return Err(Error::Gpu("the GPU's path spans point outside the rays it packed".into()));
+        return Err(Error::Gpu(rtvtk_gpu::Error::Gpu("the GPU's path spans point outside the rays it packed".into())));
     }
     Ok(())
 }

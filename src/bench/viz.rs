@@ -17,7 +17,7 @@ fn median(v: &mut [f64]) -> f64 {
 pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, rounds: usize) -> Result<()> {
     let sources = Sources::open(dataset)?;
     let total = sources.dataset.as_ref().map_or(0, |d| d.ray_count());
-    let gpu = Gpu::headless()?;
+    let gpu = Gpu::shared()?;
     println!("adapter: {} ({:?}), {}x{}, dataset {} rays", gpu.adapter.name, gpu.adapter.backend, w, h, total);
     println!("| rays | SQL scan s | layer load s | load / scan | frame ms (median) | frames/s | GPU bytes/segment |");
     println!("|---|---|---|---|---|---|---|");

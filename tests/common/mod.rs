@@ -14,13 +14,47 @@ pub fn start_with_first_line(args: &[&str]) -> (std::process::Child, String) {
 }
 
 /// Starts `cmd` with its stdout piped (its stderr shown with a failing test's output); the child
-/// and the first line it prints.
+/// and the first line it prints. A child that prints nothing within 60 s is killed and the test
+/// fails naming it (a hung server or display never hangs the test).
 pub fn spawn_with_first_line(cmd: &mut Command) -> (std::process::Child, String) {
     use std::io::BufRead;
+    let name = cmd.get_program().to_string_lossy().to_string();
     let mut child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::inherit()).spawn().unwrap();
-    let mut line = String::new();
-    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-    (child, line)
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = std::io::BufReader::new(stdout).read_line(&mut line);
+        let _ = tx.send(line);
+    });
+    match rx.recv_timeout(std::time::Duration::from_secs(60)) {
+        Ok(line) => (child, line),
+        Err(_) => {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{name} printed nothing within 60 s (killed)");
+        }
+    }
+}
+
+/// Waits for `child` at most `limit`; kills it and fails the test naming `what` past that.
+pub fn wait_at_most(
+    child: &mut std::process::Child,
+    limit: std::time::Duration,
+    what: &str,
+) -> std::process::ExitStatus {
+    let t0 = std::time::Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status;
+        }
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{what} did not finish within {} s (killed)", limit.as_secs());
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
 }
 
 /// Runs `rtvtk ARGS`.

@@ -131,6 +131,8 @@ pub fn depth_range(camera: &ViewCamera, frame: Frame) -> [f32; 2] {
 
 /// Arguments of [`Component::idle`].
 pub struct IdleCtx<'a> {
+    /// The pipeline's device (the GPU tracer traces on it).
+    pub gpu: &'a Gpu,
     pub sources: &'a Sources,
     pub camera: &'a ViewCamera,
     pub width: u32,
@@ -139,6 +141,7 @@ pub struct IdleCtx<'a> {
 
 /// Arguments of [`Component::trace_ray`].
 pub struct TraceCtx<'a> {
+    pub gpu: &'a Gpu,
     pub sources: &'a Sources,
     pub camera: &'a ViewCamera,
     pub width: u32,
@@ -280,6 +283,11 @@ pub trait Component: Send {
     /// Counter bumped on every change of output (settings, data, progressive refinement).
     fn generation(&self) -> u64;
     fn settings(&self) -> serde_json::Value;
+    /// The settings that take one of a few values, with those values (the viewer draws them as
+    /// drop-downs, not text fields).
+    fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
+        Vec::new()
+    }
     fn set_settings(&mut self, settings: &serde_json::Value) -> Result<()>;
     /// Progressive work between frames; returns whether the output changed.
     fn idle(&mut self, _ctx: &mut IdleCtx) -> Result<bool> {

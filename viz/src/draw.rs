@@ -251,7 +251,7 @@ pub struct SegmentBuffers {
 
 impl SegmentBuffers {
     pub fn new(gpu: &Gpu) -> SegmentBuffers {
-        let chunk = (gpu.max_storage_binding / SEGMENT_BYTES).clamp(1024, 1 << 20) as usize;
+        let chunk = (gpu.max_storage_binding() / SEGMENT_BYTES).clamp(1024, 1 << 20) as usize;
         SegmentBuffers { chunk, buffers: Vec::new(), staged: Vec::new(), count: 0 }
     }
 

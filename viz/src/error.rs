@@ -5,17 +5,9 @@ use std::path::PathBuf;
 /// What building or rendering a pipeline can report.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error(
-        "no GPU adapter found ({0}); install a Vulkan driver, e.g. Mesa's software rasterizer lavapipe: \
-         `apt-get install mesa-vulkan-drivers libvulkan1` (Debian/Ubuntu)"
-    )]
-    NoAdapter(String),
-
-    #[error("cannot open the GPU device: {0}")]
-    Device(String),
-
-    #[error("GPU error: {0}")]
-    Gpu(String),
+    /// No adapter, a device error, a failed read-back (`rtvtk_gpu`).
+    #[error(transparent)]
+    Gpu(#[from] rtvtk_gpu::Error),
 
     #[error("unknown layer {name:?}: expected one of {known}")]
     UnknownLayer { name: String, known: String },
@@ -54,6 +46,9 @@ pub enum Error {
 
     #[error(transparent)]
     Record(#[from] rl::Error),
+
+    #[error(transparent)]
+    GpuTracer(#[from] gpu_tracer::Error),
 
     #[error("Arrow: {0}")]
     Arrow(#[from] arrow::error::ArrowError),

@@ -46,6 +46,7 @@ struct CompUniform {
 
 struct Compositor {
     pipeline: wgpu::RenderPipeline,
+    layout: wgpu::BindGroupLayout,
 }
 
 impl Compositor {
@@ -59,9 +60,44 @@ impl Compositor {
             blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
             write_mask: wgpu::ColorWrites::ALL,
         })];
+        // Colour and both depths as unfilterable float textures (a Depth32Float texture may be
+        // bound so): the shader loads texels, and GLSL has no texel load of a depth texture.
+        let texture = |binding| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::FRAGMENT,
+            ty: wgpu::BindingType::Texture {
+                sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                view_dimension: wgpu::TextureViewDimension::D2,
+                multisampled: false,
+            },
+            count: None,
+        };
+        let layout = gpu.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("composite"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
+                texture(1),
+                texture(2),
+                texture(3),
+            ],
+        });
+        let pipeline_layout = gpu.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("composite"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
         let pipeline = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("composite"),
-            layout: None,
+            layout: Some(&pipeline_layout),
             vertex: wgpu::VertexState {
                 module: &module,
                 entry_point: Some("vs"),
@@ -80,7 +116,7 @@ impl Compositor {
             multiview_mask: None,
             cache: None,
         });
-        Compositor { pipeline }
+        Compositor { pipeline, layout }
     }
 }
 
@@ -245,7 +281,13 @@ impl Pipeline {
         let mut changed = false;
         for l in self.layers.iter_mut().filter(|l| l.enabled) {
             let camera = l.camera.unwrap_or(self.camera);
-            let mut ctx = IdleCtx { sources: &self.sources, camera: &camera, width: self.width, height: self.height };
+            let mut ctx = IdleCtx {
+                gpu: &self.gpu,
+                sources: &self.sources,
+                camera: &camera,
+                width: self.width,
+                height: self.height,
+            };
             changed |= l.component.idle(&mut ctx)?;
         }
         Ok(changed)
@@ -258,7 +300,8 @@ impl Pipeline {
         let i = self.index(id)?;
         let l = &mut self.layers[i];
         let camera = l.camera.unwrap_or(camera);
-        let mut ctx = crate::component::TraceCtx { sources: &self.sources, camera: &camera, width, height };
+        let mut ctx =
+            crate::component::TraceCtx { gpu: &self.gpu, sources: &self.sources, camera: &camera, width, height };
         l.component.trace_ray(&mut ctx, pixel)
     }
 
@@ -341,7 +384,7 @@ impl Pipeline {
             let occ_view = occ.depth.create_view(&Default::default());
             groups.push(gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: None,
-                layout: &self.compositor.pipeline.get_bind_group_layout(0),
+                layout: &self.compositor.layout,
                 entries: &[
                     wgpu::BindGroupEntry { binding: 0, resource: ubuf.as_entire_binding() },
                     wgpu::BindGroupEntry { binding: 1, resource: wgpu::BindingResource::TextureView(&t.color_view) },
@@ -440,6 +483,6 @@ impl Pipeline {
             draw_legends(&mut Canvas { rgba: &mut px, width: self.width, height: self.height }, &l);
         }
         image::RgbaImage::from_raw(self.width, self.height, px)
-            .ok_or_else(|| Error::Gpu("read back a picture of the wrong size".into()))
+            .ok_or_else(|| Error::Gpu(rtvtk_gpu::Error::Gpu("read back a picture of the wrong size".into())))
     }
 }

@@ -46,7 +46,7 @@ fn dataset() -> &'static Path {
 }
 
 fn pipeline(layers: &[(&str, Value)]) -> Pipeline {
-    let gpu = Gpu::headless().expect("these tests need a GPU adapter (lavapipe: apt-get install mesa-vulkan-drivers)");
+    let gpu = Gpu::shared().expect("a GPU adapter");
     let mut p = Pipeline::new(gpu, Sources::open(dataset()).unwrap());
     for (k, s) in layers {
         p.add(k, s).unwrap();
@@ -179,21 +179,21 @@ fn only_changed_layers_are_rendered_again() {
     p.layer_mut(rays).unwrap().camera = Some(c);
     p.render().unwrap();
     assert_eq!(counts(&p), [1, 1, 1, 2]);
-    // The shared camera: the scene-space layers follow it, the dataset's image does not, and the
-    // ray layer keeps its own camera.
+    // The shared camera: the scene-space layers follow it, so does the image (source "auto": away
+    // from the recorded camera it is traced from the view), and the ray layer keeps its own camera.
     p.set_camera(c).unwrap();
     p.render().unwrap();
-    assert_eq!(counts(&p), [1, 2, 2, 2]);
+    assert_eq!(counts(&p), [2, 2, 2, 2]);
     // A setting of one layer.
     let geo = p.layers()[2].component.id();
     p.layer_mut(geo).unwrap().component.set_settings(&json!({"style": "opaque"})).unwrap();
     p.render().unwrap();
-    assert_eq!(counts(&p), [1, 2, 3, 2]);
+    assert_eq!(counts(&p), [2, 2, 3, 2]);
     // Hidden layers do no work.
     p.layer_mut(geo).unwrap().component.set_settings(&json!({"style": "transparent"})).unwrap();
     p.layer_mut(geo).unwrap().enabled = false;
     p.render().unwrap();
-    assert_eq!(counts(&p), [1, 2, 3, 2]);
+    assert_eq!(counts(&p), [2, 2, 3, 2]);
     p.reorder(rays, 0).unwrap();
     assert_eq!(p.layers()[0].component.id(), rays);
     assert_eq!(
@@ -246,7 +246,7 @@ fn a_dataset_without_scene_tables_renders_what_it_can() {
     let s = Sources::open(&dir).unwrap();
     assert!(s.missing.iter().any(|m| m.contains("no triangles table")), "{:?}", s.missing);
     assert!(s.missing.iter().any(|m| m.contains("no camera attributes")));
-    let mut p = Pipeline::new(Gpu::headless().unwrap(), s);
+    let mut p = Pipeline::new(Gpu::shared().unwrap(), s);
     let e = p.add("geometry", &Value::Null).unwrap_err().to_string();
     assert!(e.contains("not available") && e.contains("triangles"), "{e}");
     assert!(p.add("image", &Value::Null).is_err());
@@ -362,12 +362,57 @@ fn the_image_layer_refines_progressively_with_the_cpu_tracer() {
 }
 
 #[test]
+fn the_image_follows_the_camera_and_returns_to_the_recorded_picture() {
+    // Source "auto" (the default): the recorded picture at the recorded camera; elsewhere the
+    // view is path-traced (GPU tracer where the adapter runs it) and never the recorded picture
+    // misregistered under the rays; back at the recorded camera, the recorded picture again.
+    let mut p = pipeline(&[("image", json!({"max_spp": 4})), ("composition", Value::Null)]);
+    assert_eq!(p.layers()[0].component.settings()["source"], "auto");
+    let recorded = p.snapshot(false).unwrap();
+    assert!(!p.idle().unwrap(), "at the recorded camera there is nothing to trace");
+    let home = p.camera();
+    let mut c = home;
+    c.orbit(0.5, 0.15);
+    p.set_camera(c).unwrap();
+    // Before a sample is traced the moved view shows no picture at all (the background).
+    let empty = p.snapshot(false).unwrap();
+    assert!(lit(&empty) < (W * H / 50) as usize, "no stale picture: {} lit pixels", lit(&empty));
+    let mut calls = 0;
+    while p.idle().unwrap() {
+        calls += 1;
+        assert!(calls <= 4, "stops at max_spp");
+    }
+    assert!(
+        p.report().iter().any(|r| r.contains("path traced") && r.contains("4 samples per pixel")),
+        "{:?}",
+        p.report()
+    );
+    let orbited = p.snapshot(false).unwrap();
+    assert!(lit(&orbited) > (W * H / 3) as usize, "the orbited view is traced: {}", lit(&orbited));
+    let differ = recorded.pixels().zip(orbited.pixels()).filter(|(a, b)| a != b).count();
+    assert!(differ > (W * H / 4) as usize, "the orbited view is not the recorded picture: {differ} pixels differ");
+    // Reset: the recorded picture, exactly.
+    p.set_camera(home).unwrap();
+    assert!(!p.idle().unwrap());
+    assert_eq!(p.snapshot(false).unwrap(), recorded);
+    assert!(!p.report().iter().any(|r| r.contains("path traced")), "{:?}", p.report());
+    // The source is one of four values; anything else is refused naming them.
+    let id = p.layers()[0].component.id();
+    let e = p.layer_mut(id).unwrap().component.set_settings(&json!({"source": "magic"})).unwrap_err().to_string();
+    assert!(e.contains("auto") && e.contains("gpu"), "{e}");
+    assert_eq!(p.layers()[0].component.choices(), [("source", rtvtk_viz::components::picture::ImageSource::NAMES)]);
+    for name in rtvtk_viz::components::picture::ImageSource::NAMES {
+        p.layer_mut(id).unwrap().component.set_settings(&json!({ "source": name })).unwrap();
+    }
+}
+
+#[test]
 fn ctrl_click_traces_a_pixel_with_no_dataset_loaded() {
     // Immediate mode: the scene alone (no dataset), the ray layer traces one pixel's tree through
     // `rl` immediate mode and draws it at once; a pixel outside the view is refused.
     let scene = renderers::BuiltinScene::Cornell.build(1).unwrap();
     let sources = Sources::from_scene(scene, 4 * W, 4 * H).unwrap();
-    let mut p = Pipeline::new(Gpu::headless().unwrap(), sources);
+    let mut p = Pipeline::new(Gpu::shared().unwrap(), sources);
     p.add("geometry", &json!({"opacity": 0.2})).unwrap();
     let rays = p.add("rays", &Value::Null).unwrap();
     let before = p.snapshot(false).unwrap();
@@ -421,7 +466,7 @@ fn ctrl_click_traces_a_pixel_on_the_gpu() {
     // `rl` immediate mode and drawn, as with the CPU tracer.
     let scene = renderers::BuiltinScene::CornellGlass.build(1).unwrap();
     let sources = Sources::from_scene(scene, 4 * W, 4 * H).unwrap();
-    let mut p = Pipeline::new(Gpu::headless().unwrap(), sources);
+    let mut p = Pipeline::new(Gpu::shared().unwrap(), sources);
     p.add("geometry", &json!({"opacity": 0.2})).unwrap();
     let rays = p.add("rays", &json!({"tracer": "gpu"})).unwrap();
     let before = p.snapshot(false).unwrap();
@@ -437,7 +482,7 @@ fn ctrl_click_traces_a_pixel_on_the_gpu() {
 #[test]
 fn the_ray_layer_loads_what_its_filters_select_in_sql() {
     use rtvtk_viz::components::rays::{Rays, RaysSettings};
-    let gpu = Gpu::headless().expect("these tests need a GPU adapter (lavapipe: apt-get install mesa-vulkan-drivers)");
+    let gpu = Gpu::shared().expect("a GPU adapter");
     let sources = Sources::open(dataset()).unwrap();
     let some_tree: u64 = {
         let b =
@@ -483,7 +528,7 @@ fn a_cancelled_ray_load_keeps_what_it_has_and_says_so() {
     use rtvtk_viz::Component;
     use rtvtk_viz::component::Progress;
     use rtvtk_viz::components::rays::Rays;
-    let gpu = Gpu::headless().expect("these tests need a GPU adapter (lavapipe: apt-get install mesa-vulkan-drivers)");
+    let gpu = Gpu::shared().expect("a GPU adapter");
     let sources = Sources::open(dataset()).unwrap();
     let mut rays = Rays::new(ComponentId(1), &sources, &Value::Null).unwrap();
     let progress = Progress::default();

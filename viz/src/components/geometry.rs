@@ -20,6 +20,11 @@ pub enum SurfaceStyle {
     Opaque,
 }
 
+impl SurfaceStyle {
+    /// The values of the `style` setting (the viewer's drop-down).
+    pub const NAMES: &'static [&'static str] = &["wireframe", "transparent", "opaque"];
+}
+
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GeometrySettings {
@@ -167,6 +172,9 @@ impl Component for Geometry {
     }
     fn settings(&self) -> serde_json::Value {
         serde_json::to_value(&self.settings).unwrap_or_default()
+    }
+    fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
+        vec![("style", SurfaceStyle::NAMES)]
     }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
         let s: GeometrySettings = decode_settings("geometry", v)?;

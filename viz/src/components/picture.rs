@@ -99,13 +99,25 @@ impl Blitter {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ImageSource {
-    /// The PNG recorded with the dataset.
+    /// The picture recorded with the dataset while the view is at the recorded camera; anywhere
+    /// else (and with no recorded picture) path-traced from the view, on the GPU where the
+    /// adapter can run the GPU tracer, on the CPU otherwise. Never the recorded picture under
+    /// rays seen from elsewhere.
+    Auto,
+    /// The PNG recorded with the dataset, whatever the view (registered only at the recorded
+    /// camera).
     Dataset,
     /// The CPU path tracer, one sample per pixel per idle call, at the layer's camera and size.
-    Trace,
-    /// The GPU path tracer (`gpu_tracer`, its own headless device), as many samples per idle
-    /// call as fit in about 50 ms.
+    #[serde(alias = "trace")]
+    Cpu,
+    /// The GPU path tracer on the pipeline's device, as many samples per idle call as fit in
+    /// about 50 ms, tone-mapped on the GPU (the CPU tracer where the adapter cannot run it).
     Gpu,
+}
+
+impl ImageSource {
+    /// The values of the `source` setting, as the viewer's drop-down offers them.
+    pub const NAMES: &'static [&'static str] = &["auto", "dataset", "cpu", "gpu"];
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -120,8 +132,20 @@ pub struct ImageSettings {
 
 impl Default for ImageSettings {
     fn default() -> Self {
-        ImageSettings { source: ImageSource::Dataset, opacity: 1.0, exposure: 1.0, max_spp: 1024 }
+        ImageSettings { source: ImageSource::Auto, opacity: 1.0, exposure: 1.0, max_spp: 1024 }
     }
+}
+
+/// The GPU tracer of the image layer and its two accumulating images.
+struct GpuImage {
+    tracer: gpu_tracer::GpuTracer,
+    /// Samples per half per idle call (adapted to about 50 ms).
+    batch: u32,
+    /// The even and odd batches' sums, for the current camera and size.
+    halves: Option<[gpu_tracer::Progressive; 2]>,
+    /// The next sample count at which the halves are read back for the convergence curve
+    /// (doubling: a read-back per octave of samples, never one per frame).
+    next_curve: u32,
 }
 
 struct Progressive {
@@ -133,10 +157,89 @@ struct Progressive {
     secs: f64,
     curve: Vec<crate::component::ConvergencePoint>,
     key: Option<(crate::camera::ViewCamera, u32, u32)>,
-    /// The GPU tracer (source `gpu`) and the samples per half batch it takes now.
-    gpu: Option<(gpu_tracer::GpuTracer, u32)>,
-    /// The GPU's two accumulating images (even and odd batches), for the current camera.
-    halves: Option<[gpu_tracer::Progressive; 2]>,
+    /// The GPU tracer (sources `gpu` and `auto`), when the adapter runs it.
+    gpu: Option<GpuImage>,
+    /// Why the GPU tracer does not run here (then the CPU traces; said once, in the report).
+    gpu_failed: Option<String>,
+}
+
+/// Draws a [`GpuImage`]'s accumulation into a layer, tone-mapped on the GPU (`film.wgsl`).
+struct FilmDrawer {
+    pipeline: wgpu::RenderPipeline,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct FilmUniform {
+    params: [f32; 4],
+    dest: [f32; 4],
+}
+
+impl FilmDrawer {
+    fn new(gpu: &Gpu) -> FilmDrawer {
+        let module = gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("film"),
+            source: wgpu::ShaderSource::Wgsl(include_str!("../shaders/film.wgsl").into()),
+        });
+        let targets = [Some(wgpu::ColorTargetState {
+            format: COLOR_FORMAT,
+            blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+            write_mask: wgpu::ColorWrites::ALL,
+        })];
+        let pipeline = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("film"),
+            layout: None,
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            primitive: Default::default(),
+            depth_stencil: Some(wgpu::DepthStencilState {
+                format: crate::gpu::DEPTH_FORMAT,
+                depth_write_enabled: Some(false),
+                depth_compare: Some(wgpu::CompareFunction::Always),
+                stencil: Default::default(),
+                bias: Default::default(),
+            }),
+            multisample: Default::default(),
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs"),
+                compilation_options: Default::default(),
+                targets: &targets,
+            }),
+            multiview_mask: None,
+            cache: None,
+        });
+        FilmDrawer { pipeline }
+    }
+
+    fn draw(&self, ctx: &RenderCtx, [even, odd]: &[gpu_tracer::Progressive; 2], exposure: f32, opacity: f32) {
+        let gpu = ctx.gpu;
+        let [w, h] = even.size();
+        let (tw, th) = (ctx.target.width, ctx.target.height);
+        let u = FilmUniform { params: [w as f32, h as f32, exposure, opacity], dest: [tw as f32, th as f32, 0.0, 0.0] };
+        let ubuf = crate::draw::uniform(gpu, "film", &u);
+        let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("film"),
+            layout: &self.pipeline.get_bind_group_layout(0),
+            entries: &[
+                wgpu::BindGroupEntry { binding: 0, resource: ubuf.as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 1, resource: even.accumulation().as_entire_binding() },
+                wgpu::BindGroupEntry { binding: 2, resource: odd.accumulation().as_entire_binding() },
+            ],
+        });
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        {
+            let mut pass = crate::draw::layer_pass(&mut enc, ctx.target, true);
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.draw(0..3, 0..1);
+        }
+        gpu.queue.submit([enc.finish()]);
+    }
 }
 
 /// The image layer.
@@ -144,11 +247,30 @@ pub struct Image {
     id: ComponentId,
     settings: ImageSettings,
     generation: u64,
-    picture: Option<Picture>,
-    texture: Option<(u64, wgpu::Texture)>,
+    /// The picture recorded with the dataset.
+    recorded: Option<Picture>,
+    /// The CPU tracer's latest picture.
+    traced: Option<Picture>,
+    /// The texture of the picture shown last: which one (traced or not) and its generation.
+    texture: Option<(bool, u64, wgpu::Texture)>,
     blitter: Option<Blitter>,
+    film: Option<FilmDrawer>,
     progressive: Option<Progressive>,
     size: [u32; 2],
+    /// Whether the last render showed a traced picture (else the recorded one).
+    shown_traced: bool,
+}
+
+/// Whether `camera` is the camera the dataset's picture was rendered from (to a millionth of the
+/// camera's distance to its target, and of a degree).
+fn at_recorded(sources: &Sources, camera: &crate::camera::ViewCamera) -> bool {
+    let Some(r) = &sources.camera else { return false };
+    let d = |a: [f64; 3], b: [f64; 3]| (0..3).map(|i| (a[i] - b[i]).powi(2)).sum::<f64>().sqrt();
+    let scale = d(r.position, r.target).max(f64::MIN_POSITIVE);
+    d(r.position, camera.position) <= 1e-6 * scale
+        && d(r.target, camera.target) <= 1e-6 * scale
+        && d(r.up, camera.up) <= 1e-6 * d(r.up, [0.0; 3])
+        && (r.fov_y - camera.fov_y).abs() <= 1e-6
 }
 
 impl Image {
@@ -157,15 +279,15 @@ impl Image {
             id,
             settings: ImageSettings::default(),
             generation: 0,
-            picture: sources.picture.clone(),
+            recorded: sources.picture.clone(),
+            traced: None,
             texture: None,
             blitter: None,
+            film: None,
             progressive: None,
             size: sources.image_size,
+            shown_traced: false,
         };
-        if im.picture.is_none() {
-            im.settings.source = ImageSource::Trace;
-        }
         if !settings.is_null() {
             im.set_settings(settings)?;
         }
@@ -175,21 +297,48 @@ impl Image {
 
     fn check(&self, sources: &Sources) -> Result<()> {
         match self.settings.source {
-            ImageSource::Dataset if self.picture.is_none() => Err(Error::Layer {
+            ImageSource::Dataset if self.recorded.is_none() => Err(Error::Layer {
                 layer: "image".into(),
-                message: "the dataset has no rendered image; use source \"trace\" to path-trace one".into(),
+                message: "the dataset has no rendered image; use source \"auto\", \"cpu\" or \"gpu\" to path-trace one"
+                    .into(),
             }),
-            ImageSource::Trace | ImageSource::Gpu if sources.scene.is_none() => Err(Error::Layer {
-                layer: "image".into(),
-                message: "there is no image and no scene (triangles table) to trace one from".into(),
-            }),
+            ImageSource::Auto | ImageSource::Cpu | ImageSource::Gpu
+                if sources.scene.is_none()
+                    && (self.settings.source != ImageSource::Auto || self.recorded.is_none()) =>
+            {
+                Err(Error::Layer {
+                    layer: "image".into(),
+                    message: "there is no image and no scene (triangles table) to trace one from".into(),
+                })
+            }
             _ => Ok(()),
+        }
+    }
+
+    /// Whether the layer shows a traced picture at `camera` (else the recorded one).
+    fn traces_at(&self, sources: &Sources, camera: &crate::camera::ViewCamera) -> bool {
+        match self.settings.source {
+            ImageSource::Dataset => false,
+            ImageSource::Cpu | ImageSource::Gpu => true,
+            ImageSource::Auto => sources.scene.is_some() && !(self.recorded.is_some() && at_recorded(sources, camera)),
         }
     }
 
     /// Samples per pixel accumulated by the progressive tracer.
     pub fn spp(&self) -> u32 {
         self.progressive.as_ref().map_or(0, |p| p.spp)
+    }
+
+    /// The GPU tracer of `p` for `scene`, made on first use; `None` (and the reason kept in
+    /// `p.gpu_failed`) where the adapter cannot run it.
+    fn gpu_tracer<'p>(p: &'p mut Progressive, gpu: &Gpu, scene: &renderers::Scene) -> Option<&'p mut GpuImage> {
+        if p.gpu.is_none() && p.gpu_failed.is_none() {
+            match gpu_tracer::GpuTracer::with_gpu(gpu, scene, &p.bvh) {
+                Ok(tracer) => p.gpu = Some(GpuImage { tracer, batch: 1, halves: None, next_curve: 2 }),
+                Err(e) => p.gpu_failed = Some(e.to_string()),
+            }
+        }
+        p.gpu.as_mut()
     }
 }
 
@@ -240,6 +389,9 @@ impl Component for Image {
     fn settings(&self) -> serde_json::Value {
         serde_json::to_value(&self.settings).unwrap_or_default()
     }
+    fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
+        vec![("source", ImageSource::NAMES)]
+    }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
         let s: ImageSettings = decode_settings("image", v)?;
         if !((0.0..=1.0).contains(&s.opacity) && s.exposure.is_finite() && s.exposure > 0.0) {
@@ -252,6 +404,7 @@ impl Component for Image {
             if s.source != self.settings.source {
                 // Another tracer: a new image.
                 self.progressive = None;
+                self.traced = None;
             }
             self.settings = s;
             self.generation += 1;
@@ -259,7 +412,8 @@ impl Component for Image {
         Ok(())
     }
     fn idle(&mut self, ctx: &mut IdleCtx) -> Result<bool> {
-        if self.settings.source == ImageSource::Dataset {
+        self.shown_traced = self.traces_at(ctx.sources, ctx.camera);
+        if !self.shown_traced {
             return Ok(false);
         }
         let Some(scene) = &ctx.sources.scene else { return Ok(false) };
@@ -273,7 +427,7 @@ impl Component for Image {
             curve: Vec::new(),
             key: None,
             gpu: None,
-            halves: None,
+            gpu_failed: None,
         });
         if p.key != Some(key) {
             p.key = Some(key);
@@ -282,7 +436,11 @@ impl Component for Image {
             p.spp = 0;
             p.secs = 0.0;
             p.curve.clear();
-            p.halves = None;
+            if let Some(g) = p.gpu.as_mut() {
+                g.halves = None;
+                g.next_curve = 2;
+            }
+            self.traced = None;
         }
         if p.spp >= self.settings.max_spp {
             return Ok(false);
@@ -293,45 +451,57 @@ impl Component for Image {
         s.camera =
             renderers::Camera { position: v(c.position), target: v(c.target), up: v(c.up), fov_y: c.fov_y as f32 };
         let t0 = std::time::Instant::now();
-        if self.settings.source == ImageSource::Gpu {
+        let on_gpu = matches!(self.settings.source, ImageSource::Gpu | ImageSource::Auto);
+        let max_spp = self.settings.max_spp;
+        let (spp, secs) = (p.spp, p.secs);
+        let gpu_err = |e: gpu_tracer::Error| Error::Layer { layer: "image".into(), message: e.to_string() };
+        if let Some(g) = on_gpu.then(|| Self::gpu_tracer(p, ctx.gpu, &s)).flatten() {
             // Two equal batches of k samples: one counts as the even samples, one as the odd.
-            if p.gpu.is_none() {
-                let g = gpu_tracer::GpuTracer::new(&s, &p.bvh)
-                    .map_err(|e| Error::Layer { layer: "image".into(), message: format!("source \"gpu\": {e}") })?;
-                p.gpu = Some((g, 1));
-            }
-            let Some((g, k)) = p.gpu.as_mut() else { return Ok(false) };
-            g.set_camera(s.camera);
-            let k = (*k).min((self.settings.max_spp - p.spp).div_ceil(2)).max(1);
-            let gpu_err = |e: gpu_tracer::Error| Error::Layer { layer: "image".into(), message: e.to_string() };
-            if p.halves.is_none() {
+            g.tracer.set_camera(s.camera);
+            let k = g.batch.min((max_spp - spp).div_ceil(2)).max(1);
+            if g.halves.is_none() {
                 let depth = renderers::RenderOptions::default().max_depth;
-                let half = |seed| g.progressive(ctx.width, ctx.height, seed, depth).map_err(gpu_err);
-                p.halves = Some([half(0)?, half(1)?]);
+                let half = |seed| g.tracer.progressive(ctx.width, ctx.height, seed, depth).map_err(gpu_err);
+                g.halves = Some([half(0)?, half(1)?]);
             }
-            let Some(halves) = p.halves.as_mut() else { return Ok(false) };
-            // The sums stay on the GPU; the layer reads back each half's mean.
-            let mut films = Vec::with_capacity(2);
+            let Some(halves) = g.halves.as_mut() else { return Ok(false) };
             for h in halves.iter_mut() {
-                g.trace(h, k).map_err(gpu_err)?;
-                films.push((g.film(h).map_err(gpu_err)?, h.spp as f32));
+                g.tracer.accumulate(h, k);
             }
-            let [(even, ne), (odd, no)] = [&films[0], &films[1]].map(|(f, n)| (f, *n));
-            for ((s, e), (a, b)) in p.sum.iter_mut().zip(p.even.iter_mut()).zip(even.pixels.iter().zip(&odd.pixels)) {
-                *e = *a * ne;
-                *s = *e + *b * no;
+            let n = spp + 2 * k;
+            // The convergence curve: the halves read back once per doubling of the samples.
+            let mut point = None;
+            if n >= g.next_curve || n >= max_spp {
+                let even = g.tracer.film(&halves[0]).map_err(gpu_err)?;
+                let odd = g.tracer.film(&halves[1]).map_err(gpu_err)?;
+                let (ne, no) = (halves[0].spp as f32, halves[1].spp as f32);
+                let mut sum = vec![glam::Vec3A::ZERO; even.pixels.len()];
+                let mut ev = sum.clone();
+                for ((s, e), (a, b)) in sum.iter_mut().zip(ev.iter_mut()).zip(even.pixels.iter().zip(&odd.pixels)) {
+                    *e = *a * ne;
+                    *s = *e + *b * no;
+                }
+                point = half_difference_rmse(&sum, &ev, n);
+                while g.next_curve <= n {
+                    g.next_curve *= 2;
+                }
+            } else {
+                // Nothing read back: wait for the work so the batch size follows its time.
+                ctx.gpu.wait()?;
             }
-            p.spp += 2 * k;
             // Aim at about 50 ms per idle call.
             let took = t0.elapsed().as_secs_f64();
-            if let Some((_, next)) = p.gpu.as_mut() {
-                *next = if took < 0.025 {
-                    (k * 2).min(256)
-                } else if took > 0.1 {
-                    (k / 2).max(1)
-                } else {
-                    k
-                };
+            g.batch = if took < 0.025 {
+                (k * 2).min(256)
+            } else if took > 0.1 {
+                (k / 2).max(1)
+            } else {
+                k
+            };
+            p.spp = n;
+            p.secs = secs + took;
+            if let Some(rmse) = point {
+                p.curve.push(crate::component::ConvergencePoint { secs: p.secs, spp: p.spp, rmse });
             }
         } else {
             let opts = renderers::RenderOptions {
@@ -351,30 +521,52 @@ impl Component for Image {
                 }
             }
             p.spp += 1;
+            p.secs += t0.elapsed().as_secs_f64();
+            if let Some(rmse) = half_difference_rmse(&p.sum, &p.even, p.spp) {
+                p.curve.push(crate::component::ConvergencePoint { secs: p.secs, spp: p.spp, rmse });
+            }
+            let n = p.spp as f32;
+            let avg = renderers::Film {
+                width: ctx.width,
+                height: ctx.height,
+                pixels: p.sum.iter().map(|v| *v / n).collect(),
+            };
+            self.traced =
+                Some(Picture { width: ctx.width, height: ctx.height, rgba: avg.to_srgb8(self.settings.exposure, 4) });
         }
-        p.secs += t0.elapsed().as_secs_f64();
-        if let Some(rmse) = half_difference_rmse(&p.sum, &p.even, p.spp) {
-            p.curve.push(crate::component::ConvergencePoint { secs: p.secs, spp: p.spp, rmse });
-        }
-        let n = p.spp as f32;
-        let avg =
-            renderers::Film { width: ctx.width, height: ctx.height, pixels: p.sum.iter().map(|v| *v / n).collect() };
-        self.picture =
-            Some(Picture { width: ctx.width, height: ctx.height, rgba: avg.to_srgb8(self.settings.exposure, 4) });
-        self.texture = None;
         self.generation += 1;
         Ok(true)
     }
     fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
-        let Some(pic) = &self.picture else {
+        let traced = self.traces_at(ctx.sources, ctx.camera);
+        self.shown_traced = traced;
+        if traced
+            && let Some(p) = &self.progressive
+            && p.key == Some((*ctx.camera, ctx.target.width, ctx.target.height))
+            && let Some(halves) = p.gpu.as_ref().and_then(|g| g.halves.as_ref())
+        {
+            let f = self.film.get_or_insert_with(|| FilmDrawer::new(ctx.gpu));
+            f.draw(ctx, halves, self.settings.exposure, self.settings.opacity);
+            return Ok(());
+        }
+        // A traced picture only for the view it was traced from: never one misregistered.
+        let pic = if traced {
+            self.traced
+                .as_ref()
+                .filter(|t| self.progressive.as_ref().is_some_and(|p| p.key == Some((*ctx.camera, t.width, t.height))))
+        } else {
+            self.recorded.as_ref()
+        };
+        let Some(pic) = pic else {
             crate::draw::clear_layer(ctx.gpu, ctx.target);
             return Ok(());
         };
-        if self.texture.as_ref().is_none_or(|(g, _)| *g != self.generation) {
-            self.texture = Some((self.generation, ctx.gpu.rgba_texture("image", pic.width, pic.height, &pic.rgba)));
+        if self.texture.as_ref().is_none_or(|(t, g, _)| *t != traced || *g != self.generation) {
+            self.texture =
+                Some((traced, self.generation, ctx.gpu.rgba_texture("image", pic.width, pic.height, &pic.rgba)));
         }
         let b = self.blitter.get_or_insert_with(|| Blitter::new(ctx.gpu));
-        if let Some((_, t)) = &self.texture {
+        if let Some((_, _, t)) = &self.texture {
             b.draw(ctx, t, self.settings.opacity);
         }
         Ok(())
@@ -386,11 +578,18 @@ impl Component for Image {
         self.progressive.as_ref().map_or_else(Vec::new, |p| p.curve.clone())
     }
     fn report(&self) -> Vec<String> {
-        match self.settings.source {
-            ImageSource::Trace => vec![format!("image: path traced, {} samples per pixel", self.spp())],
-            ImageSource::Gpu => vec![format!("image: path traced on the GPU, {} samples per pixel", self.spp())],
-            ImageSource::Dataset => Vec::new(),
+        let Some(p) = &self.progressive else { return Vec::new() };
+        let mut r = Vec::new();
+        if let Some(why) = &p.gpu_failed
+            && self.settings.source != ImageSource::Cpu
+        {
+            r.push(format!("image: the GPU tracer cannot run here ({why}); tracing on the CPU"));
         }
+        if self.shown_traced && p.spp > 0 {
+            let on = if p.gpu.is_some() { " on the GPU" } else { "" };
+            r.push(format!("image: path traced{on}, {} samples per pixel", p.spp));
+        }
+        r
     }
 }
 

@@ -69,6 +69,11 @@ pub enum ImmediateTracer {
     Gpu,
 }
 
+impl ImmediateTracer {
+    /// The values of the `tracer` setting (the viewer's drop-down).
+    pub const NAMES: &'static [&'static str] = &["cpu", "gpu"];
+}
+
 impl Default for RaysSettings {
     fn default() -> Self {
         RaysSettings {
@@ -523,6 +528,9 @@ impl Component for Rays {
     fn settings(&self) -> serde_json::Value {
         serde_json::to_value(&self.settings).unwrap_or_default()
     }
+    fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
+        vec![("tracer", ImmediateTracer::NAMES)]
+    }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
         let s: RaysSettings = decode_settings("rays", v)?;
         s.predicate()?;
@@ -588,7 +596,7 @@ impl Component for Rays {
                     message: format!("tracer \"gpu\": {e}"),
                 };
                 if self.gpu.is_none() {
-                    self.gpu = Some(gpu_tracer::GpuTracer::new(&s, &bvh).map_err(layer_err)?);
+                    self.gpu = Some(gpu_tracer::GpuTracer::with_gpu(ctx.gpu, &s, &bvh).map_err(layer_err)?);
                 }
                 if let Some(g) = self.gpu.as_mut() {
                     g.set_camera(s.camera);

@@ -633,7 +633,7 @@ fn component_ui(ui: &mut Ui, s: &mut State, q: &mut QueryService, id: u64) {
     ui.separator();
     ui.label(RichText::new("Settings").strong());
     let mut v = s.settings_of(id).unwrap_or(serde_json::Value::Null);
-    if crate::settings_ui::edit(ui, egui::Id::unique(("settings", id)), &mut v) {
+    if crate::settings_ui::edit(ui, egui::Id::unique(("settings", id)), &mut v, &l.choices) {
         s.edits.insert(id, v.clone());
         s.cmds.push(Cmd::Settings(l.id, v));
     }

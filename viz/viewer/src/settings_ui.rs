@@ -1,13 +1,14 @@
 //! A component's settings (plain JSON, as every component serializes them) as widgets: booleans
 //! as checkboxes, numbers as drag values, strings as text fields, arrays of numbers as rows of
-//! drag values, and unset options as a field that takes any JSON value. The component checks
+//! drag values, settings with a few allowed values (`Component::choices`) as drop-downs, and
+//! unset options as a field that takes any JSON value. The component checks
 //! what it is given; its error is shown beside the settings and the worker keeps the old ones.
 
 use egui::Ui;
 use serde_json::Value;
 
 /// Draws the editor; returns whether anything changed (the caller sends the new settings).
-pub fn edit(ui: &mut Ui, id: egui::Id, settings: &mut Value) -> bool {
+pub fn edit(ui: &mut Ui, id: egui::Id, settings: &mut Value, choices: &[(&str, &[&str])]) -> bool {
     let Value::Object(map) = settings else {
         ui.label("(no settings)");
         return false;
@@ -16,8 +17,26 @@ pub fn edit(ui: &mut Ui, id: egui::Id, settings: &mut Value) -> bool {
     egui::Grid::new(id).num_columns(2).striped(true).show(ui, |ui| {
         for (key, value) in map.iter_mut() {
             ui.label(key.replace('_', " "));
-            changed |= field(ui, id.with(key.as_str()), value);
+            match choices.iter().find(|(k, _)| k == key) {
+                Some((_, values)) => changed |= choice(ui, id.with(key.as_str()), value, values),
+                None => changed |= field(ui, id.with(key.as_str()), value),
+            }
             ui.end_row();
+        }
+    });
+    changed
+}
+
+/// One of `values`, as a drop-down.
+fn choice(ui: &mut Ui, id: egui::Id, value: &mut Value, values: &[&str]) -> bool {
+    let current = value.as_str().unwrap_or_default().to_string();
+    let mut changed = false;
+    egui::ComboBox::from_id_salt(id).selected_text(current.clone()).show_ui(ui, |ui| {
+        for v in values {
+            if ui.selectable_label(current == *v, *v).clicked() && current != *v {
+                *value = Value::String((*v).to_string());
+                changed = true;
+            }
         }
     });
     changed

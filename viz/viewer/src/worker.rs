@@ -47,6 +47,8 @@ pub struct LayerInfo {
     pub name: String,
     pub enabled: bool,
     pub settings: serde_json::Value,
+    /// Settings that take one of a few values, with those values (drawn as drop-downs).
+    pub choices: Vec<(&'static str, &'static [&'static str])>,
     pub legend: Vec<Legend>,
     pub report: Vec<String>,
     pub renders: u64,
@@ -356,6 +358,7 @@ fn layers(p: &Pipeline) -> Vec<LayerInfo> {
             name: l.component.display_name(),
             enabled: l.enabled,
             settings: l.component.settings(),
+            choices: l.component.choices(),
             legend: l.component.legend(),
             report: l.component.report(),
             renders: l.renders,
@@ -383,7 +386,7 @@ fn apply(
             Ok(s) => s,
             Err(e) => return Some(Event::OpenFailed { source, message: e.to_string() }),
         };
-        let gpu = match Gpu::headless() {
+        let gpu = match Gpu::shared() {
             Ok(g) => g,
             Err(e) => return Some(Event::OpenFailed { source, message: e.to_string() }),
         };

@@ -50,6 +50,10 @@ fn harness(sources: Vec<Source>) -> Harness<'static, Viewer> {
 }
 
 fn harness_with(options: ViewerOptions) -> Harness<'static, Viewer> {
+    // No adapter: fail in a second naming the package, not after waiting for frames.
+    if let Err(e) = rtvtk_gpu::Gpu::shared() {
+        panic!("the viewer tests need a GPU adapter: {e}");
+    }
     let v = Viewer::new(options, None).unwrap();
     Harness::builder()
         .with_size([1280.0, 800.0])
@@ -69,6 +73,10 @@ fn wait(h: &mut Harness<'static, Viewer>, what: &str, done: impl Fn(&Viewer) -> 
             return;
         }
         let errors: Vec<_> = h.state().state.messages.iter().filter(|m| m.0).map(|m| m.1.clone()).collect();
+        // A GPU that cannot draw fails the test now, not after the time limit.
+        if let Some(e) = errors.iter().find(|e| e.contains("GPU") || e.contains("adapter")) {
+            panic!("waiting for {what}: the GPU failed: {e}");
+        }
         let v = h.state();
         assert!(
             t0.elapsed() < Duration::from_secs(240),
@@ -262,7 +270,7 @@ fn ctrl_click_traces(gpu: bool) {
     let layer = |v: &Viewer, kind: &str| v.state.layers.iter().find(|l| l.kind == kind).unwrap().clone();
     let tracer = if gpu { "gpu" } else { "cpu" };
     assert_eq!(layer(h.state(), "rays").settings["tracer"], tracer);
-    assert_eq!(layer(h.state(), "image").settings["source"], if gpu { "gpu" } else { "trace" });
+    assert_eq!(layer(h.state(), "image").settings["source"], if gpu { "gpu" } else { "auto" });
     let (rect, size) = h.state().state.image_rect.unwrap();
     let (px, py) = (size[0] / 2, size[1] * 2 / 3);
     let pos = rect.min
