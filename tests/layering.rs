@@ -115,6 +115,15 @@ fn dependency_direction_holds() {
     assert!(g.closure("rtvtk-cluster").contains("ballista-executor"));
     forbid(&g, "rtvtk-renderers", &["rtvtk-query", "rtvtk-viz", "datafusion"]);
     forbid(&g, "rtvtk-renderers", &["egui", "eframe", "winit"]);
+    // The one GPU context: wgpu alone, nothing of ours; the GPU tracer, viz and the viewer share it.
+    forbid(
+        &g,
+        "rtvtk-gpu",
+        &["rtvtk-store", "rl", "rtvtk-renderers", "rtvtk-query", "rtvtk-viz", "datafusion", "egui", "eframe", "winit"],
+    );
+    for user in ["rtvtk-gpu-tracer", "rtvtk-viz", "rtvtk-viewer"] {
+        assert!(g.closure(user).contains("rtvtk-gpu"), "{user} must draw on rtvtk-gpu's device");
+    }
     // The GPU tracer: wgpu over the renderers' scenes, nothing of the SQL engine, viz or GUI.
     forbid(&g, "rtvtk-gpu-tracer", &["datafusion", "rtvtk-query", "rtvtk-viz", "egui", "eframe", "winit"]);
     assert!(g.closure("rtvtk-gpu-tracer").contains("rtvtk-renderers"));

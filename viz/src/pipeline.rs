@@ -305,7 +305,9 @@ impl Pipeline {
         l.component.trace_ray(&mut ctx, pixel)
     }
 
-    /// Renders the layers that changed and composites all shown layers into the output.
+    /// Renders the layers that changed and composites all shown layers into the output: an
+    /// `Rgba8Unorm` texture of display values (gamma space, as egui-wgpu's own textures are, so
+    /// the viewer's window samples it as it is), the same texture until the size changes.
     pub fn render(&mut self) -> Result<&wgpu::Texture> {
         let size = [self.width, self.height];
         for l in self.layers.iter_mut().filter(|l| l.enabled) {

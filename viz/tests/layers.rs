@@ -407,6 +407,22 @@ fn the_image_follows_the_camera_and_returns_to_the_recorded_picture() {
 }
 
 #[test]
+fn the_output_texture_is_what_a_window_samples_without_a_read_back() {
+    // The viewer's window registers the pipeline's output with egui-wgpu, whose native textures
+    // are gamma-space Rgba8Unorm: the picture's own bytes, the same texture frame after frame.
+    let mut p = pipeline(&[("image", Value::Null), ("composition", Value::Null), ("rays", json!({"pixel": [48, 54]}))]);
+    let picture = p.snapshot(false).unwrap();
+    let gpu = p.gpu.clone();
+    let out = p.render().unwrap().clone();
+    assert_eq!(out.format(), wgpu::TextureFormat::Rgba8Unorm);
+    assert_eq!(gpu.read_rgba(&out).unwrap(), picture.into_raw());
+    let mut c = p.camera();
+    c.orbit(0.1, 0.0);
+    p.set_camera(c).unwrap();
+    assert_eq!(p.render().unwrap(), &out, "the same texture, drawn again");
+}
+
+#[test]
 fn ctrl_click_traces_a_pixel_with_no_dataset_loaded() {
     // Immediate mode: the scene alone (no dataset), the ray layer traces one pixel's tree through
     // `rl` immediate mode and draws it at once; a pixel outside the view is refused.

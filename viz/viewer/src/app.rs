@@ -10,9 +10,10 @@ use viz::{Legend, ViewCamera};
 
 use crate::query_service::{QueryService, Tag, Target};
 pub use crate::state::{
-    ConsoleState, InspectorState, Pane, PlotState, Resolution, STORAGE_KEY, Saved, Selection, Shown, State, select,
+    ConsoleState, InspectorState, Pane, PlotState, Resolution, STORAGE_KEY, Saved, Selection, Shown, ShownTexture,
+    State, select,
 };
-use crate::worker::{Cmd, Event, LayerInfo, LayerSpec, Source, Worker};
+use crate::worker::{Cmd, Event, LayerInfo, LayerSpec, Pixels, Source, Worker};
 
 /// How the viewer starts.
 #[derive(Clone, Debug, Default)]
@@ -57,6 +58,8 @@ pub struct Viewer {
     options: ViewerOptions,
     screenshot_asked: bool,
     settled_frames: u32,
+    /// The window's render state, where frames are drawn from the pipeline's display texture.
+    display: Option<egui_wgpu::RenderState>,
 }
 
 fn default_tree() -> egui_tiles::Tree<Pane> {
@@ -80,12 +83,24 @@ fn default_tree() -> egui_tiles::Tree<Pane> {
 }
 
 impl Viewer {
-    /// A viewer over `options.sources`, restoring what `saved` holds.
+    /// A viewer over `options.sources`, restoring what `saved` holds; its frames cross to the UI
+    /// as RGBA (the UI may draw on another device, as egui_kittest's does).
     pub fn new(options: ViewerOptions, saved: Option<Saved>) -> crate::Result<Viewer> {
+        Viewer::with_display(options, saved, None)
+    }
+
+    /// The same in a window drawn on the process's GPU device (`display`, eframe's render
+    /// state, already shared through `rtvtk_gpu::Gpu::share`): frames stay on the GPU, sampled
+    /// by egui from the pipeline's output texture.
+    pub fn with_display(
+        options: ViewerOptions,
+        saved: Option<Saved>,
+        display: Option<egui_wgpu::RenderState>,
+    ) -> crate::Result<Viewer> {
         let waker = Waker::default();
         let w = waker.clone();
         let wake: Arc<dyn Fn() + Send + Sync> = Arc::new(move || w.wake());
-        let worker = Worker::spawn(wake.clone(), options.gpu);
+        let worker = Worker::spawn(wake.clone(), options.gpu, display.is_some());
         let datasets: Vec<PathBuf> = options
             .sources
             .iter()
@@ -136,7 +151,17 @@ impl Viewer {
             status_rect: None,
             top_rect: None,
         };
-        let mut v = Viewer { state, tree, worker, queries, waker, options, screenshot_asked: false, settled_frames: 0 };
+        let mut v = Viewer {
+            state,
+            tree,
+            worker,
+            queries,
+            waker,
+            options,
+            screenshot_asked: false,
+            settled_frames: 0,
+            display,
+        };
         match first {
             Some(s) => v.open(s),
             None => v.state.info("nothing to show yet: open a dataset or a scene (top bar)"),
@@ -196,20 +221,52 @@ impl Viewer {
                     s.error(format!("cannot open {}: {message}", source.label()));
                 }
                 Event::Frame(f) => {
-                    let img =
-                        egui::ColorImage::from_rgba_unmultiplied([f.size[0] as usize, f.size[1] as usize], &f.rgba);
-                    match &mut s.shown {
-                        Some(sh) => {
-                            sh.texture.set(img, egui::TextureOptions::LINEAR);
-                            sh.size = f.size;
-                            sh.ms = f.ms;
-                            sh.frames += 1;
+                    let texture = match (f.pixels, &self.display) {
+                        (Pixels::Texture(t), Some(rs)) => {
+                            let view = t.create_view(&Default::default());
+                            let mut r = rs.renderer.write();
+                            match s.shown.as_ref().map(|sh| &sh.texture) {
+                                // The same texture: egui samples what the worker drew last.
+                                Some(ShownTexture::Native { id, texture }) if *texture == t => {
+                                    ShownTexture::Native { id: *id, texture: t }
+                                }
+                                Some(ShownTexture::Native { id, .. }) => {
+                                    r.update_egui_texture_from_wgpu_texture(
+                                        &rs.device,
+                                        &view,
+                                        wgpu::FilterMode::Linear,
+                                        *id,
+                                    );
+                                    ShownTexture::Native { id: *id, texture: t }
+                                }
+                                _ => {
+                                    let id = r.register_native_texture(&rs.device, &view, wgpu::FilterMode::Linear);
+                                    ShownTexture::Native { id, texture: t }
+                                }
+                            }
                         }
-                        None => {
-                            let texture = ctx.load_texture("pipeline", img, egui::TextureOptions::LINEAR);
-                            s.shown = Some(Shown { texture, size: f.size, ms: f.ms, frames: 1 });
+                        (Pixels::Texture(_), None) => {
+                            s.error("a frame came as a GPU texture, but this UI has no GPU device to draw it");
+                            continue;
                         }
-                    }
+                        (Pixels::Rgba(rgba), _) => {
+                            let img = egui::ColorImage::from_rgba_unmultiplied(
+                                [f.size[0] as usize, f.size[1] as usize],
+                                &rgba,
+                            );
+                            match s.shown.as_mut().map(|sh| &mut sh.texture) {
+                                Some(ShownTexture::Egui(h)) => {
+                                    h.set(img, egui::TextureOptions::LINEAR);
+                                    ShownTexture::Egui(h.clone())
+                                }
+                                _ => {
+                                    ShownTexture::Egui(ctx.load_texture("pipeline", img, egui::TextureOptions::LINEAR))
+                                }
+                            }
+                        }
+                    };
+                    let frames = s.shown.as_ref().map_or(0, |sh| sh.frames) + 1;
+                    s.shown = Some(Shown { texture, size: f.size, ms: f.ms, frames });
                 }
                 Event::Layers(l) => {
                     for info in &l {

@@ -66,7 +66,8 @@ pub fn run(options: ViewerOptions) -> Result<()> {
                 rtvtk_gpu::Gpu::share(rtvtk_gpu::Gpu::from_device(&rs.adapter, rs.device.clone(), rs.queue.clone()));
             }
             let saved = if screenshot { None } else { cc.storage.and_then(|s| eframe::get_value(s, app::STORAGE_KEY)) };
-            let v = Viewer::new(options, saved).map_err(|e| Box::new(e) as Box<dyn std::error::Error + Send + Sync>)?;
+            let v = Viewer::with_display(options, saved, cc.wgpu_render_state.clone())
+                .map_err(|e| Box::new(e) as Box<dyn std::error::Error + Send + Sync>)?;
             Ok(Box::new(App(v)))
         }),
     )

@@ -90,8 +90,25 @@ pub struct PlotState {
 }
 
 /// The last frame the worker delivered.
+/// The texture the render window shows.
+pub enum ShownTexture {
+    /// Uploaded by egui from read-back RGBA.
+    Egui(egui::TextureHandle),
+    /// The pipeline's output texture on the window's device, registered with egui-wgpu once.
+    Native { id: egui::TextureId, texture: wgpu::Texture },
+}
+
+impl ShownTexture {
+    pub fn id(&self) -> egui::TextureId {
+        match self {
+            ShownTexture::Egui(h) => h.id(),
+            ShownTexture::Native { id, .. } => *id,
+        }
+    }
+}
+
 pub struct Shown {
-    pub texture: egui::TextureHandle,
+    pub texture: ShownTexture,
     pub size: [u32; 2],
     pub ms: f64,
     pub frames: u64,

@@ -86,10 +86,19 @@ pub struct Opened {
 /// A composited frame, read back (RGBA8, rows top to bottom).
 pub struct Rendered {
     pub size: [u32; 2],
-    pub rgba: Vec<u8>,
-    /// Milliseconds the render and read-back took.
+    pub pixels: Pixels,
+    /// Milliseconds the render (and read-back, for RGBA) took.
     pub ms: f64,
     pub camera: ViewCamera,
+}
+
+/// How a frame crosses to the UI.
+pub enum Pixels {
+    /// Read back (a UI on another device: the kittest harness's).
+    Rgba(Vec<u8>),
+    /// The pipeline's output texture on the window's own device (`Pipeline::render`): nothing
+    /// read back.
+    Texture(wgpu::Texture),
 }
 
 pub enum Cmd {
@@ -152,15 +161,19 @@ impl Worker {
     /// Starts the thread; `wake` is called whenever an event is ready (the UI's repaint).
     /// The render thread; `gpu`: the default layers trace with the GPU path tracer (image
     /// source and immediate mode).
-    pub fn spawn(wake: Arc<dyn Fn() + Send + Sync>, gpu: bool) -> Worker {
+    /// The render thread; with `share_frames` a frame crosses as the pipeline's display texture
+    /// (the caller's window draws on the process's device, `rtvtk_gpu::Gpu::share`), else as RGBA.
+    pub fn spawn(wake: Arc<dyn Fn() + Send + Sync>, gpu: bool, share_frames: bool) -> Worker {
         let (tx, crx) = channel();
         let (etx, rx) = channel();
         let pending = Arc::new(std::sync::atomic::AtomicUsize::new(0));
         let p = pending.clone();
         let progress: Arc<viz::component::Progress> = Arc::default();
         let pr = progress.clone();
-        let thread =
-            std::thread::Builder::new().name("rtvtk-render".into()).spawn(move || run(crx, etx, wake, p, pr, gpu)).ok();
+        let thread = std::thread::Builder::new()
+            .name("rtvtk-render".into())
+            .spawn(move || run(crx, etx, wake, p, pr, gpu, share_frames))
+            .ok();
         Worker { tx, rx, thread, pending, progress }
     }
 
@@ -245,6 +258,7 @@ fn run(
     pending: Arc<std::sync::atomic::AtomicUsize>,
     progress: Arc<viz::component::Progress>,
     gpu_tracing: bool,
+    share_frames: bool,
 ) {
     let send = |e: Event| {
         let _ = tx.send(e);
@@ -327,16 +341,20 @@ fn run(
             if dirty {
                 dirty = false;
                 let t0 = Instant::now();
-                let frame = s.pipeline.render().map(|_| ()).and_then(|_| s.pipeline.snapshot(false));
+                let frame = if share_frames {
+                    s.pipeline.render().map(|t| Pixels::Texture(t.clone()))
+                } else {
+                    s.pipeline.snapshot(false).map(|img| Pixels::Rgba(img.into_raw()))
+                };
                 match frame {
-                    Ok(img) => {
-                        let size = [img.width(), img.height()];
+                    Ok(pixels) => {
+                        let size = s.pipeline.size();
                         let ms = t0.elapsed().as_secs_f64() * 1e3;
                         if s.pipeline.preview.is_none() {
                             last_full_ms = ms;
                         }
                         let camera = s.pipeline.camera();
-                        send(Event::Frame(Rendered { size, rgba: img.into_raw(), ms, camera }));
+                        send(Event::Frame(Rendered { size, pixels, ms, camera }));
                     }
                     Err(e) => send(Event::Error { layer: None, message: e.to_string() }),
                 }
