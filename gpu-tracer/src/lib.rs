@@ -512,8 +512,7 @@ impl GpuTracer {
 
     /// The first `bytes` of a storage buffer (made with `COPY_SRC`).
     fn read_back<T: Pod>(&self, buf: &wgpu::Buffer, bytes: u64) -> Result<Vec<T>> {
-        let data = self.gpu.read_buffer(buf, bytes)?;
-        Ok(data.chunks_exact(std::mem::size_of::<T>()).map(bytemuck::pod_read_unaligned).collect())
+        Ok(self.gpu.read_values(buf, bytes)?)
     }
 
     /// Visits the nearer of two hit BVH children first (the default) or always the first one

@@ -223,6 +223,14 @@ impl Gpu {
 
     /// The first `bytes` of `buf` (made with `COPY_SRC`), read back.
     pub fn read_buffer(&self, buf: &wgpu::Buffer, bytes: u64) -> Result<Vec<u8>> {
+        self.read_values(buf, bytes)
+    }
+
+    /// The first `bytes` of `buf` (made with `COPY_SRC`) read back as values of `T`, cast
+    /// straight from the mapped range (a whole number of them: `bytes` is rounded down).
+    pub fn read_values<T: bytemuck::Pod>(&self, buf: &wgpu::Buffer, bytes: u64) -> Result<Vec<T>> {
+        let size = std::mem::size_of::<T>().max(1) as u64;
+        let bytes = bytes / size * size;
         if bytes == 0 {
             return Ok(Vec::new());
         }
@@ -235,7 +243,11 @@ impl Gpu {
         let mut enc = self.device.create_command_encoder(&Default::default());
         enc.copy_buffer_to_buffer(buf, 0, &read, 0, bytes);
         self.queue.submit([enc.finish()]);
-        self.map_read(&read, <[u8]>::to_vec)
+        self.map_read(&read, |data| match bytemuck::try_cast_slice::<u8, T>(data) {
+            Ok(v) => v.to_vec(),
+            // A mapped range is aligned to wgpu::MAP_ALIGNMENT; a type aligned wider is copied.
+            Err(_) => data.chunks_exact(size as usize).map(bytemuck::pod_read_unaligned).collect(),
+        })
     }
 
     /// A 2D texture of `format` that passes render into, samples, copies from and to.
