@@ -271,9 +271,11 @@ fn demo_draws_a_picture_and_render_draws_layers() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("t");
     demo(&dir);
-    // The demo's layered picture: 32x24 drawn 8x larger (small images are enlarged up to 8x).
-    let pic = image::open(dir.join("demo.png")).unwrap().to_rgba8();
+    // The demo's layered picture: 32x24 drawn 8x larger (small images are enlarged up to 8x), the
+    // same on every backend (check.sh runs this test on Vulkan and on GL).
+    let pic = image::open(dir.join("demo.png")).unwrap_or_else(|e| panic!("demo.png: {e}")).to_rgba8();
     assert_eq!(pic.dimensions(), (256, 192));
+    common::snapshot("demo", &pic);
     let d = dir.to_str().unwrap();
     let out_png = tmp.path().join("layers.png");
     let out = rtvtk(&[
@@ -315,6 +317,23 @@ fn demo_draws_a_picture_and_render_draws_layers() {
     ]);
     let msg = String::from_utf8_lossy(&e.stderr);
     assert!(msg.contains("origin_x") && msg.contains("x, y, z") && msg.contains("kind"), "{msg}");
+    // No adapter at all: the demo still writes its trace, names the package to install and
+    // fails (exit 2) because its picture is missing.
+    let bare = tmp.path().join("no-adapter");
+    let e = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
+        .args(["demo", "--out", bare.to_str().unwrap(), "--size", "16x12", "--spp", "1"])
+        .env("WGPU_BACKEND", "dx12")
+        .output()
+        .unwrap();
+    if cfg!(target_os = "linux") {
+        let msg = String::from_utf8_lossy(&e.stderr);
+        assert_eq!(e.status.code(), Some(2), "{msg}");
+        assert!(msg.contains("mesa-vulkan-drivers") && msg.contains("libegl-mesa0"), "{msg}");
+        assert!(msg.contains("the trace is written"), "{msg}");
+        assert!(!bare.join("demo.png").exists());
+        let check = rtvtk(&["check", bare.to_str().unwrap()]);
+        assert!(check.status.success(), "the trace is whole: {}", String::from_utf8_lossy(&check.stdout));
+    }
     // No adapter at all (a backend this machine does not have): the error names the driver.
     let e = Command::new(env!("CARGO_BIN_EXE_rtvtk"))
         .args(["render", d, "--out", out_png.to_str().unwrap()])

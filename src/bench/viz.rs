@@ -87,5 +87,48 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
             println!("  {r}");
         }
     }
+    whole_frames(dataset, counts.first().copied().unwrap_or(0), (w, h), frames)
+}
+
+/// The whole pipeline's frame (image, composition and `n` rays, composited), as the viewer's
+/// window samples it from the GPU, beside the same frame read back as RGBA8 (how a frame crossed
+/// to the window before the window shared the pipeline's device). Frames alternate, so both see
+/// the same machine.
+fn whole_frames(dataset: &Path, n: u64, (w, h): (u32, u32), frames: usize) -> Result<()> {
+    let sources = Sources::open(dataset)?;
+    let mut p = rtvtk_viz::Pipeline::new(Gpu::shared()?, sources);
+    p.resize(w, h)?;
+    if p.sources.picture.is_some() {
+        p.add("image", &serde_json::Value::Null)?;
+    }
+    if p.sources.scene.is_some() {
+        p.add("composition", &serde_json::Value::Null)?;
+    }
+    p.add("rays", &serde_json::json!({"max_rays": n, "line_width": 1.0}))?;
+    p.render()?;
+    p.gpu.wait()?;
+    let (mut on_gpu, mut read_back) = (Vec::new(), Vec::new());
+    let mut cam = p.camera();
+    for i in 0..2 * frames {
+        cam.orbit(0.002, 0.0);
+        p.set_camera(cam)?;
+        let t = Instant::now();
+        let out = p.render()?.clone();
+        if i % 2 == 0 {
+            p.gpu.wait()?;
+            on_gpu.push(t.elapsed().as_secs_f64());
+        } else {
+            p.gpu.read_rgba(&out)?;
+            read_back.push(t.elapsed().as_secs_f64());
+        }
+    }
+    let (g, r) = (median(&mut on_gpu), median(&mut read_back));
+    println!();
+    println!("whole frame (image, composition, {n} rays; {w}x{h}), median of {frames} each, interleaved:");
+    println!("| frame | ms | frames/s |");
+    println!("|---|---|---|");
+    println!("| left on the GPU (the viewer's window samples it) | {:.2} | {:.1} |", g * 1e3, 1.0 / g);
+    println!("| read back as RGBA8 (a PNG; the window before) | {:.2} | {:.1} |", r * 1e3, 1.0 / r);
+    println!("read-back costs {:.2} ms a frame ({:.2}x)", (r - g) * 1e3, r / g);
     Ok(())
 }

@@ -423,6 +423,37 @@ fn the_output_texture_is_what_a_window_samples_without_a_read_back() {
 }
 
 #[test]
+fn where_the_gpu_tracer_cannot_run_the_image_is_traced_on_the_cpu_and_says_so() {
+    // An adapter that cannot run the GPU tracer (as an old GL driver: 8 storage buffers per stage,
+    // the tracer binds 12): source "gpu" traces on the CPU instead, never a failed picture, and
+    // its report says why once.
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+    let backends = wgpu::Backends::from_env().unwrap_or(wgpu::Backends::all());
+    let adapter = rtvtk_gpu::ranked(pollster::block_on(instance.enumerate_adapters(backends)))
+        .into_iter()
+        .next()
+        .expect("a GPU adapter");
+    let limits = wgpu::Limits { max_storage_buffers_per_shader_stage: 8, ..adapter.limits() };
+    let desc = wgpu::DeviceDescriptor { required_limits: limits, ..rtvtk_gpu::device_descriptor(&adapter) };
+    let (device, queue) = pollster::block_on(adapter.request_device(&desc)).unwrap();
+    let gpu = Gpu::from_device(&adapter, device, queue);
+    let e = gpu.compute_support(12).unwrap_err().to_string();
+    assert!(e.contains("8 storage buffers"), "{e}");
+    let mut p = Pipeline::new(gpu, Sources::open(dataset()).unwrap());
+    p.add("image", &json!({"source": "gpu", "max_spp": 2})).unwrap();
+    while p.idle().unwrap() {}
+    let r = p.report();
+    assert_eq!(
+        r.iter().filter(|l| l.contains("cannot run here") && l.contains("tracing on the CPU")).count(),
+        1,
+        "{r:?}"
+    );
+    assert!(r.iter().any(|l| l.contains("path traced, 2 samples per pixel")), "{r:?}");
+    assert!(!r.iter().any(|l| l.contains("on the GPU")), "{r:?}");
+    assert!(lit(&p.snapshot(false).unwrap()) > (W * H / 3) as usize, "a picture all the same");
+}
+
+#[test]
 fn ctrl_click_traces_a_pixel_with_no_dataset_loaded() {
     // Immediate mode: the scene alone (no dataset), the ray layer traces one pixel's tree through
     // `rl` immediate mode and draws it at once; a pixel outside the view is refused.
