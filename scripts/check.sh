@@ -33,6 +33,7 @@ cargo nextest run --workspace --locked --no-fail-fast
 # The same pictures on wgpu's GL backend (Mesa's llvmpipe, as on a machine with no Vulkan driver):
 # the layer snapshots, against the same stored pictures, and the demo's picture. The run above
 # took the Vulkan adapter (lavapipe), which is preferred where both are installed.
-WGPU_BACKEND=gl cargo nextest run --locked --no-fail-fast -p rtvtk-viz --test layers
-WGPU_BACKEND=gl cargo nextest run --locked --no-fail-fast -p rtvtk --test cli -E 'test(demo_draws_a_picture)'
+# The whole workspace's build (no other feature set to compile), filtered to those tests.
+WGPU_BACKEND=gl cargo nextest run --workspace --locked --no-fail-fast \
+  -E 'binary_id(rtvtk-viz::layers) | binary_id(rtvtk-gpu::device) | (binary_id(rtvtk::cli) & test(demo_draws_a_picture))'
 cargo test --workspace --doc --locked

@@ -21,7 +21,9 @@ rtvtk_missing_packages() {
 missing="$(rtvtk_missing_packages)"
 if [ -n "$missing" ]; then
   sudo=""
-  [ "$(id -u)" = 0 ] || { sudo -n true 2>/dev/null && sudo="sudo -n"; }
+  if [ "$(id -u)" != 0 ] && command -v sudo >/dev/null && sudo -n true 2>/dev/null; then
+    sudo="sudo -n"
+  fi
   if command -v apt-get >/dev/null && { [ "$(id -u)" = 0 ] || [ -n "$sudo" ]; }; then
     echo "installing the system packages the tests need: $missing"
     $sudo apt-get update -q

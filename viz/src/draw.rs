@@ -29,6 +29,73 @@ pub enum Blend {
     DepthOnly,
 }
 
+/// A pipeline that draws one full-screen triangle (`vs` and `fs` of the WGSL `source`) with
+/// premultiplied alpha into a colour target: into a layer (`layer`: with the layer's depth
+/// attachment, neither tested nor written) or into the output (no depth). `layout`: the bind
+/// group layouts when the shader's own deduction is not wanted (the compositor's depth textures).
+pub fn fullscreen_pipeline(
+    gpu: &Gpu,
+    label: &str,
+    source: &str,
+    layout: Option<&wgpu::PipelineLayout>,
+    layer: bool,
+) -> wgpu::RenderPipeline {
+    let module = gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    });
+    let targets = [Some(wgpu::ColorTargetState {
+        format: COLOR_FORMAT,
+        blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+        write_mask: wgpu::ColorWrites::ALL,
+    })];
+    gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        label: Some(label),
+        layout,
+        vertex: wgpu::VertexState {
+            module: &module,
+            entry_point: Some("vs"),
+            compilation_options: Default::default(),
+            buffers: &[],
+        },
+        primitive: Default::default(),
+        depth_stencil: layer.then(|| wgpu::DepthStencilState {
+            format: DEPTH_FORMAT,
+            depth_write_enabled: Some(false),
+            depth_compare: Some(wgpu::CompareFunction::Always),
+            stencil: Default::default(),
+            bias: Default::default(),
+        }),
+        multisample: Default::default(),
+        fragment: Some(wgpu::FragmentState {
+            module: &module,
+            entry_point: Some("fs"),
+            compilation_options: Default::default(),
+            targets: &targets,
+        }),
+        multiview_mask: None,
+        cache: None,
+    })
+}
+
+/// Draws the full-screen triangle of `pipeline` (a [`fullscreen_pipeline`] made for a layer)
+/// with bind group 0 `group` over the layer `target`, and submits it.
+pub fn fullscreen_into_layer(
+    gpu: &Gpu,
+    target: &LayerTarget,
+    pipeline: &wgpu::RenderPipeline,
+    group: &wgpu::BindGroup,
+) {
+    let mut enc = gpu.device.create_command_encoder(&Default::default());
+    {
+        let mut pass = layer_pass(&mut enc, target, true);
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, group, &[]);
+        pass.draw(0..3, 0..1);
+    }
+    gpu.queue.submit([enc.finish()]);
+}
+
 /// A triangle-list pipeline with the layout deduced from the shader (bind group 0).
 pub fn scene_pipeline(
     gpu: &Gpu,

@@ -51,15 +51,6 @@ struct Compositor {
 
 impl Compositor {
     fn new(gpu: &Gpu) -> Compositor {
-        let module = gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("composite"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("shaders/composite.wgsl").into()),
-        });
-        let targets = [Some(wgpu::ColorTargetState {
-            format: COLOR_FORMAT,
-            blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
-            write_mask: wgpu::ColorWrites::ALL,
-        })];
         // Colour and both depths as unfilterable float textures (a Depth32Float texture may be
         // bound so): the shader loads texels, and GLSL has no texel load of a depth texture.
         let texture = |binding| wgpu::BindGroupLayoutEntry {
@@ -95,27 +86,8 @@ impl Compositor {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        let pipeline = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("composite"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &module,
-                entry_point: Some("vs"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: Default::default(),
-            depth_stencil: None,
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &module,
-                entry_point: Some("fs"),
-                compilation_options: Default::default(),
-                targets: &targets,
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let source = include_str!("shaders/composite.wgsl");
+        let pipeline = crate::draw::fullscreen_pipeline(gpu, "composite", source, Some(&pipeline_layout), false);
         Compositor { pipeline, layout }
     }
 }

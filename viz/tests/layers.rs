@@ -10,8 +10,12 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use rl::{Recorder, RecorderOptions};
+
+#[path = "../../tests/common/snapshot.rs"]
+mod snapshot;
 use rtvtk_viz::{ComponentId, Gpu, Pipeline, Sources, ViewCamera};
 use serde_json::{Value, json};
+use snapshot::snapshot;
 
 const W: u32 = 96;
 const H: u32 = 72;
@@ -52,31 +56,6 @@ fn pipeline(layers: &[(&str, Value)]) -> Pipeline {
         p.add(k, s).unwrap();
     }
     p
-}
-
-/// Compares with `tests/snapshots/NAME.png` (rewritten with UPDATE_SNAPSHOTS=1): at most 0.5% of
-/// pixels may differ by more than 24/255 in a channel (lavapipe versions rasterize edges
-/// slightly differently).
-fn snapshot(name: &str, img: &image::RgbaImage) {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/snapshots").join(format!("{name}.png"));
-    if std::env::var_os("UPDATE_SNAPSHOTS").is_some() || !path.exists() && std::env::var_os("CI").is_none() {
-        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-        img.save(&path).unwrap();
-        return;
-    }
-    let want = image::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).to_rgba8();
-    assert_eq!(want.dimensions(), img.dimensions(), "{name}: size");
-    let bad = want
-        .pixels()
-        .zip(img.pixels())
-        .filter(|(a, b)| a.0.iter().zip(b.0.iter()).any(|(x, y)| x.abs_diff(*y) > 24))
-        .count();
-    let allowed = (want.width() * want.height()) as usize / 200;
-    if bad > allowed {
-        let new = path.with_extension("new.png");
-        img.save(&new).unwrap();
-        panic!("{name}: {bad} pixels differ (allowed {allowed}); wrote {}", new.display());
-    }
 }
 
 fn lit(img: &image::RgbaImage) -> usize {

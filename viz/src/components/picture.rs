@@ -8,7 +8,7 @@ use arrow::datatypes::{DataType, Float64Type, UInt32Type};
 use serde::{Deserialize, Serialize};
 
 use crate::component::{Component, ComponentId, IdleCtx, LayerRole, Legend, RenderCtx, decode_settings};
-use crate::gpu::{COLOR_FORMAT, Gpu};
+use crate::gpu::Gpu;
 use crate::legend::colour_map;
 use crate::sources::{Picture, Sources};
 use crate::{Error, Result};
@@ -27,42 +27,7 @@ struct BlitUniform {
 
 impl Blitter {
     pub fn new(gpu: &Gpu) -> Blitter {
-        let module = gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("blit"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("../shaders/blit.wgsl").into()),
-        });
-        let targets = [Some(wgpu::ColorTargetState {
-            format: COLOR_FORMAT,
-            blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
-            write_mask: wgpu::ColorWrites::ALL,
-        })];
-        let pipeline = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("blit"),
-            layout: None,
-            vertex: wgpu::VertexState {
-                module: &module,
-                entry_point: Some("vs"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: Default::default(),
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: crate::gpu::DEPTH_FORMAT,
-                depth_write_enabled: Some(false),
-                depth_compare: Some(wgpu::CompareFunction::Always),
-                stencil: Default::default(),
-                bias: Default::default(),
-            }),
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &module,
-                entry_point: Some("fs"),
-                compilation_options: Default::default(),
-                targets: &targets,
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let pipeline = crate::draw::fullscreen_pipeline(gpu, "blit", include_str!("../shaders/blit.wgsl"), None, true);
         let sampler = gpu.device.create_sampler(&wgpu::SamplerDescriptor {
             mag_filter: wgpu::FilterMode::Nearest,
             min_filter: wgpu::FilterMode::Linear,
@@ -84,14 +49,7 @@ impl Blitter {
                 wgpu::BindGroupEntry { binding: 2, resource: wgpu::BindingResource::Sampler(&self.sampler) },
             ],
         });
-        let mut enc = gpu.device.create_command_encoder(&Default::default());
-        {
-            let mut pass = crate::draw::layer_pass(&mut enc, ctx.target, true);
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &group, &[]);
-            pass.draw(0..3, 0..1);
-        }
-        gpu.queue.submit([enc.finish()]);
+        crate::draw::fullscreen_into_layer(gpu, ctx.target, &self.pipeline, &group);
     }
 }
 
@@ -177,42 +135,7 @@ struct FilmUniform {
 
 impl FilmDrawer {
     fn new(gpu: &Gpu) -> FilmDrawer {
-        let module = gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("film"),
-            source: wgpu::ShaderSource::Wgsl(include_str!("../shaders/film.wgsl").into()),
-        });
-        let targets = [Some(wgpu::ColorTargetState {
-            format: COLOR_FORMAT,
-            blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
-            write_mask: wgpu::ColorWrites::ALL,
-        })];
-        let pipeline = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("film"),
-            layout: None,
-            vertex: wgpu::VertexState {
-                module: &module,
-                entry_point: Some("vs"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: Default::default(),
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: crate::gpu::DEPTH_FORMAT,
-                depth_write_enabled: Some(false),
-                depth_compare: Some(wgpu::CompareFunction::Always),
-                stencil: Default::default(),
-                bias: Default::default(),
-            }),
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &module,
-                entry_point: Some("fs"),
-                compilation_options: Default::default(),
-                targets: &targets,
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let pipeline = crate::draw::fullscreen_pipeline(gpu, "film", include_str!("../shaders/film.wgsl"), None, true);
         FilmDrawer { pipeline }
     }
 
@@ -231,14 +154,7 @@ impl FilmDrawer {
                 wgpu::BindGroupEntry { binding: 2, resource: odd.accumulation().as_entire_binding() },
             ],
         });
-        let mut enc = gpu.device.create_command_encoder(&Default::default());
-        {
-            let mut pass = crate::draw::layer_pass(&mut enc, ctx.target, true);
-            pass.set_pipeline(&self.pipeline);
-            pass.set_bind_group(0, &group, &[]);
-            pass.draw(0..3, 0..1);
-        }
-        gpu.queue.submit([enc.finish()]);
+        crate::draw::fullscreen_into_layer(gpu, ctx.target, &self.pipeline, &group);
     }
 }
 

@@ -87,6 +87,19 @@ pub fn ui(ui: &mut Ui, s: &mut State, _q: &mut QueryService) {
         egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
         Color32::WHITE,
     );
+    // An image traced from the view says so where it is seen: the tracer and its samples per
+    // pixel as it refines (or why the GPU cannot trace here).
+    let notes: Vec<&String> =
+        s.layers.iter().filter(|l| l.enabled && l.kind == "image").flat_map(|l| l.report.iter()).collect();
+    for (i, n) in notes.iter().rev().enumerate() {
+        painter.text(
+            img.left_bottom() + egui::vec2(6.0, -6.0 - 15.0 * i as f32),
+            egui::Align2::LEFT_BOTTOM,
+            n.trim_start_matches("image: "),
+            egui::FontId::proportional(12.0),
+            Color32::from_gray(225),
+        );
+    }
     let to_pixel = |p: egui::Pos2| -> Option<[u32; 2]> {
         let u = (p - img.min) / img.size();
         (u.x >= 0.0 && u.y >= 0.0 && u.x < 1.0 && u.y < 1.0).then_some([(u.x * fw) as u32, (u.y * fh) as u32])
