@@ -10,9 +10,16 @@ pub const INSTALL_HINT: &str = "install Mesa's software drivers: `apt-get instal
 /// What opening or using the GPU can report.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// No adapter of any backend, or none that opens a device.
+    /// No adapter of any backend.
     #[error("no GPU adapter ({0}); {INSTALL_HINT}")]
     NoAdapter(String),
+    /// Adapters, but none opened a device (a driver that fails, e.g. wgpu's GL backend on
+    /// NVIDIA's proprietary driver, gfx-rs/wgpu#7068; or a backend forced by `WGPU_BACKEND`).
+    #[error(
+        "no GPU adapter opened a device ({0}); leave WGPU_BACKEND unset so that every backend is \
+         tried, or {INSTALL_HINT}"
+    )]
+    NoDevice(String),
     /// The adapter cannot do what a caller needs (compute shaders, enough storage buffers).
     #[error("{adapter} cannot {what}: {why}")]
     Unsupported { adapter: String, what: String, why: String },
@@ -124,11 +131,10 @@ impl Gpu {
                 Err(e) => tried.push(format!("{} ({:?}): {e}", info.name, info.backend)),
             }
         }
-        Err(Error::NoAdapter(if tried.is_empty() {
-            format!("wgpu found none on the backends {backends:?}")
-        } else {
-            format!("none opened a device: {}", tried.join("; "))
-        }))
+        if tried.is_empty() {
+            return Err(Error::NoAdapter(format!("wgpu found none on the backends {backends:?}")));
+        }
+        Err(Error::NoDevice(tried.join("; ")))
     }
 
     /// A device somebody else opened (eframe's, through egui-wgpu's render state); its
@@ -340,5 +346,7 @@ mod tests {
     fn the_install_hint_names_both_packages() {
         let e = Error::NoAdapter("wgpu found none".into()).to_string();
         assert!(e.contains("mesa-vulkan-drivers") && e.contains("libegl-mesa0"), "{e}");
+        let e = Error::NoDevice("NVIDIA H200 (Gl): Parent device is lost".into()).to_string();
+        assert!(e.contains("Parent device is lost") && e.contains("WGPU_BACKEND") && e.contains("libegl-mesa0"), "{e}");
     }
 }
