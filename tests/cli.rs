@@ -83,7 +83,7 @@ fn bad_input_gets_clear_errors_and_exit_codes() {
     assert!(s.contains("CRC32") && s.contains("000001.rays.parquet"), "{s}");
 }
 
-/// DuckDB (from PyPI; `.ci/run` installs it) reads the ray and tree tables as plain Parquet and
+/// DuckDB (from PyPI; `scripts/check.sh` installs it) reads the ray and tree tables as plain Parquet and
 /// counts what rtvtk counts: on the lossless files as recorded (kinds as codes) and on their plain
 /// export (kinds as names).
 #[test]

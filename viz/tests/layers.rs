@@ -2,9 +2,10 @@
 //! The layered visualizer on a small recorded Cornell box: registration, depth composition,
 //! lazy re-rendering, bad input, and each layer's picture against a stored PNG.
 //!
-//! Needs a GPU adapter: on a machine without a GPU, Mesa's lavapipe
-//! (`apt-get install mesa-vulkan-drivers`); `.ci/run` installs it. `UPDATE_SNAPSHOTS=1` rewrites
-//! the stored pictures (look at them before committing).
+//! Needs a GPU adapter: on a machine without a GPU, Mesa's lavapipe (`mesa-vulkan-drivers`) or
+//! llvmpipe on wgpu's GL backend (`libegl-mesa0`); `scripts/check.sh` installs both and runs these
+//! tests on each (`WGPU_BACKEND=gl` for the second) against the same stored pictures.
+//! `UPDATE_SNAPSHOTS=1` rewrites them (look at them before committing).
 
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
