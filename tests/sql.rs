@@ -356,3 +356,46 @@ fn bench_query_answers_agree_with_duckdb() {
     assert!(text.contains("gave the same answers to every query"), "{text}");
     assert_eq!(text.lines().filter(|l| l.contains("x |")).count(), 9, "{text}");
 }
+
+/// Every table the recording wrote is a SQL table (the scene's `triangles` too), its schema
+/// checked; a known table whose file lacks its columns is unavailable alone, with its name and
+/// the reason, and `rtvtk check` reports it while the rays stay queryable.
+#[test]
+fn every_recorded_table_is_queryable_and_a_broken_one_is_refused_alone() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().join("t");
+    record(&d, &["--record-visits"]);
+    let ds = d.to_str().unwrap();
+    let scene = renderers::BuiltinScene::Cornell.build(1).unwrap();
+    assert_eq!(scalar(&[ds], "SELECT count(*) FROM triangles"), scene.tris.len().to_string());
+    assert_eq!(scalar(&[ds], "SELECT count(*) FROM t.triangles"), scene.tris.len().to_string());
+    let emitters: u64 = scalar(&[ds], "SELECT count(*) FROM lights").parse().unwrap();
+    assert_eq!(emitters, scene.lights.len() as u64);
+    assert!(scalar(&[ds], "SELECT count(*) FROM bvh_nodes").parse::<u64>().unwrap() > 0);
+    let rays = scalar(&[ds], "SELECT count(*) FROM rays");
+
+    // `bvh_nodes`'s file replaced by the triangles' (none of its columns).
+    let file = |name: &str| {
+        let m: Value = serde_json::from_str(&std::fs::read_to_string(d.join("manifest.json")).unwrap()).unwrap();
+        d.join(m["tables"][name]["path"].as_str().unwrap())
+    };
+    std::fs::copy(file("triangles"), file("bvh_nodes")).unwrap();
+    assert_eq!(scalar(&[ds], "SELECT count(*) FROM rays"), rays, "the rays stay queryable");
+    assert_eq!(scalar(&[ds], "SELECT count(*) FROM triangles"), scene.tris.len().to_string());
+    let refused = |why: &str| {
+        let out = rtvtk(&["sql", ds, "SELECT count(*) FROM bvh_nodes"]);
+        let e = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && e.contains("`bvh_nodes`") && e.contains(why), "{e}");
+    };
+    refused("truncated or changed");
+    // The manifest made to agree with the file's size: now its columns are what is wrong.
+    let mut m: Value = serde_json::from_str(&std::fs::read_to_string(d.join("manifest.json")).unwrap()).unwrap();
+    m["tables"]["bvh_nodes"]["bytes"] = std::fs::metadata(file("bvh_nodes")).unwrap().len().into();
+    std::fs::write(d.join("manifest.json"), serde_json::to_string(&m).unwrap()).unwrap();
+    refused("is missing");
+    assert_eq!(scalar(&[ds], "SELECT count(*) FROM rays"), rays);
+    let out = rtvtk(&["check", ds]);
+    let report = String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{report}");
+    assert!(report.contains("`bvh_nodes`") && report.contains("is missing"), "{report}");
+}

@@ -6,7 +6,9 @@
 //! - `trees`: the segments' tree tables (plain Parquet in every format version).
 //! - `ray_paths`: every ray's path from its root as kind letters (`C D D S L`), for
 //!   light-path-expression filters with `regexp_like`.
-//! - `bvh_nodes`, `lights`, `ray_nodes`: the optional tables, when the recording wrote them.
+//! - every whole-dataset table the recording wrote (`triangles`, `lights`, `bvh_nodes`,
+//!   `ray_nodes`, a renderer's own), its schema checked against the known one; a table that
+//!   fails the check is unavailable alone (its queries say why), the rest stay queryable.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -169,10 +171,17 @@ pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualifi
         ("trees", listing(ctx, &src.path.join("segments"), ".trees.parquet", Some(store::tree_schema())).await?),
         ("ray_paths", Arc::new(RayPathsTable::new(ds.clone())?)),
     ];
-    for name in ["bvh_nodes", "lights", "ray_nodes"] {
-        if let Some(path) = ds.table_path(name) {
-            tables.push((name, listing(ctx, &path, ".parquet", None).await?));
-        }
+    // Every whole-dataset table the recording wrote (`triangles`, `lights`, `bvh_nodes`, ...),
+    // with its file's schema checked against the known one (`store::scene`); a table that fails
+    // the check is unavailable alone, and a query of it says why.
+    let names = ds.table_names();
+    for name in names.iter().filter(|n| !["rays", "trees", "ray_paths"].contains(&n.as_str())) {
+        let table: Arc<dyn TableProvider> = match (ds.table_schema(name), ds.table_path(name)) {
+            (Ok(Some(schema)), Some(path)) => listing(ctx, &path, ".parquet", Some(schema)).await?,
+            (Err(e), _) => Arc::new(Unavailable { name: name.clone(), message: e.to_string() }),
+            _ => continue,
+        };
+        tables.push((name.as_str(), table));
     }
     for (name, table) in tables {
         ctx.register_table(TableReference::partial(src.name.as_str(), name), table.clone())?;
@@ -181,6 +190,36 @@ pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualifi
         }
     }
     Ok(ds)
+}
+
+/// A table of the dataset that cannot be read (a known table whose file has a missing or
+/// mistyped column): registered so that a query of it fails naming the table and the reason,
+/// while every other table stays queryable.
+#[derive(Debug)]
+struct Unavailable {
+    name: String,
+    message: String,
+}
+
+#[async_trait::async_trait]
+impl TableProvider for Unavailable {
+    fn schema(&self) -> SchemaRef {
+        store::scene::known_table_schema(&self.name).unwrap_or_else(|| Arc::new(arrow::datatypes::Schema::empty()))
+    }
+
+    fn table_type(&self) -> datafusion::datasource::TableType {
+        datafusion::datasource::TableType::Base
+    }
+
+    async fn scan(
+        &self,
+        _state: &dyn datafusion::catalog::Session,
+        _projection: Option<&Vec<usize>>,
+        _filters: &[datafusion::logical_expr::Expr],
+        _limit: Option<usize>,
+    ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
+        Err(datafusion::error::DataFusionError::Plan(format!("table `{}` is unavailable: {}", self.name, self.message)))
+    }
 }
 
 /// A Parquet listing table over the files under `path` ending in `extension`.

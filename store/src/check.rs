@@ -202,6 +202,10 @@ fn check(ds: &Dataset) -> CheckReport {
             Ok(_) => {}
             Err(e) => r.errors.push(format!("table `{name}`: cannot read: {e} ({})", path.display())),
         }
+        // Its columns against the table's known schema (`store::scene`).
+        if let Err(e) = ds.table_schema(name) {
+            r.errors.push(e.to_string());
+        }
     }
     // Leftovers not listed in the manifest.
     let listed = listed_files(m);

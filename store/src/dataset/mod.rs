@@ -81,19 +81,8 @@ impl Dataset {
                 }
             }
         }
-        for (name, file) in &manifest.tables {
-            let path = dir.join(&file.path);
-            let message = match fs::metadata(&path) {
-                Ok(m) if m.len() == file.bytes => continue,
-                Ok(m) => format!(
-                    "expected {} bytes as the manifest records, found {}: truncated or changed",
-                    file.bytes,
-                    m.len()
-                ),
-                Err(e) => format!("listed in the manifest but cannot be read: {e}"),
-            };
-            return Err(Error::Table { name: name.clone(), path, message });
-        }
+        // Whole-dataset tables are checked when read (`table`, `table_schema`): a broken one is
+        // unavailable alone, the rays stay readable.
         let kinds = manifest.kind_table();
         let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();
         let metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
@@ -148,10 +137,32 @@ impl Dataset {
         self.manifest.segments.iter().map(|s| self.dir.join(&s.trees.path)).collect()
     }
 
+    /// The names of the whole-dataset tables the recording wrote (`triangles`, `lights`, ...),
+    /// sorted.
+    pub fn table_names(&self) -> Vec<String> {
+        self.manifest.tables.keys().cloned().collect()
+    }
+
+    /// The schema of a whole-dataset table as its file holds it, read from the Parquet footer
+    /// and checked against the table's known schema (`store::scene::check_table`: a known
+    /// table missing a column or with a column of another type is an `Error::Table` naming it);
+    /// `None` when the recording wrote no such table.
+    pub fn table_schema(&self, name: &str) -> Result<Option<SchemaRef>> {
+        let Some(path) = self.table_file(name)? else { return Ok(None) };
+        let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
+        let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
+        let schema = builder.schema().clone();
+        crate::scene::check_table(name, &schema).map_err(|message| Error::Table {
+            name: name.into(),
+            path,
+            message,
+        })?;
+        Ok(Some(schema))
+    }
+
     /// An optional whole-dataset table (`bvh_nodes`, `lights`, ...), if the recording wrote it.
     pub fn table(&self, name: &str) -> Result<Option<RecordBatch>> {
-        let Some(file) = self.manifest.tables.get(name) else { return Ok(None) };
-        let path = self.dir.join(&file.path);
+        let Some(path) = self.table_file(name)? else { return Ok(None) };
         let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
         let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
         let schema = builder.schema().clone();
@@ -166,6 +177,25 @@ impl Dataset {
             batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
         }
         concat_batches(&schema, &batches).map(Some).map_err(arrow_err(path.display().to_string()))
+    }
+
+    /// The file of a whole-dataset table, if the recording wrote it, checked to have the size
+    /// the manifest records (`Error::Table` naming the table when truncated, changed or gone).
+    fn table_file(&self, name: &str) -> Result<Option<PathBuf>> {
+        let Some(file) = self.manifest.tables.get(name) else { return Ok(None) };
+        let path = self.dir.join(&file.path);
+        let message = match fs::metadata(&path) {
+            Ok(m) if m.len() == file.bytes => return Ok(Some(path)),
+            Ok(m) => {
+                format!(
+                    "expected {} bytes as the manifest records, found {}: truncated or changed",
+                    file.bytes,
+                    m.len()
+                )
+            }
+            Err(e) => format!("listed in the manifest but cannot be read: {e}"),
+        };
+        Err(Error::Table { name: name.into(), path, message })
     }
 
     /// Path of an optional table's Parquet file, if the recording wrote it.
