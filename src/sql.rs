@@ -212,7 +212,7 @@ fn write(batches: &[RecordBatch], format: Format, out: Option<&std::path::Path>)
         Format::Csv => {
             let mut w = datafusion::arrow::csv::Writer::new(sink);
             for b in batches {
-                w.write(b)?;
+                w.write(&nested_as_text(b)?)?;
             }
         }
         Format::Json => {
@@ -232,6 +232,34 @@ fn write(batches: &[RecordBatch], format: Format, out: Option<&std::path::Path>)
         }
     }
     Ok(())
+}
+
+/// `batch` with its list, struct and map columns as text (`[a, b]`, `{x: 1}`, as the table
+/// format prints them): CSV has no nested values, and every format must print every result.
+fn nested_as_text(batch: &RecordBatch) -> Result<RecordBatch> {
+    use datafusion::arrow::array::{ArrayRef, StringBuilder};
+    use datafusion::arrow::datatypes::{DataType, Field, Schema};
+    use datafusion::arrow::util::display::{ArrayFormatter, FormatOptions};
+    if !batch.schema().fields().iter().any(|f| f.data_type().is_nested()) {
+        return Ok(batch.clone());
+    }
+    let mut fields = Vec::with_capacity(batch.num_columns());
+    let mut columns: Vec<ArrayRef> = Vec::with_capacity(batch.num_columns());
+    for (f, c) in batch.schema().fields().iter().zip(batch.columns()) {
+        if !f.data_type().is_nested() {
+            fields.push(f.as_ref().clone());
+            columns.push(c.clone());
+            continue;
+        }
+        let fmt = ArrayFormatter::try_new(c.as_ref(), &FormatOptions::default())?;
+        let mut text = StringBuilder::with_capacity(c.len(), c.len() * 16);
+        for i in 0..c.len() {
+            if c.is_null(i) { text.append_null() } else { text.append_value(fmt.value(i).to_string()) }
+        }
+        fields.push(Field::new(f.name(), DataType::Utf8, true));
+        columns.push(std::sync::Arc::new(text.finish()));
+    }
+    Ok(RecordBatch::try_new(std::sync::Arc::new(Schema::new(fields)), columns)?)
 }
 
 /// The query behind `\df` (the ray functions, with their descriptions) and `\df NAME` (any

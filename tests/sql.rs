@@ -399,3 +399,19 @@ fn every_recorded_table_is_queryable_and_a_broken_one_is_refused_alone() {
     assert_eq!(out.status.code(), Some(1), "{report}");
     assert!(report.contains("`bvh_nodes`") && report.contains("is missing"), "{report}");
 }
+
+/// Every output format prints every result: CSV renders list and struct values as text
+/// (`SHOW FUNCTIONS` has list columns).
+#[test]
+fn csv_prints_nested_values_as_text() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().join("t");
+    record(&d, &[]);
+    let out = rtvtk(&["sql", d.to_str().unwrap(), "SHOW FUNCTIONS LIKE 'aims_at_light'", "--format", "csv"]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.lines().count() >= 2 && text.contains("aims_at_light") && text.contains("[ox"), "{text}");
+    let out = rtvtk(&["sql", d.to_str().unwrap(), "SELECT [1, 2] AS l, named_struct('a', 1) AS s", "--format", "csv"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(String::from_utf8_lossy(&out.stdout).lines().nth(1), Some("\"[1, 2]\",{a: 1}"));
+}
