@@ -59,7 +59,8 @@ pub struct RenderArgs {
     pub line_width: f32,
     /// The image layer's source: auto (the recorded picture at the recorded camera, else traced
     /// from the view: on the GPU where the adapter allows, else on the CPU), dataset, cpu or gpu.
-    #[arg(long, default_value = "auto", value_parser = ["auto", "dataset", "cpu", "gpu"])]
+    #[arg(long, default_value = "auto",
+          value_parser = clap::builder::PossibleValuesParser::new(rtvtk_viz::components::picture::ImageSource::NAMES))]
     pub image_source: String,
     /// Samples per pixel of an image traced from the view (`--camera` away from the recorded one).
     #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]

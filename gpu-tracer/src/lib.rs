@@ -135,6 +135,11 @@ impl Progressive {
     pub fn size(&self) -> [u32; 2] {
         [self.width, self.height]
     }
+
+    /// The next `samples` sample indices, each at index 0 of its batch (one dispatch each).
+    fn next_samples(&self, samples: u32) -> Vec<(u32, u32)> {
+        (self.spp..self.spp.saturating_add(samples)).map(|s| (s, 0)).collect()
+    }
 }
 
 /// The buffers a recording dispatch writes its rays to.
@@ -164,9 +169,8 @@ fn check_size(w: u32, h: u32) -> Result<()> {
 
 /// A scene and its BVH on the GPU, with the compute pipelines that trace them.
 pub struct GpuTracer {
+    /// The device it traces on (its queue, limits and read-back).
     gpu: rtvtk_gpu::Gpu,
-    device: wgpu::Device,
-    queue: wgpu::Queue,
     nodes: wgpu::Buffer,
     tris: wgpu::Buffer,
     primary: wgpu::ComputePipeline,
@@ -180,8 +184,6 @@ pub struct GpuTracer {
     camera: renderers::Camera,
     /// Stand-ins for the recording buffers when not recording (bindings may not be missing).
     no_record: RecordBuffers,
-    /// The largest storage buffer binding the device allows.
-    max_binding: u64,
     module: wgpu::ShaderModule,
 }
 
@@ -221,9 +223,7 @@ impl GpuTracer {
     /// driver): the caller traces on the CPU instead.
     pub fn with_gpu(gpu: &rtvtk_gpu::Gpu, scene: &Scene, bvh: &Bvh) -> Result<GpuTracer> {
         gpu.compute_support(STORAGE_BUFFERS)?;
-        let device = gpu.device.clone();
-        let queue = gpu.queue.clone();
-        let max_binding = gpu.max_storage_binding();
+        let device = &gpu.device;
         let mut nodes: Vec<GpuNode> =
             bvh.binary_nodes().into_iter().map(|(min, max, first, count)| GpuNode { min, first, max, count }).collect();
         let mut tris: Vec<GpuTri> = bvh
@@ -321,7 +321,7 @@ impl GpuTracer {
             label: Some("trace"),
             source: wgpu::ShaderSource::Wgsl(include_str!("trace.wgsl").into()),
         });
-        let (primary, path) = gpu.capture("the tracing shaders", || pipelines(&device, &module, true))?;
+        let (primary, path) = gpu.capture("the tracing shaders", || pipelines(device, &module, true))?;
         let small = |label: &str, size: u64| {
             device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -338,8 +338,6 @@ impl GpuTracer {
         };
         Ok(GpuTracer {
             gpu: gpu.clone(),
-            device,
-            queue,
             nodes,
             tris,
             primary,
@@ -352,7 +350,6 @@ impl GpuTracer {
             light_area,
             camera: scene.camera,
             no_record,
-            max_binding,
             module,
         })
     }
@@ -371,7 +368,7 @@ impl GpuTracer {
             up: v4(up),
             params: [(c.fov_y.to_radians() * 0.5).tan(), w as f32 / h as f32, w as f32, h as f32],
         };
-        self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        self.gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("camera"),
             contents: bytemuck::bytes_of(&cam),
             usage: wgpu::BufferUsages::UNIFORM,
@@ -383,13 +380,13 @@ impl GpuTracer {
     pub fn progressive(&self, w: u32, h: u32, seed: u32, max_depth: u32) -> Result<Progressive> {
         check_size(w, h)?;
         // wgpu zero-fills new buffers: no samples yet.
-        let accum = self.device.create_buffer(&wgpu::BufferDescriptor {
+        let accum = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("accumulated radiance"),
             size: u64::from(w) * u64::from(h) * 16,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let totals = self.device.create_buffer(&wgpu::BufferDescriptor {
+        let totals = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("ray totals"),
             size: 32,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
@@ -401,8 +398,7 @@ impl GpuTracer {
     /// Adds `samples` path-traced samples per pixel to `p` (one dispatch each) and waits for
     /// them, counting the rays traced by kind (`Progressive::rays_by_kind`).
     pub fn trace(&self, p: &mut Progressive, samples: u32) -> Result<()> {
-        let batch: Vec<(u32, u32)> = (p.spp..p.spp.saturating_add(samples)).map(|s| (s, 0)).collect();
-        self.dispatch(p, [0, 0, p.width, p.height], &batch, None, false)?;
+        self.dispatch(p, [0, 0, p.width, p.height], &p.next_samples(samples), None, false)?;
         p.spp = p.spp.saturating_add(samples);
         Ok(())
     }
@@ -411,8 +407,7 @@ impl GpuTracer {
     /// rays are not counted (the visualizer's progressive image, tone-mapped on the GPU from
     /// [`Progressive::accumulation`]).
     pub fn accumulate(&self, p: &mut Progressive, samples: u32) {
-        let batch: Vec<(u32, u32)> = (p.spp..p.spp.saturating_add(samples)).map(|s| (s, 0)).collect();
-        self.submit(p, [0, 0, p.width, p.height], &batch, None, false);
+        self.submit(p, [0, 0, p.width, p.height], &p.next_samples(samples), None, false);
         p.spp = p.spp.saturating_add(samples);
     }
 
@@ -427,9 +422,9 @@ impl GpuTracer {
         rec: Option<&RecordBuffers>,
         bug: bool,
     ) -> Result<u32> {
-        let mut clear = self.device.create_command_encoder(&Default::default());
+        let mut clear = self.gpu.device.create_command_encoder(&Default::default());
         clear.clear_buffer(&p.totals, 0, None);
-        self.queue.submit([clear.finish()]);
+        self.gpu.queue.submit([clear.finish()]);
         self.submit(p, window, samples, rec, bug);
         let totals: Vec<u32> = self.read_back(&p.totals, 32)?;
         for (k, n) in p.rays_by_kind.iter_mut().zip(&totals[1..6]) {
@@ -448,14 +443,14 @@ impl GpuTracer {
         bug: bool,
     ) {
         let cam = self.camera_uniform(p.width, p.height);
-        let frame = self.device.create_buffer(&wgpu::BufferDescriptor {
+        let frame = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("frame"),
             size: std::mem::size_of::<GpuFrame>() as u64,
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
         let r = rec.unwrap_or(&self.no_record);
-        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        let group = self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: None,
             layout: &self.path.get_bind_group_layout(0),
             entries: &[
@@ -481,15 +476,15 @@ impl GpuTracer {
                 window,
                 rec: [u32::from(rec.is_some()), r.slots, batch_index, u32::from(bug)],
             };
-            self.queue.write_buffer(&frame, 0, bytemuck::bytes_of(&f));
-            let mut enc = self.device.create_command_encoder(&Default::default());
+            self.gpu.queue.write_buffer(&frame, 0, bytemuck::bytes_of(&f));
+            let mut enc = self.gpu.device.create_command_encoder(&Default::default());
             {
                 let mut pass = enc.begin_compute_pass(&Default::default());
                 pass.set_pipeline(&self.path);
                 pass.set_bind_group(0, &group, &[]);
                 pass.dispatch_workgroups(window[2].div_ceil(8), window[3].div_ceil(8), 1);
             }
-            self.queue.submit([enc.finish()]);
+            self.gpu.queue.submit([enc.finish()]);
         }
     }
 
@@ -518,7 +513,7 @@ impl GpuTracer {
     /// Visits the nearer of two hit BVH children first (the default) or always the first one
     /// (the traversal-order measurement of `rtvtk bench gpu`).
     pub fn set_nearer_child_first(&mut self, on: bool) {
-        (self.primary, self.path) = pipelines(&self.device, &self.module, on);
+        (self.primary, self.path) = pipelines(&self.gpu.device, &self.module, on);
     }
 
     /// Traces from `camera` from now on (the scene's camera at first).
@@ -543,13 +538,13 @@ impl GpuTracer {
         check_size(w, h)?;
         let ubuf = self.camera_uniform(w, h);
         let bytes = u64::from(w) * u64::from(h) * 8;
-        let out = self.device.create_buffer(&wgpu::BufferDescriptor {
+        let out = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("hits"),
             size: bytes,
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
             mapped_at_creation: false,
         });
-        let group = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+        let group = self.gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: None,
             layout: &self.primary.get_bind_group_layout(0),
             entries: &[
@@ -559,14 +554,14 @@ impl GpuTracer {
                 wgpu::BindGroupEntry { binding: 3, resource: out.as_entire_binding() },
             ],
         });
-        let mut enc = self.device.create_command_encoder(&Default::default());
+        let mut enc = self.gpu.device.create_command_encoder(&Default::default());
         {
             let mut pass = enc.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.primary);
             pass.set_bind_group(0, &group, &[]);
             pass.dispatch_workgroups(w.div_ceil(8), h.div_ceil(8), 1);
         }
-        self.queue.submit([enc.finish()]);
+        self.gpu.queue.submit([enc.finish()]);
         let hits = self
             .read_back::<[u32; 2]>(&out, bytes)?
             .into_iter()

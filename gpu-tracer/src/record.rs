@@ -67,7 +67,7 @@ impl GpuTracer {
             Some(rec) => {
                 let slots = 2 * (opts.max_depth + 1);
                 let per_path = u64::from(slots) * RAY_BYTES;
-                let budget = PASS_BYTES.min(self.max_binding).max(per_path);
+                let budget = PASS_BYTES.min(self.gpu.max_storage_binding()).max(per_path);
                 let tw = ww.min((budget / per_path).clamp(1, u64::from(u32::MAX)) as u32);
                 let batch = (samples.len() as u64).min(budget / (u64::from(tw) * per_path)).max(1) as usize;
                 let th =
@@ -78,7 +78,7 @@ impl GpuTracer {
                     if read {
                         usage |= wgpu::BufferUsages::COPY_SRC;
                     }
-                    self.device.create_buffer(&wgpu::BufferDescriptor {
+                    self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
                         label: Some(label),
                         size,
                         usage,

@@ -18,7 +18,7 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
     let sources = Sources::open(dataset)?;
     let total = sources.dataset.as_ref().map_or(0, |d| d.ray_count());
     let gpu = Gpu::shared()?;
-    println!("adapter: {} ({:?}), {}x{}, dataset {} rays", gpu.adapter.name, gpu.adapter.backend, w, h, total);
+    println!("adapter: {}, {}x{}, dataset {} rays", gpu.describe(), w, h, total);
     println!("| rays | SQL scan s | layer load s | load / scan | frame ms (median) | frames/s | GPU bytes/segment |");
     println!("|---|---|---|---|---|---|---|");
     let frame = sources.frame();
@@ -87,16 +87,15 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
             println!("  {r}");
         }
     }
-    whole_frames(dataset, counts.first().copied().unwrap_or(0), (w, h), frames)
+    whole_frames(sources, gpu, counts.first().copied().unwrap_or(0), (w, h), frames)
 }
 
 /// The whole pipeline's frame (image, composition and `n` rays, composited), as the viewer's
 /// window samples it from the GPU, beside the same frame read back as RGBA8 (how a frame crossed
 /// to the window before the window shared the pipeline's device). Frames alternate, so both see
 /// the same machine.
-fn whole_frames(dataset: &Path, n: u64, (w, h): (u32, u32), frames: usize) -> Result<()> {
-    let sources = Sources::open(dataset)?;
-    let mut p = rtvtk_viz::Pipeline::new(Gpu::shared()?, sources);
+fn whole_frames(sources: Sources, gpu: Gpu, n: u64, (w, h): (u32, u32), frames: usize) -> Result<()> {
+    let mut p = rtvtk_viz::Pipeline::new(gpu, sources);
     p.resize(w, h)?;
     if p.sources.picture.is_some() {
         p.add("image", &serde_json::Value::Null)?;

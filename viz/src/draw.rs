@@ -40,42 +40,8 @@ pub fn fullscreen_pipeline(
     layout: Option<&wgpu::PipelineLayout>,
     layer: bool,
 ) -> wgpu::RenderPipeline {
-    let module = gpu.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some(label),
-        source: wgpu::ShaderSource::Wgsl(source.into()),
-    });
-    let targets = [Some(wgpu::ColorTargetState {
-        format: COLOR_FORMAT,
-        blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
-        write_mask: wgpu::ColorWrites::ALL,
-    })];
-    gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-        label: Some(label),
-        layout,
-        vertex: wgpu::VertexState {
-            module: &module,
-            entry_point: Some("vs"),
-            compilation_options: Default::default(),
-            buffers: &[],
-        },
-        primitive: Default::default(),
-        depth_stencil: layer.then(|| wgpu::DepthStencilState {
-            format: DEPTH_FORMAT,
-            depth_write_enabled: Some(false),
-            depth_compare: Some(wgpu::CompareFunction::Always),
-            stencil: Default::default(),
-            bias: Default::default(),
-        }),
-        multisample: Default::default(),
-        fragment: Some(wgpu::FragmentState {
-            module: &module,
-            entry_point: Some("fs"),
-            compilation_options: Default::default(),
-            targets: &targets,
-        }),
-        multiview_mask: None,
-        cache: None,
-    })
+    let depth = layer.then_some((false, wgpu::CompareFunction::Always));
+    colour_pipeline(gpu, label, &shader(gpu, label, source), "vs", Some("fs"), layout, depth)
 }
 
 /// Draws the full-screen triangle of `pipeline` (a [`fullscreen_pipeline`] made for a layer)
@@ -104,14 +70,30 @@ pub fn scene_pipeline(
     fs: &str,
     blend: Blend,
 ) -> wgpu::RenderPipeline {
+    let fs = (blend != Blend::DepthOnly).then_some(fs);
+    let depth = Some((blend != Blend::Transparent, wgpu::CompareFunction::LessEqual));
+    colour_pipeline(gpu, vs, module, vs, fs, None, depth)
+}
+
+/// A triangle-list pipeline drawing premultiplied-alpha colour into [`COLOR_FORMAT`] (`fs`; none:
+/// depth only) and, with `depth` = (written, compare), against a [`DEPTH_FORMAT`] attachment.
+fn colour_pipeline(
+    gpu: &Gpu,
+    label: &str,
+    module: &wgpu::ShaderModule,
+    vs: &str,
+    fs: Option<&str>,
+    layout: Option<&wgpu::PipelineLayout>,
+    depth: Option<(bool, wgpu::CompareFunction)>,
+) -> wgpu::RenderPipeline {
     let targets = [Some(wgpu::ColorTargetState {
         format: COLOR_FORMAT,
         blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
         write_mask: wgpu::ColorWrites::ALL,
     })];
     gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-        label: Some(vs),
-        layout: None,
+        label: Some(label),
+        layout,
         vertex: wgpu::VertexState {
             module,
             entry_point: Some(vs),
@@ -119,15 +101,15 @@ pub fn scene_pipeline(
             buffers: &[],
         },
         primitive: wgpu::PrimitiveState { cull_mode: None, ..Default::default() },
-        depth_stencil: Some(wgpu::DepthStencilState {
+        depth_stencil: depth.map(|(write, compare)| wgpu::DepthStencilState {
             format: DEPTH_FORMAT,
-            depth_write_enabled: Some(blend != Blend::Transparent),
-            depth_compare: Some(wgpu::CompareFunction::LessEqual),
+            depth_write_enabled: Some(write),
+            depth_compare: Some(compare),
             stencil: Default::default(),
             bias: Default::default(),
         }),
         multisample: Default::default(),
-        fragment: (blend != Blend::DepthOnly).then_some(wgpu::FragmentState {
+        fragment: fs.map(|fs| wgpu::FragmentState {
             module,
             entry_point: Some(fs),
             compilation_options: Default::default(),

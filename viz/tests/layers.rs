@@ -434,6 +434,36 @@ fn where_the_gpu_tracer_cannot_run_the_image_is_traced_on_the_cpu_and_says_so() 
 }
 
 #[test]
+fn every_choice_a_component_offers_is_a_setting_it_takes() {
+    // The viewer draws `choices` as drop-downs: each value must be one the settings accept, and
+    // one not offered is refused.
+    let mut p = pipeline(&[]);
+    let mut offered = 0;
+    for info in rtvtk_viz::registry() {
+        if (info.offered)(&p.sources).is_err() {
+            continue;
+        }
+        // The query layer has no default query.
+        let settings = match info.kind {
+            "query" => json!({"sql": "SELECT origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t FROM rays LIMIT 1"}),
+            _ => Value::Null,
+        };
+        let id = p.add(info.kind, &settings).unwrap_or_else(|e| panic!("{}: {e}", info.kind));
+        let choices = p.layers().iter().find(|l| l.component.id() == id).unwrap().component.choices();
+        for (key, values) in choices {
+            let c = &mut p.layer_mut(id).unwrap().component;
+            for v in values {
+                c.set_settings(&json!({ key: v })).unwrap_or_else(|e| panic!("{} {key}={v}: {e}", info.kind));
+                assert_eq!(c.settings()[key], *v, "{} {key}", info.kind);
+                offered += 1;
+            }
+            assert!(c.set_settings(&json!({ key: "no-such-value" })).is_err(), "{} {key}", info.kind);
+        }
+    }
+    assert!(offered >= 9, "image source, geometry style and ray tracer at least: {offered}");
+}
+
+#[test]
 fn ctrl_click_traces_a_pixel_with_no_dataset_loaded() {
     // Immediate mode: the scene alone (no dataset), the ray layer traces one pixel's tree through
     // `rl` immediate mode and draws it at once; a pixel outside the view is refused.

@@ -148,35 +148,30 @@ impl Dataset {
     /// table missing a column or with a column of another type is an `Error::Table` naming it);
     /// `None` when the recording wrote no such table.
     pub fn table_schema(&self, name: &str) -> Result<Option<SchemaRef>> {
-        let Some(path) = self.table_file(name)? else { return Ok(None) };
-        let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
-        let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
-        let schema = builder.schema().clone();
-        crate::scene::check_table(name, &schema).map_err(|message| Error::Table {
-            name: name.into(),
-            path,
-            message,
-        })?;
-        Ok(Some(schema))
+        Ok(self.table_reader(name)?.map(|(_, reader)| reader.schema().clone()))
     }
 
     /// An optional whole-dataset table (`bvh_nodes`, `lights`, ...), if the recording wrote it.
     pub fn table(&self, name: &str) -> Result<Option<RecordBatch>> {
-        let Some(path) = self.table_file(name)? else { return Ok(None) };
-        let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
-        let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
-        let schema = builder.schema().clone();
-        crate::scene::check_table(name, &schema).map_err(|message| Error::Table {
-            name: name.into(),
-            path: path.clone(),
-            message,
-        })?;
-        let reader = builder.build().map_err(pq_err(&path))?;
+        let Some((path, reader)) = self.table_reader(name)? else { return Ok(None) };
+        let schema = reader.schema().clone();
         let mut batches = Vec::new();
-        for b in reader {
+        for b in reader.build().map_err(pq_err(&path))? {
             batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
         }
         concat_batches(&schema, &batches).map(Some).map_err(arrow_err(path.display().to_string()))
+    }
+
+    /// The reader of a whole-dataset table's file, its schema checked against the table's
+    /// known one (`Error::Table` naming the table and column when it does not match).
+    fn table_reader(&self, name: &str) -> Result<Option<(PathBuf, ParquetRecordBatchReaderBuilder<File>)>> {
+        let Some(path) = self.table_file(name)? else { return Ok(None) };
+        let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
+        let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
+        if let Err(message) = crate::scene::check_table(name, builder.schema()) {
+            return Err(Error::Table { name: name.into(), path, message });
+        }
+        Ok(Some((path, builder)))
     }
 
     /// The file of a whole-dataset table, if the recording wrote it, checked to have the size

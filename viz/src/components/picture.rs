@@ -108,6 +108,8 @@ struct GpuImage {
 
 struct Progressive {
     bvh: Arc<renderers::Bvh>,
+    /// The CPU tracer's sum of the samples per pixel (empty until its first sample; the GPU
+    /// tracer keeps its sums on the GPU).
     sum: Vec<glam::Vec3A>,
     /// The sum of the even-numbered samples only (the odd ones are `sum - even`).
     even: Vec<glam::Vec3A>,
@@ -212,23 +214,18 @@ impl Image {
     }
 
     fn check(&self, sources: &Sources) -> Result<()> {
-        match self.settings.source {
-            ImageSource::Dataset if self.recorded.is_none() => Err(Error::Layer {
-                layer: "image".into(),
-                message: "the dataset has no rendered image; use source \"auto\", \"cpu\" or \"gpu\" to path-trace one"
-                    .into(),
-            }),
-            ImageSource::Auto | ImageSource::Cpu | ImageSource::Gpu
-                if sources.scene.is_none()
-                    && (self.settings.source != ImageSource::Auto || self.recorded.is_none()) =>
-            {
-                Err(Error::Layer {
-                    layer: "image".into(),
-                    message: "there is no image and no scene (triangles table) to trace one from".into(),
-                })
+        let no_scene = sources.scene.is_none();
+        let message = match self.settings.source {
+            ImageSource::Dataset if self.recorded.is_none() => {
+                "the dataset has no rendered image; use source \"auto\", \"cpu\" or \"gpu\" to path-trace one"
             }
-            _ => Ok(()),
-        }
+            ImageSource::Cpu | ImageSource::Gpu if no_scene => "there is no scene (triangles table) to trace from",
+            ImageSource::Auto if no_scene && self.recorded.is_none() => {
+                "there is no image and no scene (triangles table) to trace one from"
+            }
+            _ => return Ok(()),
+        };
+        Err(Error::Layer { layer: "image".into(), message: message.into() })
     }
 
     /// Whether the layer shows a traced picture at `camera` (else the recorded one).
@@ -347,8 +344,8 @@ impl Component for Image {
         });
         if p.key != Some(key) {
             p.key = Some(key);
-            p.sum = vec![glam::Vec3A::ZERO; ctx.width as usize * ctx.height as usize];
-            p.even = p.sum.clone();
+            p.sum.clear();
+            p.even.clear();
             p.spp = 0;
             p.secs = 0.0;
             p.curve.clear();
@@ -388,15 +385,15 @@ impl Component for Image {
             // The convergence curve: the halves read back once per doubling of the samples.
             let mut point = None;
             if n >= g.next_curve || n >= max_spp {
-                let even = g.tracer.film(&halves[0]).map_err(gpu_err)?;
-                let odd = g.tracer.film(&halves[1]).map_err(gpu_err)?;
-                let (ne, no) = (halves[0].spp as f32, halves[1].spp as f32);
-                let mut sum = vec![glam::Vec3A::ZERO; even.pixels.len()];
-                let mut ev = sum.clone();
-                for ((s, e), (a, b)) in sum.iter_mut().zip(ev.iter_mut()).zip(even.pixels.iter().zip(&odd.pixels)) {
-                    *e = *a * ne;
-                    *s = *e + *b * no;
-                }
+                // Each half's per-pixel sums (RGB and the sample count), as accumulated.
+                let sums = |h: &gpu_tracer::Progressive| {
+                    let buf = h.accumulation();
+                    g.tracer.gpu().read_values::<[f32; 4]>(buf, buf.size())
+                };
+                let rgb = |s: &[f32; 4]| glam::Vec3A::new(s[0], s[1], s[2]);
+                let (even, odd) = (sums(&halves[0])?, sums(&halves[1])?);
+                let ev: Vec<glam::Vec3A> = even.iter().map(rgb).collect();
+                let sum: Vec<glam::Vec3A> = ev.iter().zip(&odd).map(|(e, o)| *e + rgb(o)).collect();
                 point = half_difference_rmse(&sum, &ev, n);
                 while g.next_curve <= n {
                     g.next_curve *= 2;
@@ -428,6 +425,10 @@ impl Component for Image {
                 ..Default::default()
             };
             let (film, _) = renderers::render(&s, &p.bvh, &opts, None, &|_| {})?;
+            if p.sum.is_empty() {
+                p.sum = vec![glam::Vec3A::ZERO; film.pixels.len()];
+                p.even = p.sum.clone();
+            }
             for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
                 *a += *b;
             }

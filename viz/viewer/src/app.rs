@@ -58,8 +58,25 @@ pub struct Viewer {
     options: ViewerOptions,
     screenshot_asked: bool,
     settled_frames: u32,
-    /// The window's render state, where frames are drawn from the pipeline's display texture.
+    /// The window's render state, where frames are drawn from the pipeline's output texture.
     display: Option<egui_wgpu::RenderState>,
+}
+
+/// The pipeline's output texture `t` as egui draws it: registered with egui-wgpu once, the
+/// registration pointed at a new texture when the size changed, nothing to do for the same one
+/// (egui samples what the render worker drew last).
+fn native_texture(rs: &egui_wgpu::RenderState, shown: Option<&ShownTexture>, t: wgpu::Texture) -> ShownTexture {
+    let view = t.create_view(&Default::default());
+    let mut r = rs.renderer.write();
+    let id = match shown {
+        Some(ShownTexture::Native { id, texture }) if *texture == t => *id,
+        Some(ShownTexture::Native { id, .. }) => {
+            r.update_egui_texture_from_wgpu_texture(&rs.device, &view, wgpu::FilterMode::Linear, *id);
+            *id
+        }
+        _ => r.register_native_texture(&rs.device, &view, wgpu::FilterMode::Linear),
+    };
+    ShownTexture::Native { id, texture: t }
 }
 
 fn default_tree() -> egui_tiles::Tree<Pane> {
@@ -222,29 +239,7 @@ impl Viewer {
                 }
                 Event::Frame(f) => {
                     let texture = match (f.pixels, &self.display) {
-                        (Pixels::Texture(t), Some(rs)) => {
-                            let view = t.create_view(&Default::default());
-                            let mut r = rs.renderer.write();
-                            match s.shown.as_ref().map(|sh| &sh.texture) {
-                                // The same texture: egui samples what the worker drew last.
-                                Some(ShownTexture::Native { id, texture }) if *texture == t => {
-                                    ShownTexture::Native { id: *id, texture: t }
-                                }
-                                Some(ShownTexture::Native { id, .. }) => {
-                                    r.update_egui_texture_from_wgpu_texture(
-                                        &rs.device,
-                                        &view,
-                                        wgpu::FilterMode::Linear,
-                                        *id,
-                                    );
-                                    ShownTexture::Native { id: *id, texture: t }
-                                }
-                                _ => {
-                                    let id = r.register_native_texture(&rs.device, &view, wgpu::FilterMode::Linear);
-                                    ShownTexture::Native { id, texture: t }
-                                }
-                            }
-                        }
+                        (Pixels::Texture(t), Some(rs)) => native_texture(rs, s.shown.as_ref().map(|sh| &sh.texture), t),
                         (Pixels::Texture(_), None) => {
                             s.error("a frame came as a GPU texture, but this UI has no GPU device to draw it");
                             continue;
