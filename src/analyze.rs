@@ -59,7 +59,7 @@ pub fn run(a: &AnalyzeArgs) -> Result<()> {
     let url = a.cluster.as_deref();
     let report = rt.block_on(async {
         let session = |sources: Vec<query::TraceSource>| async move {
-            crate::query_session(url, &sources, &query::SessionOptions::default()).await
+            crate::query_engine(url, &sources, &query::SessionOptions::default()).await
         };
         let report: Result<Report> = match &a.what {
             Analysis::Coherence { dataset, width, orders, kind } => {

@@ -76,14 +76,14 @@ pub fn run(cmd: &ClusterCommand) -> Result<()> {
     }
 }
 
-/// A session over `sources`: in this process, or planned here and run on the cluster at `url`.
-pub async fn session(
+/// The engine over `sources`: in this process, or planned here and run on the cluster at `url`.
+pub async fn engine(
     url: Option<&str>,
     sources: &[query::TraceSource],
     options: &query::SessionOptions,
-) -> Result<datafusion::prelude::SessionContext> {
+) -> Result<query::Engine> {
     match url {
         Some(url) => Ok(cluster::connect(url, sources).await?),
-        None => Ok(query::session_with(sources, options).await?),
+        None => Ok(query::Engine::open(sources, options).await?),
     }
 }

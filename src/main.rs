@@ -147,19 +147,20 @@ enum Command {
 #[cfg(not(feature = "sql"))]
 const SQL_COMMANDS: [&str; 5] = ["view", "sql", "analyze", "serve", "bench"];
 
-/// A session over `sources`, in this process or (with `cluster`, `df://HOST:PORT`) on a cluster.
+/// The query engine over `sources`: in this process or (with `cluster`, `df://HOST:PORT`) on a
+/// cluster.
 #[cfg(feature = "sql")]
-pub(crate) async fn query_session(
+pub(crate) async fn query_engine(
     cluster: Option<&str>,
     sources: &[query::TraceSource],
     options: &query::SessionOptions,
-) -> Result<datafusion::prelude::SessionContext> {
+) -> Result<query::Engine> {
     #[cfg(feature = "cluster")]
-    return cluster::session(cluster, sources, options).await;
+    return cluster::engine(cluster, sources, options).await;
     #[cfg(not(feature = "cluster"))]
     match cluster {
         Some(_) => anyhow::bail!("--cluster: this rtvtk was built without the `cluster` feature"),
-        None => Ok(query::session_with(sources, options).await?),
+        None => Ok(query::Engine::open(sources, options).await?),
     }
 }
 

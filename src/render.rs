@@ -9,8 +9,20 @@ use serde_json::{Value, json};
 
 #[derive(Parser, Debug)]
 pub struct RenderArgs {
-    /// The dataset directory.
-    pub dataset: PathBuf,
+    /// The dataset directory (or, with --connect, none: the service's dataset is drawn).
+    #[arg(required_unless_present = "connect", conflicts_with = "connect")]
+    pub dataset: Option<PathBuf>,
+    /// Draw a dataset an `rtvtk serve` service serves (`grpc://HOST:PORT`): scene, camera and
+    /// rays are read through the service (its recorded picture is not served: the image layer
+    /// traces the view).
+    #[arg(long, value_name = "grpc://HOST:PORT")]
+    pub connect: Option<String>,
+    /// The service's dataset, where it serves several (default: its first).
+    #[arg(long = "dataset", requires = "connect", value_name = "NAME")]
+    pub served: Option<String>,
+    /// A file holding the service's bearer token (or the environment variable RTVTK_TOKEN).
+    #[arg(long, requires = "connect")]
+    pub token_file: Option<PathBuf>,
     /// Layers bottom to top: image, geometry, composition, rays, bvh, query, heatmap
     /// (default: image, composition, rays; geometry in place of the image when it has none).
     #[arg(long, value_delimiter = ',')]
@@ -142,7 +154,11 @@ fn layer_settings(kind: &str, a: &RenderArgs, has_query_layer: bool) -> Result<V
 
 /// Renders the layers of a dataset into a PNG; returns what the layers reported.
 pub fn render_to_png(a: &RenderArgs) -> Result<Vec<String>> {
-    let sources = Sources::open(&a.dataset).with_context(|| format!("opening {}", a.dataset.display()))?;
+    let sources = match (&a.dataset, &a.connect) {
+        (Some(dir), _) => Sources::open(dir).with_context(|| format!("opening {}", dir.display()))?,
+        (None, Some(url)) => served(a, url)?,
+        (None, None) => bail!("no dataset: give a dataset directory or --connect grpc://HOST:PORT"),
+    };
     let layers = match &a.layers {
         Some(l) => l.clone(),
         None => {
@@ -183,6 +199,29 @@ pub fn render_to_png(a: &RenderArgs) -> Result<Vec<String>> {
     let img = p.snapshot(!a.no_legend)?;
     save(&img, &a.out)?;
     Ok(p.report())
+}
+
+/// The sources of a dataset a service serves (`--connect`), read through the query engine.
+#[cfg(feature = "sql")]
+fn served(a: &RenderArgs, url: &str) -> Result<Sources> {
+    let token = match &a.token_file {
+        Some(p) => Some(
+            std::fs::read_to_string(p)
+                .with_context(|| format!("cannot read the token file {}", p.display()))?
+                .trim()
+                .to_string(),
+        ),
+        None => std::env::var("RTVTK_TOKEN").ok().filter(|t| !t.is_empty()),
+    };
+    let engine = query::Engine::blocking(query::Engine::connect(url, token))?;
+    Sources::with_engine(std::sync::Arc::new(engine), a.served.as_deref())
+        .with_context(|| format!("reading the dataset served at {url}"))
+}
+
+/// Built without the `sql` feature: no query engine to reach a service with.
+#[cfg(not(feature = "sql"))]
+fn served(_a: &RenderArgs, _url: &str) -> Result<Sources> {
+    bail!("--connect needs the query engine: this rtvtk was built without the `sql` feature")
 }
 
 pub fn save(img: &image::RgbaImage, out: &Path) -> Result<()> {

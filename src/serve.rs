@@ -131,7 +131,8 @@ pub fn run(a: &ServeArgs) -> Result<()> {
             );
         }
         let session = query::SessionOptions { memory_limit: a.memory_limit, ..Default::default() };
-        let ctx = query::session_with(&sources, &session).await?;
+        let engine = query::Engine::open(&sources, &session).await?;
+        let ctx = engine.session().context("an in-process session")?.clone();
         let mut options = query::service::ServiceOptions {
             token: token.clone(),
             query_timeout: a.query_timeout,

@@ -82,7 +82,7 @@ pub fn run(a: &SqlArgs) -> Result<()> {
     let rt = crate::runtime()?;
     rt.block_on(async {
         let options = query::SessionOptions { memory_limit: a.memory_limit, stock_aggregation: a.stock_aggregation };
-        let ctx = crate::query_session(a.cluster.as_deref(), &sources, &options).await?;
+        let ctx = crate::query_engine(a.cluster.as_deref(), &sources, &options).await?;
         if interactive {
             return prompt(&ctx, a).await;
         }
@@ -112,7 +112,7 @@ pub fn peak_rss_bytes() -> Option<u64> {
 
 /// The interactive prompt: statements end with `;`; `\d` lists the tables, `\d TABLE` shows
 /// one's columns, `\q` quits. History is kept in `$HOME/.rtvtk_history`.
-async fn prompt(ctx: &datafusion::prelude::SessionContext, a: &SqlArgs) -> Result<()> {
+async fn prompt(ctx: &query::Engine, a: &SqlArgs) -> Result<()> {
     use rustyline::error::ReadlineError;
     let mut rl = rustyline::DefaultEditor::new().context("starting the prompt")?;
     let history = std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".rtvtk_history"));
@@ -177,17 +177,13 @@ async fn prompt(ctx: &datafusion::prelude::SessionContext, a: &SqlArgs) -> Resul
 }
 
 /// Runs a read-only query (its plan with `--explain`) to completion.
-async fn execute(ctx: &datafusion::prelude::SessionContext, query: &str, a: &SqlArgs) -> Result<Vec<RecordBatch>> {
+async fn execute(ctx: &query::Engine, query: &str, a: &SqlArgs) -> Result<Vec<RecordBatch>> {
     let text = if a.explain { format!("EXPLAIN {query}") } else { query.to_string() };
-    let df = ctx
-        .sql_with_options(&text, query::service::read_only_sql_options())
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
-    df.collect().await.map_err(|e| anyhow::anyhow!("{e}"))
+    ctx.collect(&text).await.map_err(|e| anyhow::anyhow!("{e}"))
 }
 
 /// Runs one statement of the prompt, printing its result or its error (the prompt goes on).
-async fn run_one(ctx: &datafusion::prelude::SessionContext, query: &str, a: &SqlArgs) {
+async fn run_one(ctx: &query::Engine, query: &str, a: &SqlArgs) {
     let result = async {
         let batches = execute(ctx, query, a).await?;
         let format = if matches!(a.format, Format::Parquet) { Format::Table } else { a.format };

@@ -14,9 +14,13 @@ pub struct ViewArgs {
     /// A scene to trace with no dataset (built-in name such as `cornell`, or an OBJ file).
     #[arg(long)]
     pub scene: Option<String>,
-    /// Run the SQL console against an `rtvtk serve` service (`grpc://HOST:PORT`).
-    #[arg(long)]
+    /// Draw a dataset an `rtvtk serve` service serves (`grpc://HOST:PORT`): every layer, the
+    /// console, plots and inspector ask the service (no dataset directory is read here).
+    #[arg(long, conflicts_with_all = ["datasets", "scene"])]
     pub connect: Option<String>,
+    /// The service's dataset to draw, where it serves several (default: its first).
+    #[arg(long, requires = "connect")]
+    pub dataset: Option<String>,
     /// A file holding the service's bearer token.
     #[arg(long, requires = "connect")]
     pub token_file: Option<PathBuf>,
@@ -42,6 +46,9 @@ pub fn run(args: &ViewArgs) -> Result<()> {
     }
     if let Some(s) = &args.scene {
         sources.push(Source::Scene(s.clone()));
+    }
+    if args.connect.is_some() {
+        sources.push(Source::Served(args.dataset.clone().unwrap_or_default()));
     }
     if sources.is_empty() {
         sources.push(Source::Scene("cornell".into()));

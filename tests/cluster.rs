@@ -38,7 +38,7 @@ fn executor(scheduler: &str) -> Child {
 }
 
 async fn cluster_session(url: &str, sources: &[query::TraceSource]) -> datafusion::prelude::SessionContext {
-    cluster::connect(url, sources).await.unwrap()
+    cluster::connect(url, sources).await.unwrap().session().unwrap().clone()
 }
 
 async fn rows(ctx: &datafusion::prelude::SessionContext, sql: &str) -> Result<String, DataFusionError> {
@@ -217,7 +217,10 @@ fn queries_run_on_a_cluster_with_the_in_process_answers() {
     let (u, s) = (url.clone(), sources.clone());
     let factory: slt_db::Factory = Arc::new(move || {
         let (u, s) = (u.clone(), s.clone());
-        Box::pin(async move { cluster::connect(&u, &s).await.map_err(|e| DataFusionError::External(Box::new(e))) })
+        Box::pin(async move {
+            let engine = cluster::connect(&u, &s).await.map_err(|e| DataFusionError::External(Box::new(e)))?;
+            Ok(engine.session().cloned().unwrap_or_default())
+        })
     });
     let failures = slt_db::run_all(&rt, factory);
     assert!(failures.is_empty(), "{}", failures.join("\n\n"));

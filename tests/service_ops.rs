@@ -600,3 +600,38 @@ fn tls_serves_clients_that_trust_the_certificate() {
         }
     });
 }
+
+/// `render --connect` draws a dataset the client is never told the path of, from the service's
+/// second dataset (`--dataset`): scene, camera and rays through SQL; the picture is the local
+/// render's.
+#[test]
+fn render_connect_draws_the_served_dataset_as_a_local_render_does() {
+    let tmp = tempfile::tempdir().unwrap();
+    let t = trace(tmp.path());
+    let other = tmp.path().join("other");
+    record(&other, &["--scene", "cornell-glass", "--size", "32x24", "--spp", "1", "--threads", "2"]);
+    let named = format!("t={}", t.display());
+    let s = serve(&other, &[&named], &[]);
+    let layers = ["--layers", "geometry,composition,rays", "--pixel", "24,16", "--size", "192x128"];
+    let local = tmp.path().join("local.png");
+    let out = rtvtk(&[&["render", t.to_str().unwrap(), "--out", local.to_str().unwrap()][..], &layers[..]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let remote = tmp.path().join("remote.png");
+    let url = s.url.replace("http://", "grpc://");
+    let out = rtvtk(
+        &[&["render", "--connect", &url, "--dataset", "t", "--out", remote.to_str().unwrap()][..], &layers[..]]
+            .concat(),
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}\nserver: {}", s.log());
+    let (a, b) = (image::open(&local).unwrap().to_rgba8(), image::open(&remote).unwrap().to_rgba8());
+    assert_eq!(a.dimensions(), b.dimensions());
+    let differ =
+        a.pixels().zip(b.pixels()).filter(|(p, q)| p.0.iter().zip(q.0).any(|(x, y)| x.abs_diff(y) > 2)).count();
+    eprintln!("{differ} of {} pixels differ; remote's report:\n{err}", a.len() / 4);
+    assert_eq!(differ, 0, "the served dataset draws as the local one");
+    // A dataset the service does not serve is named with what it does serve.
+    let out = rtvtk(&["render", "--connect", &url, "--dataset", "nope", "--out", remote.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("nope") && err.contains("t.rays"), "{err}");
+}

@@ -240,9 +240,10 @@ pub fn parse_url(url: &str) -> Result<(String, u16)> {
     Ok((host.trim_start_matches('[').trim_end_matches(']').to_string(), port))
 }
 
-/// A session whose queries are planned here and run on the cluster at `url` (`df://HOST:PORT`),
-/// over the tables of `sources` (each a directory every executor can read by the same path).
-pub async fn connect(url: &str, sources: &[TraceSource]) -> Result<SessionContext> {
+/// An engine whose queries are planned here and run on the cluster at `url` (`df://HOST:PORT`),
+/// over the tables of `sources` (each a directory every executor can read by the same path,
+/// opened here once for planning).
+pub async fn connect(url: &str, sources: &[TraceSource]) -> Result<query::Engine> {
     let (host, port) = parse_url(url)?;
     // Ballista connects on the first query; say now when nobody listens there.
     let addr = format!("{host}:{port}");
@@ -269,8 +270,9 @@ pub async fn connect(url: &str, sources: &[TraceSource]) -> Result<SessionContex
         .iter()
         .map(|s| TraceSource { name: s.name.clone(), path: std::path::absolute(&s.path).unwrap_or(s.path.clone()) })
         .collect();
-    query::register_sources(&ctx, &sources).await?;
-    Ok(ctx)
+    let datasets = query::open_sources(&sources)?;
+    query::register_datasets(&ctx, &datasets).await?;
+    Ok(query::Engine::from_session(ctx, datasets)?)
 }
 
 #[cfg(test)]

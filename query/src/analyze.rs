@@ -20,10 +20,9 @@ use std::sync::Arc;
 use arrow::array::{Array, AsArray, RecordBatch};
 use arrow::datatypes::{DataType, Float64Type, UInt32Type, UInt64Type};
 use arrow::util::display::{ArrayFormatter, FormatOptions};
-use datafusion::prelude::SessionContext;
 
 use crate::functions::{Coherence, Spread, XyzStat};
-use crate::{Error, Result};
+use crate::{Engine, Error, Result};
 
 /// A grid of values to draw (NaN where there is no data), row-major from the top-left pixel.
 #[derive(Clone, Debug)]
@@ -83,7 +82,7 @@ impl Report {
     /// when the grid is empty (a trace without trees).
     async fn add_grid(
         &mut self,
-        ctx: &SessionContext,
+        ctx: &Engine,
         heading: Option<&str>,
         sql: &str,
         cells: Cells,
@@ -134,12 +133,12 @@ impl Default for CoherenceOptions {
     }
 }
 
-async fn run(ctx: &SessionContext, sql: &str) -> Result<Vec<RecordBatch>> {
-    Ok(ctx.sql(sql).await?.collect().await?)
+async fn run(ctx: &Engine, sql: &str) -> Result<Vec<RecordBatch>> {
+    ctx.collect(sql).await
 }
 
-async fn has_table(ctx: &SessionContext, name: &str) -> bool {
-    ctx.table_exist(name).unwrap_or(false)
+async fn has_table(ctx: &Engine, name: &str) -> bool {
+    ctx.catalog().await.is_ok_and(|c| c.tables.iter().any(|t| t == name))
 }
 
 /// A number with 4 significant digits (integers as they are).
@@ -200,7 +199,7 @@ fn float_at(c: &dyn Array, r: usize) -> Option<f64> {
 }
 
 /// A single number from a query (NaN when NULL or absent).
-async fn scalar(ctx: &SessionContext, sql: &str) -> Result<f64> {
+async fn scalar(ctx: &Engine, sql: &str) -> Result<f64> {
     let batches = run(ctx, &format!("SELECT CAST(({sql}) AS DOUBLE) AS v")).await?;
     Ok(batches
         .first()
@@ -210,7 +209,7 @@ async fn scalar(ctx: &SessionContext, sql: &str) -> Result<f64> {
 }
 
 /// Image size: from the trees' pixels.
-async fn image_size(ctx: &SessionContext, schema: &str) -> Result<(usize, usize)> {
+async fn image_size(ctx: &Engine, schema: &str) -> Result<(usize, usize)> {
     let w = scalar(ctx, &format!("SELECT max(pixel_x) + 1 FROM {schema}trees")).await?;
     let h = scalar(ctx, &format!("SELECT max(pixel_y) + 1 FROM {schema}trees")).await?;
     if !(w.is_finite() && h.is_finite()) {
@@ -220,7 +219,7 @@ async fn image_size(ctx: &SessionContext, schema: &str) -> Result<(usize, usize)
 }
 
 /// A `w` × `h` grid from rows (x, y, value) of a query.
-async fn grid(ctx: &SessionContext, sql: &str, (w, h): (usize, usize), name: &str, title: &str) -> Result<Grid> {
+async fn grid(ctx: &Engine, sql: &str, (w, h): (usize, usize), name: &str, title: &str) -> Result<Grid> {
     let mut values = vec![f64::NAN; w * h];
     for b in run(ctx, sql).await? {
         let get = |i: usize| -> Result<Vec<f64>> {
@@ -239,7 +238,7 @@ async fn grid(ctx: &SessionContext, sql: &str, (w, h): (usize, usize), name: &st
 }
 
 /// Direction coherence and origin spread by kind and depth, and the packet what-if analysis.
-pub async fn coherence(ctx: &SessionContext, opts: &CoherenceOptions) -> Result<Report> {
+pub async fn coherence(ctx: &Engine, opts: &CoherenceOptions) -> Result<Report> {
     let mut rep = Report::default();
     rep.para("# Ray coherence");
     let diag = scene_diagonal(ctx).await?;
@@ -325,7 +324,7 @@ pub async fn coherence(ctx: &SessionContext, opts: &CoherenceOptions) -> Result<
 }
 
 /// The scene diagonal (1 when unknown).
-async fn scene_diagonal(ctx: &SessionContext) -> Result<f64> {
+async fn scene_diagonal(ctx: &Engine) -> Result<f64> {
     let d = scalar(
         ctx,
         "SELECT sqrt(power(max(max_x) - min(min_x), 2) + power(max(max_y) - min(min_y), 2) + power(max(max_z) - min(min_z), 2)) \
@@ -337,7 +336,7 @@ async fn scene_diagonal(ctx: &SessionContext) -> Result<f64> {
 }
 
 /// Every ray's visited nodes, by (tree, ray).
-async fn load_visits(ctx: &SessionContext) -> Result<HashMap<(u64, u32), Vec<u32>>> {
+async fn load_visits(ctx: &Engine) -> Result<HashMap<(u64, u32), Vec<u32>>> {
     let mut out: HashMap<(u64, u32), Vec<u32>> = HashMap::new();
     for b in run(ctx, "SELECT tree_id, ray, node_id FROM ray_nodes").await? {
         let (t, r, n) = (col_u64(&b, 0)?, col_u32(&b, 1)?, col_u32(&b, 2)?);
@@ -469,7 +468,7 @@ fn packet_spread(points: impl Iterator<Item = [f64; 3]>) -> f64 {
 }
 
 /// BVH traversal: cost per ray, false-positive leaf tests, hottest subtrees, cost per pixel.
-pub async fn bvh(ctx: &SessionContext, subtree_level: u16) -> Result<Report> {
+pub async fn bvh(ctx: &Engine, subtree_level: u16) -> Result<Report> {
     let mut rep = Report::default();
     rep.para("# BVH traversal");
     rep.heading("Cost per ray by kind and depth");
@@ -510,19 +509,27 @@ pub async fn bvh(ctx: &SessionContext, subtree_level: u16) -> Result<Report> {
         )
         .await?;
         rep.para(&markdown(&t)?);
-        register_subtrees(ctx, subtree_level).await?;
         rep.heading(&format!("Hottest subtrees (roots at level {subtree_level}) by kind"));
-        let t = run(
-            ctx,
-            "SELECT kind, subtree, visits, share FROM (\
+        let t = match ctx.session() {
+            Some(session) => {
+                register_subtrees(ctx, session, subtree_level).await?;
+                run(
+                    ctx,
+                    "SELECT kind, subtree, visits, share FROM (\
                SELECT r.kind, s.subtree, count(*) AS visits, \
                  CAST(count(*) AS DOUBLE) / sum(count(*)) OVER (PARTITION BY r.kind) AS share, \
                  row_number() OVER (PARTITION BY r.kind ORDER BY count(*) DESC, s.subtree) AS rank \
                FROM ray_nodes v JOIN bvh_subtrees s USING (node_id) JOIN rays r USING (tree_id, ray) \
                GROUP BY r.kind, s.subtree) WHERE rank <= 5 ORDER BY kind, visits DESC, subtree",
-        )
-        .await?;
-        rep.para(&markdown(&t)?);
+                )
+                .await?
+            }
+            None => Vec::new(),
+        };
+        match ctx.session() {
+            Some(_) => rep.para(&markdown(&t)?),
+            None => rep.para("*(subtree heat needs an in-process or cluster session, not a service's client)*"),
+        }
     } else {
         rep.para("*(record with `--record-visits` for false-positive tests and subtree heat)*");
     }
@@ -541,7 +548,7 @@ pub async fn bvh(ctx: &SessionContext, subtree_level: u16) -> Result<Report> {
 
 /// Registers `bvh_subtrees(node_id, subtree)`: each node at or below `level` with its ancestor
 /// at `level`.
-async fn register_subtrees(ctx: &SessionContext, level: u16) -> Result<()> {
+async fn register_subtrees(ctx: &Engine, session: &datafusion::prelude::SessionContext, level: u16) -> Result<()> {
     let mut parent: HashMap<u32, (Option<u32>, u16)> = HashMap::new();
     for b in run(ctx, "SELECT node_id, parent, level FROM bvh_nodes").await? {
         let (id, p) = (col_u32(&b, 0)?, col_u32(&b, 1)?);
@@ -580,8 +587,8 @@ async fn register_subtrees(ctx: &SessionContext, level: u16) -> Result<()> {
     )
     .map_err(|e| Error::DataFusion(e.into()))?;
     let table = datafusion::datasource::MemTable::try_new(schema, vec![vec![batch]])?;
-    ctx.deregister_table("bvh_subtrees")?;
-    ctx.register_table("bvh_subtrees", Arc::new(table))?;
+    session.deregister_table("bvh_subtrees")?;
+    session.register_table("bvh_subtrees", Arc::new(table))?;
     Ok(())
 }
 
@@ -590,7 +597,7 @@ pub const WRONG_SHADOW: &str =
     "kind = 'shadow' AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
 
 /// Suspicious rays: shadow rays aiming at no light, broken directions, self-intersections.
-pub async fn bugs(ctx: &SessionContext) -> Result<Report> {
+pub async fn bugs(ctx: &Engine) -> Result<Report> {
     let mut rep = Report::default();
     rep.para("# Suspicious rays");
     let lights = scalar(ctx, "SELECT count(*) FROM lights").await.unwrap_or(f64::NAN);
@@ -667,7 +674,7 @@ pub async fn bugs(ctx: &SessionContext) -> Result<Report> {
 }
 
 /// Two traces (`a.*` and `b.*` in the session) side by side by kind, depth and image tile.
-pub async fn diff(ctx: &SessionContext, a: &str, b: &str, tile: usize) -> Result<Report> {
+pub async fn diff(ctx: &Engine, a: &str, b: &str, tile: usize) -> Result<Report> {
     let mut rep = Report::default();
     rep.para(&format!("# `{a}` against `{b}`"));
     let tile = tile.max(1);

@@ -3,6 +3,7 @@
 pub mod analyze;
 pub mod codec;
 mod count_by_key;
+mod engine;
 mod error;
 mod functions;
 mod plan_util;
@@ -13,6 +14,7 @@ mod small_groups;
 mod tables;
 
 pub use count_by_key::{CountByKey, CountByKeyExec};
+pub use engine::{Catalog, Engine};
 pub use error::{Error, Result};
 pub use functions::{
     RAY_FUNCTIONS, RayFunction, SceneContext, ray_aggregates, ray_scalar_functions, register_functions,
@@ -20,6 +22,6 @@ pub use functions::{
 pub use sliced::{SegmentFiles, SliceableScans};
 pub use small_groups::{SmallGroups, SmallGroupsExec};
 pub use tables::{
-    SessionOptions, TraceSource, physical_optimizer_rules, register_dataset, register_sources, session, session_config,
-    session_state, session_with,
+    ATTRIBUTES_TABLE, Registered, SessionOptions, TraceSource, open_sources, physical_optimizer_rules,
+    register_dataset, register_datasets, session, session_config, session_state, session_with,
 };

@@ -39,6 +39,14 @@ use crate::scan::{RaysTable, stream};
 use crate::small_groups::SmallGroups;
 use crate::{Error, Result};
 
+/// A dataset the engine serves from this process: its name (the schema of its tables) and the
+/// dataset, opened once.
+#[derive(Clone)]
+pub struct Registered {
+    pub name: String,
+    pub dataset: Arc<Dataset>,
+}
+
 /// A dataset to query, under a name (its tables are `NAME.rays`, `NAME.trees`, ...).
 #[derive(Clone, Debug)]
 pub struct TraceSource {
@@ -89,8 +97,16 @@ pub struct SessionOptions {
 /// [`session`] with settings.
 pub async fn session_with(sources: &[TraceSource], options: &SessionOptions) -> Result<SessionContext> {
     let ctx = SessionContext::new_with_state(session_state(options)?);
-    register_sources(&ctx, sources).await?;
+    register_datasets(&ctx, &open_sources(sources)?).await?;
     Ok(ctx)
+}
+
+/// Opens each dataset of `sources` (once).
+pub fn open_sources(sources: &[TraceSource]) -> Result<Vec<Registered>> {
+    sources
+        .iter()
+        .map(|s| Ok(Registered { name: s.name.clone(), dataset: Arc::new(Dataset::open(&s.path)?) }))
+        .collect()
 }
 
 /// The configuration of rtvtk's sessions: information schema, Parquet pruning and filter pushdown.
@@ -103,7 +119,7 @@ pub fn session_config() -> SessionConfig {
 }
 
 /// A session state with rtvtk's settings and physical operators, no tables or ray functions yet
-/// (see [`register_sources`]).
+/// (see [`register_datasets`]).
 pub fn session_state(options: &SessionOptions) -> Result<datafusion::execution::SessionState> {
     let mut runtime = datafusion::execution::runtime_env::RuntimeEnvBuilder::new();
     if let Some(limit) = options.memory_limit {
@@ -121,21 +137,21 @@ pub fn session_state(options: &SessionOptions) -> Result<datafusion::execution::
         .build())
 }
 
-/// Registers the tables of `sources` in `ctx` (each dataset in the schema named after it, the
-/// first one's also unqualified) and the ray functions over the first dataset's scene.
-pub async fn register_sources(ctx: &SessionContext, sources: &[TraceSource]) -> Result<()> {
+/// Registers datasets already open in `ctx` (each in the schema named after it, the first one's
+/// tables also unqualified) and the ray functions over the first dataset's scene.
+pub async fn register_datasets(ctx: &SessionContext, datasets: &[Registered]) -> Result<()> {
     let mut names = std::collections::HashSet::new();
-    let mut scene = None;
-    for (i, src) in sources.iter().enumerate() {
-        if !names.insert(src.name.clone()) {
-            return Err(Error::DuplicateName { name: src.name.clone() });
+    for (i, d) in datasets.iter().enumerate() {
+        if !names.insert(d.name.clone()) {
+            return Err(Error::DuplicateName { name: d.name.clone() });
         }
-        let ds = register_dataset(ctx, src, i == 0).await?;
-        if i == 0 {
-            scene = Some(SceneContext::of(&ds)?);
-        }
+        register_dataset(ctx, &d.name, &d.dataset, i == 0).await?;
     }
-    register_functions(ctx, Arc::new(scene.unwrap_or_default()));
+    let scene = match datasets.first() {
+        Some(d) => SceneContext::of(&d.dataset)?,
+        None => SceneContext::default(),
+    };
+    register_functions(ctx, Arc::new(scene));
     Ok(())
 }
 
@@ -152,25 +168,28 @@ pub fn physical_optimizer_rules() -> Vec<Arc<dyn PhysicalOptimizerRule + Send + 
     rules
 }
 
-/// Registers one dataset's tables; with `unqualified`, also as `rays`, `trees`, ... Returns the
-/// opened dataset.
-pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualified: bool) -> Result<Arc<Dataset>> {
-    let valid = !src.name.is_empty()
-        && src.name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
-        && !src.name.starts_with(|c: char| c.is_ascii_digit());
+/// Registers one open dataset's tables under `name` (`NAME.rays`, ...); with `unqualified`, also
+/// as `rays`, `trees`, ...: `rays`, `trees`, `ray_paths`, `attributes` (the manifest's key/value
+/// attributes: camera, image size, scene name) and every table of the manifest.
+pub async fn register_dataset(ctx: &SessionContext, name: &str, ds: &Arc<Dataset>, unqualified: bool) -> Result<()> {
+    let valid = !name.is_empty()
+        && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+        && !name.starts_with(|c: char| c.is_ascii_digit());
     if !valid {
-        return Err(Error::BadName { name: src.name.clone() });
+        return Err(Error::BadName { name: name.to_string() });
     }
-    let ds = Arc::new(Dataset::open(&src.path)?);
     let catalog_name = ctx.state().config().options().catalog.default_catalog.clone();
     if let Some(catalog) = ctx.catalog(&catalog_name) {
-        catalog.register_schema(&src.name, Arc::new(MemorySchemaProvider::new()))?;
+        catalog.register_schema(name, Arc::new(MemorySchemaProvider::new()))?;
     }
     let mut tables: Vec<(&str, Arc<dyn TableProvider>)> = vec![
         ("rays", Arc::new(RaysTable::new(ds.clone()))),
-        ("trees", listing(ctx, &src.path.join("segments"), ".trees.parquet", Some(store::tree_schema())).await?),
+        ("trees", listing(ctx, &ds.dir().join("segments"), ".trees.parquet", Some(store::tree_schema())).await?),
         ("ray_paths", Arc::new(RayPathsTable::new(ds.clone())?)),
     ];
+    if !ds.table_names().iter().any(|n| n == ATTRIBUTES_TABLE) {
+        tables.push((ATTRIBUTES_TABLE, attributes_table(ds)?));
+    }
     // Every whole-dataset table the recording wrote (`triangles`, `lights`, `bvh_nodes`, ...),
     // with its file's schema checked against the known one (`store::scene`); a table that fails
     // the check is unavailable alone, and a query of it says why.
@@ -183,13 +202,35 @@ pub async fn register_dataset(ctx: &SessionContext, src: &TraceSource, unqualifi
         };
         tables.push((name.as_str(), table));
     }
-    for (name, table) in tables {
-        ctx.register_table(TableReference::partial(src.name.as_str(), name), table.clone())?;
+    for (table_name, table) in tables {
+        ctx.register_table(TableReference::partial(name, table_name), table.clone())?;
         if unqualified {
-            ctx.register_table(name, table)?;
+            ctx.register_table(table_name, table)?;
         }
     }
-    Ok(ds)
+    Ok(())
+}
+
+/// The table of a dataset's manifest attributes.
+pub const ATTRIBUTES_TABLE: &str = "attributes";
+
+/// `attributes(key, value)`: the manifest's attributes (camera, image size, scene, ...), so that
+/// a client of a service reads them as it reads any table.
+fn attributes_table(ds: &Dataset) -> Result<Arc<dyn TableProvider>> {
+    use arrow::datatypes::{DataType, Field, Schema};
+    let schema = Arc::new(Schema::new(vec![
+        Field::new("key", DataType::Utf8, false),
+        Field::new("value", DataType::Utf8, false),
+    ]));
+    let attrs = &ds.manifest().attributes;
+    let keys: Vec<&str> = attrs.keys().map(String::as_str).collect();
+    let values: Vec<&str> = attrs.values().map(String::as_str).collect();
+    let batch = RecordBatch::try_new(
+        schema.clone(),
+        vec![Arc::new(arrow::array::StringArray::from(keys)), Arc::new(arrow::array::StringArray::from(values))],
+    )
+    .map_err(|e| Error::DataFusion(e.into()))?;
+    Ok(Arc::new(datafusion::datasource::MemTable::try_new(schema, vec![vec![batch]])?))
 }
 
 /// A table of the dataset that cannot be read (a known table whose file has a missing or

@@ -49,7 +49,7 @@ static REGISTRY: [ComponentInfo; 7] = [
         display_name: "Rays",
         description: "ray trees as segments coloured by kind, filtered by kind, depth, tree, pixel, sample; ctrl-click traces a pixel",
         offered: |s| {
-            if s.dataset.is_some() || s.scene.is_some() { Ok(()) } else { Err("no dataset and no scene".into()) }
+            if s.has_rays() || s.scene.is_some() { Ok(()) } else { Err("no dataset and no scene".into()) }
         },
         make: |id, s, v| Ok(Box::new(Rays::new(id, s, v)?)),
     },

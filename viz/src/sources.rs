@@ -4,7 +4,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use arrow::array::RecordBatch;
+use arrow::array::{Array, AsArray, RecordBatch};
 use renderers::{Camera, Scene};
 use store::Dataset;
 use store::scene::{BVH_NODES_TABLE, CameraAttrs, RAY_NODES_TABLE, TRIANGLES_TABLE, attr};
@@ -25,9 +25,13 @@ pub struct Picture {
 pub struct Sources {
     pub name: String,
     pub dir: Option<PathBuf>,
+    /// The dataset, where this process reads it (not for a service's client).
     pub dataset: Option<Arc<Dataset>>,
-    /// The SQL session over the dataset, made on the first query.
+    /// The SQL engine over the dataset: given (the viewer's, a service's client), or made on the
+    /// first query over the same open dataset.
     sql: std::sync::OnceLock<sql::Sql>,
+    /// The dataset's name in the engine (`None`: the unqualified tables).
+    table_schema: Option<String>,
     /// The scene (from the `triangles` table, or built in).
     pub scene: Option<Arc<Scene>>,
     /// The camera and image size the dataset was rendered with.
@@ -42,42 +46,32 @@ pub struct Sources {
     pub missing: Vec<String>,
 }
 
-/// The SQL session (DataFusion) over a dataset: only with the `sql` feature.
+/// The SQL engine over a dataset: only with the `sql` feature.
 #[cfg(feature = "sql")]
 mod sql {
-    use std::path::Path;
+    use std::sync::Arc;
 
     use arrow::array::RecordBatch;
-    use datafusion::prelude::SessionContext;
     use futures::StreamExt;
+    use store::Dataset;
 
-    use crate::{Error, Result};
+    use crate::Result;
 
     pub struct Sql {
-        pub ctx: SessionContext,
-        runtime: tokio::runtime::Runtime,
+        pub engine: Arc<query::Engine>,
     }
 
     impl Sql {
-        pub fn open(dir: &Path) -> Result<Sql> {
-            let runtime = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(std::thread::available_parallelism().map_or(2, |n| n.get()).min(8))
-                .enable_all()
-                .build()
-                .map_err(|e| Error::Settings(format!("cannot start the query runtime: {e}")))?;
-            let src = query::TraceSource { name: "trace".into(), path: dir.to_path_buf() };
-            let ctx = runtime.block_on(query::session(&[src]))?;
-            Ok(Sql { ctx, runtime })
+        /// An in-process engine over the dataset this process has open (the same `Arc`).
+        pub fn over(dataset: &Arc<Dataset>) -> Result<Sql> {
+            let datasets = vec![query::Registered { name: "trace".into(), dataset: dataset.clone() }];
+            let engine = query::Engine::blocking(query::Engine::with_datasets(datasets, &Default::default()))?;
+            Ok(Sql { engine: Arc::new(engine) })
         }
 
         pub fn query_batches(&self, sql: &str, each: &mut dyn FnMut(&RecordBatch) -> Result<()>) -> Result<()> {
-            let opts = datafusion::execution::context::SQLOptions::new()
-                .with_allow_ddl(false)
-                .with_allow_dml(false)
-                .with_allow_statements(false);
-            self.runtime.block_on(async {
-                let df = self.ctx.sql_with_options(sql, opts).await?;
-                let mut stream = df.execute_stream().await?;
+            self.engine.block_on(async {
+                let mut stream = self.engine.stream(sql).await?;
                 while let Some(b) = stream.next().await {
                     each(&b?)?;
                 }
@@ -90,16 +84,17 @@ mod sql {
 /// Built without the `sql` feature: no SQL engine, and every query says so.
 #[cfg(not(feature = "sql"))]
 mod sql {
-    use std::path::Path;
+    use std::sync::Arc;
 
     use arrow::array::RecordBatch;
+    use store::Dataset;
 
     use crate::{Error, Result};
 
     pub struct Sql;
 
     impl Sql {
-        pub fn open(_dir: &Path) -> Result<Sql> {
+        pub fn over(_dataset: &Arc<Dataset>) -> Result<Sql> {
             Err(Error::NoSql)
         }
 
@@ -107,6 +102,15 @@ mod sql {
             Err(Error::NoSql)
         }
     }
+}
+
+/// What a dataset holds beyond its rays, however it is read (from its directory, or through a
+/// query engine).
+struct Parts {
+    attributes: std::collections::BTreeMap<String, String>,
+    triangles: Option<RecordBatch>,
+    picture: Option<Picture>,
+    tables: Vec<String>,
 }
 
 fn scene_bounds(scene: &Scene) -> ([f64; 3], [f64; 3]) {
@@ -118,42 +122,14 @@ impl Sources {
     /// Opens a dataset directory. A dataset recorded before scenes and cameras were stored
     /// opens too: what it lacks is listed in `missing`.
     pub fn open(dir: &Path) -> Result<Sources> {
-        let ds = Arc::new(Dataset::open(dir)?);
+        Sources::of_dataset(Arc::new(Dataset::open(dir)?))
+    }
+
+    /// The sources of a dataset already open (the one `Arc` an engine registered, too).
+    pub fn of_dataset(ds: Arc<Dataset>) -> Result<Sources> {
+        let dir = ds.dir().to_path_buf();
         let m = ds.manifest();
         let mut missing = Vec::new();
-        let cam = CameraAttrs::from_attributes(&m.attributes).map_err(|message| Error::File {
-            what: "the dataset's camera attributes",
-            path: dir.join("manifest.json"),
-            message,
-        })?;
-        let (camera, image_size) = match cam {
-            Some(c) => (Some(ViewCamera::from_attrs(&c)), [c.width, c.height]),
-            None => {
-                missing.push("no camera attributes (recorded before they were stored): a camera framing the scene is used, the image cannot be registered".into());
-                let w = m.attributes.get(attr::WIDTH).and_then(|s| s.parse().ok()).unwrap_or(512);
-                let h = m.attributes.get(attr::HEIGHT).and_then(|s| s.parse().ok()).unwrap_or(512);
-                (None, [w, h])
-            }
-        };
-        let scene = match ds.table(TRIANGLES_TABLE)? {
-            Some(t) => {
-                let c = camera.map_or(
-                    Camera { position: glam::Vec3A::ZERO, target: glam::Vec3A::Z, up: glam::Vec3A::Y, fov_y: 40.0 },
-                    |c| Camera {
-                        position: glam::DVec3::from_array(c.position).as_vec3a(),
-                        target: glam::DVec3::from_array(c.target).as_vec3a(),
-                        up: glam::DVec3::from_array(c.up).as_vec3a(),
-                        fov_y: c.fov_y as f32,
-                    },
-                );
-                let name = m.attributes.get("scene").cloned().unwrap_or_else(|| "dataset".into());
-                Some(Arc::new(Scene::from_triangles_table(&name, &t, c)?))
-            }
-            None => {
-                missing.push("no triangles table: the geometry and composition layers are not available".into());
-                None
-            }
-        };
         let picture = match m.attributes.get(attr::IMAGE_PNG) {
             Some(rel) => {
                 let p = dir.join(rel);
@@ -174,40 +150,177 @@ impl Sources {
                 }
             }
         };
-        let bounds = match &scene {
-            Some(s) => Some(scene_bounds(s)),
-            None => {
-                let st = ds.stats();
-                let mut lo = [f64::INFINITY; 3];
-                let mut hi = [f64::NEG_INFINITY; 3];
-                for b in [&st.origin_bounds, &st.hit_bounds] {
-                    if !b.is_empty() {
-                        for k in 0..3 {
-                            lo[k] = lo[k].min(f64::from(b.min[k]));
-                            hi[k] = hi[k].max(f64::from(b.max[k]));
-                        }
+        let parts = Parts {
+            attributes: m.attributes.clone(),
+            triangles: ds.table(TRIANGLES_TABLE)?,
+            picture,
+            tables: m.tables.keys().cloned().collect(),
+        };
+        let fallback = || {
+            let st = ds.stats();
+            let mut lo = [f64::INFINITY; 3];
+            let mut hi = [f64::NEG_INFINITY; 3];
+            for b in [&st.origin_bounds, &st.hit_bounds] {
+                if !b.is_empty() {
+                    for k in 0..3 {
+                        lo[k] = lo[k].min(f64::from(b.min[k]));
+                        hi[k] = hi[k].max(f64::from(b.max[k]));
                     }
                 }
-                (lo[0] <= hi[0]).then_some((lo, hi))
+            }
+            Ok((lo[0] <= hi[0]).then_some((lo, hi)))
+        };
+        let mut s = Sources::assemble(dir.display().to_string(), parts, missing, fallback)?;
+        s.dir = Some(dir);
+        s.dataset = Some(ds);
+        Ok(s)
+    }
+
+    /// The sources of a dataset read through a query engine: `engine`'s dataset `name` (`None`:
+    /// its first, the unqualified tables). Where the engine has the dataset open in this process
+    /// it is read from there (rays straight from the store); a service's client reads the
+    /// scene, camera and rays through SQL (the recorded picture is not served: the image layer
+    /// traces the view).
+    #[cfg(feature = "sql")]
+    pub fn with_engine(engine: Arc<query::Engine>, name: Option<&str>) -> Result<Sources> {
+        if let Some(ds) = engine.dataset(name) {
+            let mut s = Sources::of_dataset(ds)?;
+            s.table_schema = name.map(String::from);
+            let _ = s.sql.set(sql::Sql { engine });
+            return Ok(s);
+        }
+        let prefix = name.map_or(String::new(), |n| format!("{n}."));
+        let sql = sql::Sql { engine: engine.clone() };
+        let collect = |q: &str| -> Result<Vec<RecordBatch>> {
+            let mut out = Vec::new();
+            sql.query_batches(q, &mut |b| {
+                out.push(b.clone());
+                Ok(())
+            })?;
+            Ok(out)
+        };
+        let catalog = engine.block_on(engine.catalog())?;
+        let in_schema = |t: &str| match name {
+            Some(n) => t.strip_prefix(&format!("{n}.")).map(String::from),
+            None => (!t.contains('.')).then(|| t.to_string()),
+        };
+        let tables: Vec<String> = catalog.tables.iter().filter_map(|t| in_schema(t)).collect();
+        if !tables.iter().any(|t| t == "rays") {
+            return Err(Error::Settings(format!(
+                "{} has no dataset {}: its tables are {}",
+                engine.describe(),
+                name.unwrap_or("(unqualified)"),
+                catalog.tables.join(", ")
+            )));
+        }
+        let mut attributes = std::collections::BTreeMap::new();
+        if tables.iter().any(|t| t == query::ATTRIBUTES_TABLE) {
+            for b in collect(&format!("SELECT key, value FROM {prefix}{}", query::ATTRIBUTES_TABLE))? {
+                let k = arrow::compute::cast(b.column(0), &arrow::datatypes::DataType::Utf8)?;
+                let v = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::Utf8)?;
+                let (k, v) = (k.as_string::<i32>(), v.as_string::<i32>());
+                for i in 0..b.num_rows() {
+                    attributes.insert(k.value(i).to_string(), v.value(i).to_string());
+                }
+            }
+        }
+        let triangles = if tables.iter().any(|t| t == TRIANGLES_TABLE) {
+            let batches = collect(&format!("SELECT * FROM {prefix}{TRIANGLES_TABLE}"))?;
+            let schema = batches.first().map(|b| b.schema()).unwrap_or_else(store::scene::triangles_schema);
+            Some(arrow::compute::concat_batches(&schema, &batches)?)
+        } else {
+            None
+        };
+        let parts = Parts { attributes, triangles, picture: None, tables };
+        let missing = vec![format!(
+            "the recorded picture is not served by {}: the image layer traces the view",
+            engine.describe()
+        )];
+        let fallback = || {
+            let b = collect(&format!(
+                "SELECT min(origin_x), min(origin_y), min(origin_z), max(origin_x), max(origin_y), max(origin_z) \
+                 FROM {prefix}rays"
+            ))?;
+            let v: Vec<f64> = match b.first() {
+                Some(b) if b.num_rows() == 1 => (0..6)
+                    .map(|i| {
+                        let c = arrow::compute::cast(b.column(i), &arrow::datatypes::DataType::Float64)?;
+                        let c = c.as_primitive::<arrow::datatypes::Float64Type>();
+                        Ok(if c.is_null(0) { f64::NAN } else { c.value(0) })
+                    })
+                    .collect::<Result<_>>()?,
+                _ => return Ok(None),
+            };
+            Ok((v[0] <= v[3]).then_some(([v[0], v[1], v[2]], [v[3], v[4], v[5]])))
+        };
+        let mut s = Sources::assemble(engine.describe(), parts, missing, fallback)?;
+        s.table_schema = name.map(String::from);
+        let _ = s.sql.set(sql);
+        Ok(s)
+    }
+
+    /// Sources from a dataset's parts; `fallback` gives the bounds when there are no triangles.
+    fn assemble(
+        describe: String,
+        parts: Parts,
+        mut missing: Vec<String>,
+        fallback: impl FnOnce() -> Result<Option<([f64; 3], [f64; 3])>>,
+    ) -> Result<Sources> {
+        let attrs = &parts.attributes;
+        let cam = CameraAttrs::from_attributes(attrs).map_err(|message| Error::File {
+            what: "the dataset's camera attributes",
+            path: PathBuf::from(&describe).join("manifest.json"),
+            message,
+        })?;
+        let (camera, image_size) = match cam {
+            Some(c) => (Some(ViewCamera::from_attrs(&c)), [c.width, c.height]),
+            None => {
+                missing.push("no camera attributes (recorded before they were stored): a camera framing the scene is used, the image cannot be registered".into());
+                let w = attrs.get(attr::WIDTH).and_then(|s| s.parse().ok()).unwrap_or(512);
+                let h = attrs.get(attr::HEIGHT).and_then(|s| s.parse().ok()).unwrap_or(512);
+                (None, [w, h])
             }
         };
-        let has_bvh_nodes = m.tables.contains_key(BVH_NODES_TABLE);
-        let has_ray_nodes = m.tables.contains_key(RAY_NODES_TABLE);
+        let scene = match &parts.triangles {
+            Some(t) => {
+                let c = camera.map_or(
+                    Camera { position: glam::Vec3A::ZERO, target: glam::Vec3A::Z, up: glam::Vec3A::Y, fov_y: 40.0 },
+                    |c| Camera {
+                        position: glam::DVec3::from_array(c.position).as_vec3a(),
+                        target: glam::DVec3::from_array(c.target).as_vec3a(),
+                        up: glam::DVec3::from_array(c.up).as_vec3a(),
+                        fov_y: c.fov_y as f32,
+                    },
+                );
+                let name = attrs.get("scene").cloned().unwrap_or_else(|| "dataset".into());
+                Some(Arc::new(Scene::from_triangles_table(&name, t, c)?))
+            }
+            None => {
+                missing.push("no triangles table: the geometry and composition layers are not available".into());
+                None
+            }
+        };
+        let bounds = match &scene {
+            Some(s) => Some(scene_bounds(s)),
+            None => fallback()?,
+        };
+        let has_bvh_nodes = parts.tables.iter().any(|t| t == BVH_NODES_TABLE);
+        let has_ray_nodes = parts.tables.iter().any(|t| t == RAY_NODES_TABLE);
         if !has_ray_nodes {
             missing.push(
                 "no ray_nodes table (record with --record-visits): BVH boxes cannot be limited to visited nodes".into(),
             );
         }
-        let name = m.attributes.get("scene").cloned().unwrap_or_else(|| dir.display().to_string());
         Ok(Sources {
-            name,
-            dir: Some(dir.to_path_buf()),
-            dataset: Some(ds.clone()),
+            name: attrs.get("scene").cloned().unwrap_or(describe),
+            dir: None,
+            dataset: None,
             sql: std::sync::OnceLock::new(),
+            table_schema: None,
             scene,
             camera,
             image_size,
-            picture,
+            picture: parts.picture,
             bounds,
             has_bvh_nodes,
             has_ray_nodes,
@@ -226,6 +339,7 @@ impl Sources {
             dir: None,
             dataset: None,
             sql: std::sync::OnceLock::new(),
+            table_schema: None,
             bounds: Some(scene_bounds(&scene)),
             scene: Some(Arc::new(scene)),
             camera: Some(camera),
@@ -257,22 +371,35 @@ impl Sources {
         }
     }
 
-    /// The SQL session over the dataset (made on first use).
+    /// The SQL engine over the dataset (given, or made on first use over the open dataset).
     fn sql(&self) -> Result<&sql::Sql> {
-        let Some(dir) = &self.dir else {
-            return Err(Error::Settings("no dataset is loaded, so there is nothing to query".into()));
-        };
         if let Some(s) = self.sql.get() {
             return Ok(s);
         }
-        let s = sql::Sql::open(dir)?;
+        let Some(ds) = &self.dataset else {
+            return Err(Error::Settings("no dataset is loaded, so there is nothing to query".into()));
+        };
+        let s = sql::Sql::over(ds)?;
         Ok(self.sql.get_or_init(|| s))
     }
 
-    /// The SQL session over the dataset (tables `rays`, `trees`, `bvh_nodes`, ...).
+    /// The engine the SQL layers ask (made on first use over the open dataset).
     #[cfg(feature = "sql")]
-    pub fn session(&self) -> Result<&datafusion::prelude::SessionContext> {
-        Ok(&self.sql()?.ctx)
+    pub fn engine(&self) -> Result<Arc<query::Engine>> {
+        Ok(self.sql()?.engine.clone())
+    }
+
+    /// Whether there are recorded rays to draw: a dataset open here, or one a service serves.
+    pub fn has_rays(&self) -> bool {
+        self.dataset.is_some() || self.sql.get().is_some()
+    }
+
+    /// The name of one of the dataset's tables in its engine (`rays`, `NAME.rays`).
+    pub fn table(&self, table: &str) -> String {
+        match &self.table_schema {
+            Some(n) => format!("{n}.{table}"),
+            None => table.to_string(),
+        }
     }
 
     /// Whether this build can run SQL (the `sql` feature) and there is a dataset to query.
@@ -280,7 +407,7 @@ impl Sources {
         if !cfg!(feature = "sql") {
             return Err(Error::NoSql.to_string());
         }
-        if self.dataset.is_none() {
+        if !self.has_rays() {
             return Err("no dataset".into());
         }
         Ok(())

@@ -57,10 +57,20 @@ pub struct Dataset {
     segment_trees: Vec<OnceLock<Arc<Vec<TreeEntry>>>>,
 }
 
+/// Datasets opened by this process so far (see [`Dataset::opened`]).
+static OPENED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
 impl Dataset {
+    /// How many times this process has called [`Dataset::open`]: a process shares one open
+    /// dataset (and its tree index) among its readers, and its tests check it with this.
+    pub fn opened() -> u64 {
+        OPENED.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
     /// Opens the dataset at `dir`: reads the manifest and checks every listed file is there
     /// with the size the manifest records.
     pub fn open(dir: impl AsRef<Path>) -> Result<Self> {
+        OPENED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let dir = dir.as_ref().to_path_buf();
         let manifest = Manifest::load(&dir)?;
         let payload = manifest.payload_schema(&dir.join(MANIFEST_FILE))?;

@@ -91,7 +91,8 @@ impl BvhBoxes {
         Ok(b)
     }
 
-    fn sql(&self) -> String {
+    fn sql(&self, sources: &Sources) -> String {
+        let (bvh_nodes, ray_nodes) = (sources.table("bvh_nodes"), sources.table("ray_nodes"));
         let s = &self.settings;
         let [a, b] = s.levels;
         if s.only_visited || s.colour == BoxColour::Visits {
@@ -99,12 +100,12 @@ impl BvhBoxes {
             let join = if s.only_visited { "JOIN" } else { "LEFT JOIN" };
             format!(
                 "SELECT n.level, n.min_x, n.min_y, n.min_z, n.max_x, n.max_y, n.max_z, coalesce(v.visits, 0) AS visits, n.node_id \
-                 FROM bvh_nodes n {join} (SELECT node_id, count(*) AS visits FROM ray_nodes{tree} GROUP BY node_id) v \
+                 FROM {bvh_nodes} n {join} (SELECT node_id, count(*) AS visits FROM {ray_nodes}{tree} GROUP BY node_id) v \
                  ON n.node_id = v.node_id WHERE n.level BETWEEN {a} AND {b}"
             )
         } else {
             format!(
-                "SELECT level, min_x, min_y, min_z, max_x, max_y, max_z, 0 AS visits, node_id FROM bvh_nodes WHERE level BETWEEN {a} AND {b}"
+                "SELECT level, min_x, min_y, min_z, max_x, max_y, max_z, 0 AS visits, node_id FROM {bvh_nodes} WHERE level BETWEEN {a} AND {b}"
             )
         }
     }
@@ -113,7 +114,7 @@ impl BvhBoxes {
         let gpu = ctx.gpu;
         let mut rows: Vec<([f64; 3], [f64; 3], f64, u64)> = Vec::new();
         let by_visits = self.settings.colour == BoxColour::Visits;
-        ctx.sources.query_batches(&self.sql(), |b| {
+        ctx.sources.query_batches(&self.sql(ctx.sources), |b| {
             let [x0, y0, z0, x1, y1, z1] = f32_columns(b, ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z"])?;
             let level = arrow::compute::cast(b.column(0), &DataType::Float64)?;
             let visits = arrow::compute::cast(b.column(7), &DataType::Float64)?;

@@ -546,7 +546,7 @@ pub struct Heatmap {
 
 impl Heatmap {
     pub fn new(id: ComponentId, sources: &Sources, settings: &serde_json::Value) -> Result<Heatmap> {
-        if sources.dataset.is_none() {
+        if !sources.has_rays() {
             return Err(Error::Layer { layer: "heatmap".into(), message: "no dataset is loaded".into() });
         }
         let mut h = Heatmap {

@@ -259,7 +259,7 @@ pub struct Rays {
 
 impl Rays {
     pub fn new(id: ComponentId, sources: &Sources, settings: &serde_json::Value) -> Result<Rays> {
-        if sources.dataset.is_none() && sources.scene.is_none() {
+        if !sources.has_rays() && sources.scene.is_none() {
             return Err(Error::Layer { layer: "rays".into(), message: "no dataset and no scene to trace".into() });
         }
         let mut r = Rays {
@@ -324,17 +324,12 @@ impl Rays {
         let mut builder = SegmentBuilder::new(sources.bounds, frame);
         let mut kinds: BTreeMap<String, u64> = BTreeMap::new();
         let (mut pick_trees, mut pick_rays) = (Vec::new(), Vec::new());
-        let Some(ds) = &sources.dataset else {
+        if !sources.has_rays() {
             // Immediate mode only: nothing recorded to load.
             self.segments = Some(bufs);
             self.loaded = Some((frame, self.settings.data_key()));
             return Ok(());
-        };
-        let rows = tree_rows(ds, &s)?;
-        let total = rows
-            .as_ref()
-            .map_or(ds.ray_count(), |per| per.values().flat_map(|r| r.iter().map(|r| r.end - r.start)).sum::<u64>());
-        progress.start("loading rays", total);
+        }
         // Ends the progress however the load ends (an error, a cancel, done).
         struct Finish<'a>(&'a crate::component::Progress);
         impl Drop for Finish<'_> {
@@ -349,71 +344,105 @@ impl Rays {
         let names: Vec<String> =
             [col::TREE_ID, col::RAY, col::DEPTH, col::KIND, ox, oy, oz, dx, dy, dz, col::T].map(String::from).to_vec();
         let mut left = s.max_rays.unwrap_or(u64::MAX);
-        'segments: for i in 0..ds.manifest().segments.len() {
-            let ranges = match &rows {
-                Some(per) => match per.get(&i) {
-                    Some(r) => Some(r.as_slice()),
-                    None => continue,
-                },
-                None => None,
-            };
-            for b in read_ahead(ds.segment_columns_in(i, &names, ranges)?) {
-                let b = b?;
-                if !progress.advance(b.num_rows() as u64) {
-                    self.cancelled_after = Some(pick_trees.len() as u64);
-                    break 'segments;
+        // One batch of rows (columns in `names`' order) into segments; false once no more are
+        // wanted (cancelled, or `max_rays` reached).
+        let mut consume = |b: &RecordBatch| -> Result<bool> {
+            if !progress.advance(b.num_rows() as u64) {
+                self.cancelled_after = Some(pick_trees.len() as u64);
+                return Ok(false);
+            }
+            let [ox, oy, oz, dx, dy, dz, t] = f32_columns(b, [ox, oy, oz, dx, dy, dz, col::T])?;
+            let tree = arrow::compute::cast(b.column(0), &arrow::datatypes::DataType::UInt64)?;
+            let tree = tree.as_primitive::<UInt64Type>();
+            let ray = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::UInt32)?;
+            let ray = ray.as_primitive::<arrow::datatypes::UInt32Type>();
+            let depth = arrow::compute::cast(b.column(2), &arrow::datatypes::DataType::UInt32)?;
+            let depth = depth.as_primitive::<arrow::datatypes::UInt32Type>();
+            let (names_of, codes) = kind_codes(b.column(3).as_ref())?;
+            // Per kind value: its colour, and whether the kind filter keeps it.
+            let per_kind: Vec<([u8; 4], bool)> = names_of
+                .iter()
+                .map(|n| {
+                    let n = n.as_deref().unwrap_or("?");
+                    (kind_color(n), s.kinds.as_ref().is_none_or(|k| k.iter().any(|w| w == n)))
+                })
+                .collect();
+            let mut per_count = vec![0u64; names_of.len()];
+            let mut more = true;
+            for (r, &k) in codes.iter().enumerate() {
+                let (colour, keep) = per_kind[k];
+                if !keep
+                    || s.depth.is_some_and(|[a, z]| depth.value(r) < a || depth.value(r) > z)
+                    || s.ray_upto.is_some_and(|n| ray.value(r) > n)
+                {
+                    continue;
                 }
-                let [ox, oy, oz, dx, dy, dz, t] = f32_columns(&b, [ox, oy, oz, dx, dy, dz, col::T])?;
-                let tree = b
-                    .column(0)
-                    .as_primitive_opt::<UInt64Type>()
-                    .ok_or_else(|| Error::Columns("tree_id is not UInt64".into()))?;
-                let ray = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::UInt32)?;
-                let ray = ray.as_primitive::<arrow::datatypes::UInt32Type>();
-                let depth = arrow::compute::cast(b.column(2), &arrow::datatypes::DataType::UInt32)?;
-                let depth = depth.as_primitive::<arrow::datatypes::UInt32Type>();
-                let (names_of, codes) = kind_codes(b.column(3).as_ref())?;
-                // Per kind value: its colour, and whether the kind filter keeps it.
-                let per_kind: Vec<([u8; 4], bool)> = names_of
-                    .iter()
-                    .map(|n| {
-                        let n = n.as_deref().unwrap_or("?");
-                        (kind_color(n), s.kinds.as_ref().is_none_or(|k| k.iter().any(|w| w == n)))
-                    })
-                    .collect();
-                let mut per_count = vec![0u64; names_of.len()];
-                for (r, &k) in codes.iter().enumerate() {
-                    let (colour, keep) = per_kind[k];
-                    if !keep
-                        || s.depth.is_some_and(|[a, z]| depth.value(r) < a || depth.value(r) > z)
-                        || s.ray_upto.is_some_and(|n| ray.value(r) > n)
-                    {
-                        continue;
-                    }
-                    if left == 0 {
-                        break 'segments;
-                    }
-                    left -= 1;
-                    per_count[k] += 1;
-                    // A miss has a null t.
-                    let tv = if t.is_null(r) { f32::INFINITY } else { t.value(r) };
-                    let Some((a, e)) = builder.end(
-                        [ox.value(r), oy.value(r), oz.value(r)],
-                        [dx.value(r), dy.value(r), dz.value(r)],
-                        tv,
-                    ) else {
-                        continue;
+                if left == 0 {
+                    more = false;
+                    break;
+                }
+                left -= 1;
+                per_count[k] += 1;
+                // A miss has a null t.
+                let tv = if t.is_null(r) { f32::INFINITY } else { t.value(r) };
+                let Some((a, e)) =
+                    builder.end([ox.value(r), oy.value(r), oz.value(r)], [dx.value(r), dy.value(r), dz.value(r)], tv)
+                else {
+                    continue;
+                };
+                let flags = u32::from(s.selected_tree == Some(tree.value(r)));
+                bufs.push(gpu, builder.segment(a, e, colour, flags));
+                pick_trees.push(tree.value(r));
+                pick_rays.push(ray.value(r));
+            }
+            for (k, n) in per_count.iter().enumerate() {
+                if *n > 0 {
+                    *kinds.entry(names_of[k].clone().unwrap_or_default()).or_default() += n;
+                }
+            }
+            Ok(more)
+        };
+        match &sources.dataset {
+            Some(ds) => {
+                let rows = tree_rows(ds, &s)?;
+                let total = rows.as_ref().map_or(ds.ray_count(), |per| {
+                    per.values().flat_map(|r| r.iter().map(|r| r.end - r.start)).sum::<u64>()
+                });
+                progress.start("loading rays", total);
+                'segments: for i in 0..ds.manifest().segments.len() {
+                    let ranges = match &rows {
+                        Some(per) => match per.get(&i) {
+                            Some(r) => Some(r.as_slice()),
+                            None => continue,
+                        },
+                        None => None,
                     };
-                    let flags = u32::from(s.selected_tree == Some(tree.value(r)));
-                    bufs.push(gpu, builder.segment(a, e, colour, flags));
-                    pick_trees.push(tree.value(r));
-                    pick_rays.push(ray.value(r));
-                }
-                for (k, n) in per_count.iter().enumerate() {
-                    if *n > 0 {
-                        *kinds.entry(names_of[k].clone().unwrap_or_default()).or_default() += n;
+                    for b in read_ahead(ds.segment_columns_in(i, &names, ranges)?) {
+                        if !consume(&b?)? {
+                            break 'segments;
+                        }
                     }
                 }
+            }
+            None => {
+                // A service's dataset: the same rows through SQL, in tree order.
+                let limit = s.max_rays.map_or(String::new(), |n| format!(" LIMIT {n}"));
+                let sql = format!(
+                    "SELECT {} FROM {} WHERE {} ORDER BY {}, {}{limit}",
+                    names.join(", "),
+                    sources.table("rays"),
+                    s.predicate()?,
+                    col::TREE_ID,
+                    col::RAY
+                );
+                progress.start("loading rays", s.max_rays.unwrap_or(0));
+                let mut done = false;
+                sources.query_batches(&sql, |b| {
+                    if !done && !consume(b)? {
+                        done = true;
+                    }
+                    Ok(())
+                })?;
             }
         }
         bufs.flush(gpu);

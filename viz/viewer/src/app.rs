@@ -8,12 +8,12 @@ use std::sync::{Arc, Mutex};
 use egui::{Color32, RichText, Ui};
 use viz::{Legend, ViewCamera};
 
-use crate::query_service::{QueryService, Tag, Target};
+use crate::query_service::{QueryService, Tag};
 pub use crate::state::{
     ConsoleState, InspectorState, Pane, PlotState, Resolution, STORAGE_KEY, Saved, Selection, Shown, ShownTexture,
     State, select,
 };
-use crate::worker::{Cmd, Event, LayerInfo, LayerSpec, Pixels, Source, Worker};
+use crate::worker::{Cmd, Event, LayerInfo, LayerSpec, Pixels, Service, Source, Worker};
 
 /// How the viewer starts.
 #[derive(Clone, Debug, Default)]
@@ -117,20 +117,9 @@ impl Viewer {
         let waker = Waker::default();
         let w = waker.clone();
         let wake: Arc<dyn Fn() + Send + Sync> = Arc::new(move || w.wake());
-        let worker = Worker::spawn(wake.clone(), options.gpu, display.is_some());
-        let datasets: Vec<PathBuf> = options
-            .sources
-            .iter()
-            .filter_map(|s| match s {
-                Source::Dataset(p) => Some(p.clone()),
-                Source::Scene(_) => None,
-            })
-            .collect();
-        let target = match &options.connect {
-            Some(url) => Target::Flight { url: url.replace("grpc://", "http://"), token: options.token.clone() },
-            None => Target::Local(datasets),
-        };
-        let queries = QueryService::new(target, wake)?;
+        let service = options.connect.clone().map(|url| Service { url, token: options.token.clone() });
+        let worker = Worker::spawn(wake.clone(), options.gpu, display.is_some(), service);
+        let queries = QueryService::new(wake)?;
         let saved = saved.unwrap_or_default();
         let mut tree = saved.layout.clone().filter(|_| !options.reset_layout).unwrap_or_else(default_tree);
         if tree.tiles.find_pane(&Pane::Render).is_none() {
@@ -193,7 +182,17 @@ impl Viewer {
             None => self.state.layers.iter().map(LayerInfo::spec).collect(),
         };
         self.state.opening = Some(source.clone());
-        self.worker.send(Cmd::Open(source, specs));
+        self.queries.connecting = true;
+        let others = self
+            .state
+            .sources
+            .iter()
+            .filter_map(|s| match s {
+                Source::Dataset(p) if Some(s) != Some(&source) => Some(p.clone()),
+                _ => None,
+            })
+            .collect();
+        self.worker.send(Cmd::Open(source, specs, others));
     }
 
     /// What to save (eframe storage).
@@ -223,6 +222,7 @@ impl Viewer {
             let s = &mut self.state;
             match e {
                 Event::Opened(o) => {
+                    self.queries.set_engine(o.engine.clone());
                     s.camera = s.saved_camera.take().unwrap_or(o.camera);
                     s.cmds.push(Cmd::Camera(s.camera));
                     for m in &o.missing {
@@ -235,6 +235,7 @@ impl Viewer {
                 }
                 Event::OpenFailed { source, message } => {
                     s.opening = None;
+                    self.queries.connecting = false;
                     s.error(format!("cannot open {}: {message}", source.label()));
                 }
                 Event::Frame(f) => {
@@ -414,16 +415,6 @@ impl Viewer {
                 }
             }
             if let Some(s) = chosen {
-                if let Source::Dataset(p) = &s
-                    && self.options.connect.is_none()
-                {
-                    let mut dirs = vec![p.clone()];
-                    dirs.extend(self.state.sources.iter().filter_map(|x| match x {
-                        Source::Dataset(d) if d != p => Some(d.clone()),
-                        _ => None,
-                    }));
-                    self.queries.retarget(Target::Local(dirs));
-                }
                 self.open(s);
             }
             if ui.button("Reset layout").clicked() {

@@ -13,10 +13,14 @@ use serde::{Deserialize, Serialize};
 use viz::component::Picked;
 use viz::{ComponentId, Gpu, Legend, Pipeline, Sources, ViewCamera};
 
-/// What the viewer shows: a recorded dataset, or a scene with no dataset (immediate mode only).
+/// What the viewer shows: a recorded dataset, a dataset an `rtvtk serve` service serves, or a
+/// scene with no dataset (immediate mode only).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Source {
     Dataset(PathBuf),
+    /// A dataset of the service the viewer was started with (`view --connect`), by its name
+    /// there (empty: its first, the unqualified tables).
+    Served(String),
     /// A built-in scene name (`cornell`, ...) or an OBJ file.
     Scene(String),
 }
@@ -25,9 +29,21 @@ impl Source {
     pub fn label(&self) -> String {
         match self {
             Source::Dataset(p) => p.display().to_string(),
+            Source::Served(n) if n.is_empty() => "the service's dataset".into(),
+            Source::Served(n) => format!("the service's dataset {n}"),
             Source::Scene(s) => format!("scene {s}"),
         }
     }
+}
+
+/// An `rtvtk serve` service the viewer draws from (`view --connect`): every layer and the
+/// console ask it.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Service {
+    /// `grpc://HOST:PORT`.
+    pub url: String,
+    /// Its bearer token, when it asks for one.
+    pub token: Option<String>,
 }
 
 /// A component as it is saved and restored: kind, settings, shown or not.
@@ -81,6 +97,9 @@ pub struct Opened {
     pub has_dataset: bool,
     pub missing: Vec<String>,
     pub offers: Vec<Offer>,
+    /// The engine the layers ask, for the console, plots and inspector too (`Err`: why there is
+    /// none: no dataset, or one whose SQL session cannot be made).
+    pub engine: Result<Arc<query::Engine>, String>,
 }
 
 /// A composited frame, read back (RGBA8, rows top to bottom).
@@ -102,8 +121,9 @@ pub enum Pixels {
 }
 
 pub enum Cmd {
-    /// Opens a source and makes these components on it (none: the default pipeline).
-    Open(Source, Vec<LayerSpec>),
+    /// Opens a source and makes these components on it (none: the default pipeline); the
+    /// datasets listed also go into its engine, under their names (the console's other tables).
+    Open(Source, Vec<LayerSpec>, Vec<PathBuf>),
     Camera(ViewCamera),
     Resize([u32; 2]),
     Add(LayerSpec),
@@ -163,7 +183,7 @@ impl Worker {
     /// source and immediate mode).
     /// The render thread; with `share_frames` a frame crosses as the pipeline's display texture
     /// (the caller's window draws on the process's device, `rtvtk_gpu::Gpu::share`), else as RGBA.
-    pub fn spawn(wake: Arc<dyn Fn() + Send + Sync>, gpu: bool, share_frames: bool) -> Worker {
+    pub fn spawn(wake: Arc<dyn Fn() + Send + Sync>, gpu: bool, share_frames: bool, service: Option<Service>) -> Worker {
         let (tx, crx) = channel();
         let (etx, rx) = channel();
         let pending = Arc::new(std::sync::atomic::AtomicUsize::new(0));
@@ -172,7 +192,10 @@ impl Worker {
         let pr = progress.clone();
         let thread = std::thread::Builder::new()
             .name("rtvtk-render".into())
-            .spawn(move || run(crx, etx, wake, p, pr, gpu, share_frames))
+            .spawn(move || {
+                let opener = Opener { service, gpu_tracing: gpu, open: std::collections::HashMap::new() };
+                run(crx, etx, wake, p, pr, share_frames, opener)
+            })
             .ok();
         Worker { tx, rx, thread, pending, progress }
     }
@@ -230,13 +253,76 @@ pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], gpu: bool) -> Vec<Lay
     v
 }
 
-fn open(source: &Source) -> viz::Result<Sources> {
-    match source {
-        Source::Dataset(dir) => Sources::open(dir),
-        Source::Scene(name) => {
-            let scene = renderers::load_scene(name, None, 0)?;
-            Sources::from_scene(scene, 512, 512)
+/// Opens sources and the one engine over them; each dataset directory is opened once in the
+/// worker's life (kept for the next open), and the engine registers that same dataset.
+struct Opener {
+    service: Option<Service>,
+    /// The default layers path-trace the image and Ctrl-click on the GPU.
+    gpu_tracing: bool,
+    open: std::collections::HashMap<PathBuf, Arc<store::Dataset>>,
+}
+
+impl Opener {
+    fn dataset(&mut self, dir: &std::path::Path) -> viz::Result<Arc<store::Dataset>> {
+        let key = std::path::absolute(dir).unwrap_or_else(|_| dir.to_path_buf());
+        if let Some(d) = self.open.get(&key) {
+            return Ok(d.clone());
         }
+        let d = Arc::new(store::Dataset::open(dir)?);
+        self.open.insert(key, d.clone());
+        Ok(d)
+    }
+
+    /// The sources of `source` and the engine over it (the shown dataset as `trace` and
+    /// unqualified, then `others` under their names).
+    fn open(
+        &mut self,
+        source: &Source,
+        others: &[PathBuf],
+    ) -> viz::Result<(Sources, Result<Arc<query::Engine>, String>)> {
+        if let Source::Served(name) = source {
+            let Some(service) = self.service.clone() else {
+                return Err(viz::Error::Settings("the viewer was not started with --connect".into()));
+            };
+            let engine = query::Engine::blocking(query::Engine::connect(&service.url, service.token))?;
+            let engine = Arc::new(engine);
+            let sources = Sources::with_engine(engine.clone(), Some(name.as_str()).filter(|n| !n.is_empty()))?;
+            return Ok((sources, Ok(engine)));
+        }
+        let mut datasets = Vec::new();
+        let shown = match source {
+            Source::Dataset(dir) => {
+                let d = self.dataset(dir)?;
+                datasets.push(query::Registered { name: "trace".into(), dataset: d.clone() });
+                Some(d)
+            }
+            _ => None,
+        };
+        for dir in others {
+            let name = query::TraceSource::parse(&dir.display().to_string()).name;
+            let Ok(d) = self.dataset(dir) else { continue };
+            if shown.as_ref().is_some_and(|s| Arc::ptr_eq(s, &d)) || datasets.iter().any(|r| r.name == name) {
+                continue;
+            }
+            datasets.push(query::Registered { name, dataset: d });
+        }
+        let engine = if datasets.is_empty() {
+            Err("no dataset is open: there is nothing to query".to_string())
+        } else {
+            query::Engine::blocking(query::Engine::with_datasets(datasets, &Default::default()))
+                .map(Arc::new)
+                .map_err(|e| format!("cannot open the datasets for SQL: {e}"))
+        };
+        let sources = match (source, shown, &engine) {
+            (Source::Dataset(_), Some(_), Ok(e)) => Sources::with_engine(e.clone(), None)?,
+            (Source::Dataset(_), Some(d), Err(_)) => Sources::of_dataset(d)?,
+            (Source::Scene(name), ..) => {
+                let scene = renderers::load_scene(name, None, 0)?;
+                Sources::from_scene(scene, 512, 512)?
+            }
+            _ => return Err(viz::Error::Settings(format!("cannot open {}", source.label()))),
+        };
+        Ok((sources, engine))
     }
 }
 
@@ -257,8 +343,8 @@ fn run(
     wake: Arc<dyn Fn() + Send + Sync>,
     pending: Arc<std::sync::atomic::AtomicUsize>,
     progress: Arc<viz::component::Progress>,
-    gpu_tracing: bool,
     share_frames: bool,
+    mut opener: Opener,
 ) {
     let send = |e: Event| {
         let _ = tx.send(e);
@@ -311,7 +397,7 @@ fn run(
                 Cmd::Camera(_) if Some(i) != last_camera => {}
                 Cmd::Resize(_) if Some(i) != last_size => {}
                 cmd => {
-                    if let Some(e) = apply(&mut state, cmd, &progress, gpu_tracing) {
+                    if let Some(e) = apply(&mut state, cmd, &progress, &mut opener) {
                         send(e);
                     }
                     dirty = true;
@@ -396,11 +482,11 @@ fn apply(
     state: &mut Option<State>,
     cmd: Cmd,
     progress: &Arc<viz::component::Progress>,
-    gpu_tracing: bool,
+    opener: &mut Opener,
 ) -> Option<Event> {
     let err = |layer, e: viz::Error| Some(Event::Error { layer, message: e.to_string() });
-    if let Cmd::Open(source, specs) = cmd {
-        let sources = match open(&source) {
+    if let Cmd::Open(source, specs, others) = cmd {
+        let (sources, engine) = match opener.open(&source, &others) {
             Ok(s) => s,
             Err(e) => return Some(Event::OpenFailed { source, message: e.to_string() }),
         };
@@ -417,11 +503,11 @@ fn apply(
                 available: (i.offered)(&sources),
             })
             .collect();
-        let has_dataset = sources.dataset.is_some();
+        let has_dataset = sources.has_rays();
         let size = sources.image_size;
         let mut pipeline = Pipeline::new(gpu, sources);
         pipeline.progress = progress.clone();
-        let specs = if specs.is_empty() { default_layers(has_dataset, size, gpu_tracing) } else { specs };
+        let specs = if specs.is_empty() { default_layers(has_dataset, size, opener.gpu_tracing) } else { specs };
         let mut failed = Vec::new();
         for spec in &specs {
             if let Err(e) = make(&mut pipeline, spec) {
@@ -436,6 +522,7 @@ fn apply(
             has_dataset,
             missing: pipeline.sources.missing.iter().cloned().chain(failed).collect(),
             offers,
+            engine,
         };
         *state = Some(State { pipeline });
         return Some(Event::Opened(opened));

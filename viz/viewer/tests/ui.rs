@@ -206,7 +206,9 @@ fn a_timer_advances_trees_and_steps_rays() {
 
 #[test]
 fn a_console_query_is_drawn_and_a_clicked_row_selects_its_ray() {
-    let mut h = harness(vec![Source::Dataset(dataset().to_path_buf())]);
+    let dir = dataset();
+    let opened = store::Dataset::opened();
+    let mut h = harness(vec![Source::Dataset(dir.to_path_buf())]);
     wait(&mut h, "the dataset", ready);
     h.state_mut().state.console.sql =
         "SELECT concat('row-', CAST(tree_id AS VARCHAR), '-', CAST(ray AS VARCHAR)) AS label, \
@@ -249,6 +251,9 @@ fn a_console_query_is_drawn_and_a_clicked_row_selects_its_ray() {
     wait(&mut h, "the error", |v| v.state.console.error.is_some());
     assert!(h.state().state.console.error.as_ref().unwrap().contains("nope"));
     assert_eq!(h.state().state.console.result.as_ref().unwrap().rows, 40);
+    // The layers, the console, the query layer and the inspector all asked one engine over one
+    // open dataset.
+    assert_eq!(store::Dataset::opened() - opened, 1, "the viewer opened the dataset once");
 }
 
 #[test]
@@ -378,9 +383,10 @@ fn the_console_runs_against_a_flight_sql_service_and_survives_losing_it() {
     let service = query::service::TraceService::with_options(ctx.clone(), options).unwrap();
     rt.spawn(async move { query::service::serve_with(service, listener, std::future::pending()).await });
 
+    // The viewer is not told where the dataset lies: everything it draws comes from the service.
     let v = Viewer::new(
         ViewerOptions {
-            sources: vec![Source::Dataset(dataset().to_path_buf())],
+            sources: vec![Source::Served(String::new())],
             connect: Some(format!("grpc://{addr}")),
             token: Some("viewer-T0ken".into()),
             ..Default::default()
@@ -394,7 +400,17 @@ fn the_console_runs_against_a_flight_sql_service_and_survives_losing_it() {
         .wgpu()
         .build_ui_state(|ui, v: &mut Viewer| v.ui(ui), v);
     wait(&mut h, "the dataset and the connection", ready);
-    assert!(matches!(h.state().queries.target, rtvtk_viewer::query_service::Target::Flight { .. }));
+    assert!(h.state().queries.engine().unwrap().is_remote(), "the console asks the service");
+    assert!(errors(h.state()).is_empty(), "{:?}", errors(h.state()));
+    // The ray layer read its rays through the service: as many as the same layer reads locally.
+    let rays_report = |v: &Viewer| {
+        v.state.layers.iter().find(|l| l.kind == "rays").map(|l| l.report[0].split(" (").next().unwrap().to_string())
+    };
+    let remote = rays_report(h.state()).unwrap();
+    let mut local = harness(vec![Source::Dataset(dataset().to_path_buf())]);
+    wait(&mut local, "the local dataset", ready);
+    assert_eq!(rays_report(local.state()).unwrap(), remote);
+    assert!(!remote.starts_with("rays: 0 segments"), "{remote}");
     // The console lists the service's tables and functions (asked through information_schema).
     let (tables, functions) = h.state().queries.catalog();
     for t in ["rays", "trees", "bvh_nodes"] {
