@@ -265,7 +265,7 @@ fn df_query(name: Option<&str>) -> String {
     let filter = match name {
         Some(n) => format!("routine_name = '{}'", n.replace('\'', "''")),
         None => {
-            let names: Vec<String> = query::RAY_FUNCTIONS.iter().map(|f| format!("'{}'", f.name)).collect();
+            let names: Vec<String> = query::ray_functions().iter().map(|(name, _)| format!("'{name}'")).collect();
             format!("routine_name IN ({})", names.join(", "))
         }
     };

@@ -17,7 +17,8 @@ pub use count_by_key::{CountByKey, CountByKeyExec};
 pub use engine::{Catalog, Engine};
 pub use error::{Error, Result};
 pub use functions::{
-    RAY_FUNCTIONS, RayFunction, SceneContext, ray_aggregates, ray_scalar_functions, register_functions,
+    RAY_SECTION, SceneContext, functions_markdown, ray_aggregates, ray_functions, ray_scalar_functions,
+    register_functions,
 };
 pub use sliced::{SegmentFiles, SliceableScans};
 pub use small_groups::{SmallGroups, SmallGroupsExec};
