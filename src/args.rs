@@ -16,3 +16,8 @@ pub fn parse_pixel(s: &str) -> Result<(u32, u32), String> {
     let y = y.trim().parse().map_err(|_| format!("bad y {y:?}: expected a non-negative integer"))?;
     Ok((x, y))
 }
+
+/// `--tracer`: path (or cpu), whitted or gpu.
+pub fn parse_tracer(s: &str) -> Result<renderers::TracerChoice, String> {
+    s.parse().map_err(|e: renderers::Error| e.to_string())
+}

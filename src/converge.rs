@@ -3,26 +3,8 @@
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
-use clap::ValueEnum;
+use renderers::TracerChoice;
 use renderers::converge::{ConvergencePoint, log_log_slope, measure, write_plots};
-
-/// A tracer `rtvtk converge` measures.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum Tracer {
-    /// The CPU path tracer on every core.
-    Cpu,
-    /// The GPU path tracer (wgpu compute).
-    Gpu,
-}
-
-impl Tracer {
-    fn name(self) -> &'static str {
-        match self {
-            Tracer::Cpu => "cpu",
-            Tracer::Gpu => "gpu",
-        }
-    }
-}
 
 /// `rtvtk converge`: error of each tracer against time, as a table, a CSV and a plot, all
 /// against one CPU reference.
@@ -33,12 +15,15 @@ pub fn run(
     spps: &[u32],
     out: &Path,
     threads: Option<usize>,
-    tracers: &[Tracer],
+    tracers: &[TracerChoice],
 ) -> Result<()> {
     let mut tracers = tracers.to_vec();
     tracers.dedup();
     if tracers.is_empty() {
-        bail!("--tracer: name at least one of cpu, gpu");
+        bail!("--tracer: name at least one of path (cpu), gpu");
+    }
+    if tracers.contains(&TracerChoice::Whitted) {
+        bail!("--tracer whitted: the Whitted tracer converges to another image than the path tracers' reference");
     }
     if spps.is_empty() || spps.iter().any(|&s| s == 0 || s >= reference_spp) {
         bail!("--spp: sample counts must be positive and below the reference's {reference_spp}");
@@ -47,30 +32,28 @@ pub fn run(
     let bvh = renderers::Bvh::build(&scene.tris);
     let threads = threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let base = renderers::RenderOptions { width: w, height: h, threads, ..Default::default() };
+    let (scene, bvh) = (std::sync::Arc::new(scene), std::sync::Arc::new(bvh));
     // The GPU first: without an adapter the command fails before the long reference render.
-    let gpu = match tracers.contains(&Tracer::Gpu) {
-        true => {
-            let g = gpu_tracer::GpuTracer::new(&scene, &bvh).context("the GPU tracer")?;
+    let mut built = Vec::new();
+    for &t in tracers.iter().rev() {
+        let tracer =
+            gpu_tracer::tracer(t, scene.clone(), bvh.clone(), None).with_context(|| format!("the {t} tracer"))?;
+        if t.on_gpu() {
             // The first dispatch pays for driver-side shader work: not part of any point.
-            g.render(w, h, 1, 0, base.max_depth)?;
-            Some(g)
+            tracer.render(&renderers::RenderOptions { spp: 1, ..base.clone() }, None, &|_| {})?;
         }
-        false => None,
-    };
+        built.insert(0, tracer);
+    }
     eprintln!("rendering the {reference_spp}-spp CPU reference of {} at {w}x{h} ...", scene.name);
     let reference = renderers::converge::reference(&scene, &bvh, &base, reference_spp)?;
-    let mut curves: Vec<(Tracer, Vec<ConvergencePoint>)> = Vec::new();
-    for &t in &tracers {
-        eprintln!("measuring the {} tracer ...", t.name());
-        let points = match (&gpu, t) {
-            (Some(g), Tracer::Gpu) => measure(&reference, 0, spps, |spp, seed| {
-                g.render(w, h, spp, (seed ^ (seed >> 32)) as u32, base.max_depth).map_err(anyhow::Error::from)
-            })?,
-            _ => measure(&reference, 0, spps, |spp, seed| {
-                let opts = renderers::RenderOptions { spp, seed, ..base.clone() };
-                renderers::render(&scene, &bvh, &opts, None, &|_| {}).map(|(img, _)| img).map_err(anyhow::Error::from)
-            })?,
-        };
+    let mut curves: Vec<(TracerChoice, Vec<ConvergencePoint>)> = Vec::new();
+    for tracer in &built {
+        let t = tracer.choice();
+        eprintln!("measuring the {t} tracer ...");
+        let points = measure(&reference, 0, spps, |spp, seed| {
+            let opts = renderers::RenderOptions { spp, seed, ..base.clone() };
+            tracer.render(&opts, None, &|_| {}).map(|(img, _)| img).map_err(anyhow::Error::from)
+        })?;
         curves.push((t, points));
     }
     std::fs::create_dir_all(out)?;
@@ -113,8 +96,8 @@ pub fn run(
             ratio(&|p| p.rmse.max(1e-12))
         );
     }
-    if let Some(g) = &gpu {
-        println!("GPU: {}", g.adapter());
+    for device in built.iter().filter_map(|t| t.device()) {
+        println!("GPU: {device}");
     }
     println!(
         "wrote {}/convergence.csv, convergence.png (per tracer: RMSE and sqrt(relMSE); grey slope -1/2), reference.exr",

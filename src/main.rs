@@ -77,9 +77,9 @@ enum Command {
         out: PathBuf,
         #[arg(long)]
         threads: Option<usize>,
-        /// The tracers to measure side by side (comma separated): cpu, gpu.
-        #[arg(long, value_enum, value_delimiter = ',', default_value = "cpu")]
-        tracer: Vec<converge::Tracer>,
+        /// The tracers to measure side by side (comma separated): path (or cpu), gpu.
+        #[arg(long, value_delimiter = ',', default_value = "path", value_parser = args::parse_tracer)]
+        tracer: Vec<renderers::TracerChoice>,
     },
     /// Counts, bytes per ray, kinds, payload schema and format version of a dataset.
     Info {

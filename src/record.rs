@@ -5,19 +5,8 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use renderers::{Bug, Bvh, Camera, RenderOptions, TracerKind};
+use renderers::{Bug, Bvh, Camera, RenderOptions, TracerChoice};
 use rl::{Kind, Recorder, RecorderOptions};
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum TracerArg {
-    /// The CPU path tracer.
-    Path,
-    /// The CPU Whitted tracer.
-    Whitted,
-    /// The GPU path tracer (WGSL compute through wgpu: Vulkan, Metal, DX12; lavapipe on a
-    /// machine without a GPU). Same scene, camera, materials and recorded columns as `path`.
-    Gpu,
-}
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum BugArg {
@@ -39,8 +28,11 @@ pub struct RecordArgs {
     /// Dataset directory to write (required unless --no-record).
     #[arg(long, required_unless_present = "no_record")]
     pub out: Option<PathBuf>,
-    #[arg(long, value_enum, default_value = "path")]
-    pub tracer: TracerArg,
+    /// path (the CPU path tracer), whitted (the CPU Whitted tracer) or gpu (the GPU path tracer:
+    /// WGSL compute through wgpu, lavapipe or llvmpipe without a GPU; the same scene, camera,
+    /// materials and recorded columns as path).
+    #[arg(long, default_value = "path", value_parser = crate::args::parse_tracer)]
+    pub tracer: TracerChoice,
     /// Only pixels in X0,Y0,X1,Y1 (X1, Y1 exclusive).
     #[arg(long, value_parser = parse_window)]
     pub window: Option<[u32; 4]>,
@@ -180,10 +172,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         height: h,
         spp: a.spp,
         seed: a.seed,
-        tracer: match a.tracer {
-            TracerArg::Path | TracerArg::Gpu => TracerKind::Path,
-            TracerArg::Whitted => TracerKind::Whitted,
-        },
+        tracer: a.tracer,
         max_depth: a.max_depth,
         window,
         samples,
@@ -195,24 +184,22 @@ pub fn run(a: &RecordArgs) -> Result<()> {
     let t = std::time::Instant::now();
     let bvh = Bvh::build(&scene.tris);
     let build_secs = t.elapsed().as_secs_f64();
-    let gpu = match a.tracer {
-        TracerArg::Gpu => {
-            if a.record_visits {
-                bail!(
-                    "--record-visits: the GPU tracer does not record the BVH nodes each ray visits (use --tracer path)"
-                );
-            }
-            if !a.no_record && a.max_depth > gpu_tracer::MAX_RECORDED_DEPTH {
-                bail!(
-                    "--max-depth {}: the GPU records paths of depth {} at most",
-                    a.max_depth,
-                    gpu_tracer::MAX_RECORDED_DEPTH
-                );
-            }
-            Some(gpu_tracer::GpuTracer::new(&scene, &bvh).context("the GPU tracer")?)
+    if a.tracer.on_gpu() {
+        if a.record_visits {
+            bail!("--record-visits: the GPU tracer does not record the BVH nodes each ray visits (use --tracer path)");
         }
-        _ => None,
-    };
+        if !a.no_record && a.max_depth > gpu_tracer::MAX_RECORDED_DEPTH {
+            bail!(
+                "--max-depth {}: the GPU records paths of depth {} at most",
+                a.max_depth,
+                gpu_tracer::MAX_RECORDED_DEPTH
+            );
+        }
+    }
+    let scene = std::sync::Arc::new(scene);
+    let bvh = std::sync::Arc::new(bvh);
+    let tracer = gpu_tracer::tracer(a.tracer, scene.clone(), bvh.clone(), None)
+        .with_context(|| format!("the {} tracer", a.tracer))?;
     let recorder = match (&a.out, a.no_record) {
         (Some(out), false) => {
             let mut options = RecorderOptions {
@@ -225,11 +212,8 @@ pub fn run(a: &RecordArgs) -> Result<()> {
             options.chunk_rays = a.chunk_rays as usize;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
             renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
-            if let Some(g) = &gpu {
-                rec.set_attributes([
-                    ("tracer".to_string(), "gpu".to_string()),
-                    ("gpu".to_string(), g.adapter().to_string()),
-                ])?;
+            if let Some(device) = tracer.device() {
+                rec.set_attributes([("tracer".to_string(), tracer.choice().to_string()), ("gpu".to_string(), device)])?;
             }
             // The images beside the dataset, findable from its manifest.
             let inside = |p: &Option<PathBuf>, name: &str| match p {
@@ -252,10 +236,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let progress = |n: u32| bar.set_position(u64::from(n));
-    let (film, stats) = match &gpu {
-        Some(g) => g.render_recorded(&opts, recorder.as_ref(), &progress)?,
-        None => renderers::render(&scene, &bvh, &opts, recorder.as_ref(), &progress)?,
-    };
+    let (film, stats) = tracer.render(&opts, recorder.as_ref(), &progress)?;
     bar.finish_and_clear();
     let summary = match recorder {
         Some(r) => Some(r.finish()?),
@@ -287,8 +268,8 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         stats.secs,
         stats.rays as f64 / stats.secs / 1e6
     );
-    if let Some(g) = &gpu {
-        println!("  on the GPU: {}", g.adapter());
+    if let Some(device) = tracer.device() {
+        println!("  on the GPU: {device}");
     }
     let kinds = store::KindTable::default();
     for (k, n) in &stats.rays_by_kind {

@@ -71,8 +71,7 @@ pub struct RenderArgs {
     pub line_width: f32,
     /// The image layer's source: auto (the recorded picture at the recorded camera, else traced
     /// from the view: on the GPU where the adapter allows, else on the CPU), dataset, cpu or gpu.
-    #[arg(long, default_value = "auto",
-          value_parser = clap::builder::PossibleValuesParser::new(rtvtk_viz::components::picture::ImageSource::NAMES))]
+    #[arg(long, default_value = "auto", value_parser = parse_image_source)]
     pub image_source: String,
     /// Samples per pixel of an image traced from the view (`--camera` away from the recorded one).
     #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
@@ -82,6 +81,11 @@ pub struct RenderArgs {
     pub no_legend: bool,
     #[arg(long)]
     pub out: PathBuf,
+}
+
+/// `--image-source`: one of `ImageSource::NAMES` (`cpu` and `trace` are read as `path`).
+fn parse_image_source(s: &str) -> Result<String, String> {
+    rtvtk_viz::components::picture::ImageSource::try_from(s.to_string()).map(String::from)
 }
 
 fn parse_range(s: &str) -> Result<[u32; 2], String> {

@@ -32,8 +32,8 @@ pub struct ViewArgs {
     pub screenshot: Option<PathBuf>,
     /// The tracer of the live image and of Ctrl-click (immediate mode) in the default layers:
     /// cpu or gpu (per layer: the image layer's `source`, the ray layer's `tracer`).
-    #[arg(long, value_enum, default_value = "cpu")]
-    pub tracer: crate::converge::Tracer,
+    #[arg(long, default_value = "path", value_parser = crate::args::parse_tracer)]
+    pub tracer: renderers::TracerChoice,
 }
 
 pub fn run(args: &ViewArgs) -> Result<()> {
@@ -68,7 +68,7 @@ pub fn run(args: &ViewArgs) -> Result<()> {
         token,
         reset_layout: args.reset_layout,
         screenshot: args.screenshot.clone(),
-        gpu: args.tracer == crate::converge::Tracer::Gpu,
+        tracer: args.tracer,
     };
     rtvtk_viewer::run(options).context("the viewer failed")
 }

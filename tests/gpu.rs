@@ -80,16 +80,16 @@ fn converge_measures_both_tracers_against_one_reference() {
     let out = tmp.path().join("c");
     let args = ["converge", "--size", "24x18", "--reference-spp", "64", "--spp", "2,8,32", "--tracer", "cpu,gpu"];
     let s = ok(&[&args[..], &["--out", out.to_str().unwrap()]].concat());
-    assert!(s.contains("gpu against cpu at the same spp"), "{s}");
+    assert!(s.contains("gpu against path at the same spp"), "{s}");
     let csv = std::fs::read_to_string(out.join("convergence.csv")).unwrap();
     let mut lines = csv.lines();
     assert_eq!(lines.next(), Some("tracer,spp,seconds,rmse,rel_mse"));
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(
         rows.iter().map(|r| (r[0], r[1])).collect::<Vec<_>>(),
-        [("cpu", "2"), ("cpu", "8"), ("cpu", "32"), ("gpu", "2"), ("gpu", "8"), ("gpu", "32")]
+        [("path", "2"), ("path", "8"), ("path", "32"), ("gpu", "2"), ("gpu", "8"), ("gpu", "32")]
     );
-    for t in ["cpu", "gpu"] {
+    for t in ["path", "gpu"] {
         let e: Vec<f64> = rows.iter().filter(|r| r[0] == t).map(|r| r[3].parse().unwrap()).collect();
         // 16x the samples: the error falls (by ~4x in expectation; noisy at this size).
         assert!(e[2] < e[0] * 0.6, "{t}: RMSE {e:?}");

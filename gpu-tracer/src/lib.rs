@@ -4,7 +4,10 @@ use bytemuck::{Pod, Zeroable};
 use renderers::{Bvh, Scene};
 use wgpu::util::DeviceExt;
 
+mod choice;
 mod record;
+
+pub use choice::tracer;
 
 /// What the GPU tracer can report.
 #[derive(Debug, thiserror::Error)]

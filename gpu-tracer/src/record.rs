@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use glam::Vec3A;
 use renderers::tracer::{RecRay, SampleRecord};
-use renderers::{Film, RenderOptions, RenderStats, TracerKind, TraversalStats};
+use renderers::{Film, RenderOptions, RenderStats, TracerChoice, TraversalStats};
 use rl::{Kind, Recorder};
 
 use crate::{Error, GpuRay, GpuTracer, MAX_RECORDED_DEPTH, NONE, RAY_BYTES, RecordBuffers, Result};
@@ -25,7 +25,7 @@ impl GpuTracer {
         rec: Option<&Recorder>,
         progress: &(dyn Fn(u32) + Sync),
     ) -> Result<(Film, RenderStats)> {
-        if opts.tracer != TracerKind::Path {
+        if opts.tracer == TracerChoice::Whitted {
             return Err(Error::Input("the GPU tracer is a path tracer: the Whitted tracer runs on the CPU".into()));
         }
         if opts.record_visits && rec.is_some() {

@@ -130,7 +130,7 @@ fn what_the_gpu_cannot_record_is_an_error() {
     )
     .unwrap();
     let err = |o: RenderOptions| gpu.render_recorded(&o, Some(&rec), &|_| {}).err().unwrap().to_string();
-    assert!(err(RenderOptions { tracer: renderers::TracerKind::Whitted, ..base.clone() }).contains("Whitted"));
+    assert!(err(RenderOptions { tracer: renderers::TracerChoice::Whitted, ..base.clone() }).contains("Whitted"));
     assert!(err(RenderOptions { record_visits: true, ..base.clone() }).contains("BVH nodes"));
     assert!(err(RenderOptions { window: Some([4, 4, 9, 5]), ..base.clone() }).contains("window 4,4,9,5"));
     assert!(err(RenderOptions { max_depth: 64, ..base.clone() }).contains("depth 63 at most"));

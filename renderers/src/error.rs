@@ -25,6 +25,10 @@ pub enum Error {
     #[error("invalid render settings: {0}")]
     Settings(String),
 
+    /// A tracer outside this crate failed (the GPU tracer: no adapter, a device error), in its words.
+    #[error("{0}")]
+    Tracer(String),
+
     #[error("cannot write image: {message} ({path})")]
     Image { path: PathBuf, message: String },
 

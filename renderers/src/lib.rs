@@ -1,6 +1,7 @@
 #![doc = include_str!("../README.md")]
 
 pub mod bvh;
+mod choice;
 pub mod converge;
 mod error;
 pub mod film;
@@ -12,11 +13,13 @@ pub mod sampling;
 pub mod scene;
 mod scene_tables;
 pub mod tracer;
+pub mod tracers;
 
 pub use bvh::{Bvh, BvhLayout, Hit, TraversalStats};
 pub use error::{Error, Result};
 pub use film::Film;
-pub use render::{RenderOptions, RenderStats, TracerKind, describe_recording, payload_schema, render};
+pub use render::{RenderOptions, RenderStats, describe_recording, payload_schema, render};
 pub use scene::{BuiltinScene, Camera, LoadReport, Material, MaterialKind, Scene, load_obj};
 pub use scene_tables::load_scene;
 pub use tracer::Bug;
+pub use tracers::{CpuTracer, Progressive, Tracer, TracerChoice};

@@ -10,18 +10,12 @@ use glam::Vec3A;
 use rl::{Kind, ListValue, Payload, PayloadField, PayloadSchema, RayFields, RayId, Recorder, Value};
 
 use crate::bvh::Bvh;
+use crate::choice::TracerChoice;
 use crate::film::Film;
 use crate::sampling::Rng;
 use crate::scene::Scene;
 use crate::tracer::{Bug, SampleRecord, TraceCtx, path_sample, whitted_sample};
 use crate::{Error, Result};
-
-/// Which tracer renders.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum TracerKind {
-    Path,
-    Whitted,
-}
 
 /// How to render.
 #[derive(Clone, Debug)]
@@ -30,7 +24,8 @@ pub struct RenderOptions {
     pub height: u32,
     pub spp: u32,
     pub seed: u64,
-    pub tracer: TracerKind,
+    /// The tracer (`renderers::render` runs the CPU ones; `gpu` is `gpu_tracer`'s).
+    pub tracer: TracerChoice,
     pub max_depth: u32,
     /// Only pixels x0 <= x < x1, y0 <= y < y1.
     pub window: Option<[u32; 4]>,
@@ -51,7 +46,7 @@ impl Default for RenderOptions {
             height: 256,
             spp: 4,
             seed: 0,
-            tracer: TracerKind::Path,
+            tracer: TracerChoice::Path,
             max_depth: 8,
             window: None,
             samples: None,
@@ -91,7 +86,7 @@ pub fn payload_schema() -> PayloadSchema {
 }
 
 impl RenderOptions {
-    fn validate(&self) -> Result<()> {
+    pub(crate) fn validate(&self) -> Result<()> {
         if self.width == 0 || self.height == 0 || self.spp == 0 {
             return Err(Error::Settings("width, height and samples per pixel must be positive".into()));
         }
@@ -209,6 +204,11 @@ pub fn render(
     progress: &(dyn Fn(u32) + Sync),
 ) -> Result<(Film, RenderStats)> {
     opts.validate()?;
+    if opts.tracer.on_gpu() {
+        return Err(Error::Settings(
+            "tracer gpu renders on the GPU (gpu_tracer::tracer), not on the CPU tracers".into(),
+        ));
+    }
     let start = Instant::now();
     let [x0, y0, x1, y1] = opts.window.unwrap_or([0, 0, opts.width, opts.height]);
     let samples = opts.samples.clone().unwrap_or(0..opts.spp);
@@ -244,8 +244,10 @@ pub fn render(
                                 sr.clear();
                                 let r = Some(&mut sr);
                                 let l = match opts.tracer {
-                                    TracerKind::Path => path_sample(ctx, fx, fy, opts.width, opts.height, &mut rng, r),
-                                    TracerKind::Whitted => {
+                                    TracerChoice::Path | TracerChoice::Gpu => {
+                                        path_sample(ctx, fx, fy, opts.width, opts.height, &mut rng, r)
+                                    }
+                                    TracerChoice::Whitted => {
                                         whitted_sample(ctx, fx, fy, opts.width, opts.height, &mut rng, r)
                                     }
                                 };

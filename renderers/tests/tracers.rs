@@ -9,7 +9,7 @@ use glam::Vec3A;
 use renderers::geometry::Ray;
 use renderers::sampling::Rng;
 use renderers::scene::MaterialKind;
-use renderers::{Bug, BuiltinScene, Bvh, Camera, Material, RenderOptions, Scene, TracerKind, TraversalStats};
+use renderers::{Bug, BuiltinScene, Bvh, Camera, Material, RenderOptions, Scene, TracerChoice, TraversalStats};
 use rl::{Dataset, Kind, Recorder, RecorderOptions};
 
 /// A closed cube, wound inwards, every face diffuse with albedo `a` and emission `le`.
@@ -314,8 +314,14 @@ fn injected_shadow_bug_is_in_the_trace_but_not_in_the_look() {
 fn whitted_tracer_records_shadow_specular_and_transmission_rays() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = BuiltinScene::CornellGlass.build(1).unwrap();
-    let opts =
-        RenderOptions { width: 24, height: 24, spp: 1, tracer: TracerKind::Whitted, threads: 2, ..Default::default() };
+    let opts = RenderOptions {
+        width: 24,
+        height: 24,
+        spp: 1,
+        tracer: TracerChoice::Whitted,
+        threads: 2,
+        ..Default::default()
+    };
     let (film, stats) = record(&scene, &opts, &tmp.path().join("w"));
     assert!(film.pixels.iter().all(|p| p.is_finite()));
     let ds = Dataset::open(tmp.path().join("w")).unwrap();
@@ -351,4 +357,43 @@ fn nodes_table_leaves(ds: &Dataset) -> Vec<bool> {
     let nodes = ds.table("bvh_nodes").unwrap().unwrap();
     let leaf = nodes.column_by_name("is_leaf").unwrap().as_boolean();
     (0..nodes.num_rows()).map(|i| leaf.value(i)).collect()
+}
+
+/// The `Tracer` trait renders what `renderers::render` renders; its progressive image is the
+/// mean of one-sample renders; names parse both ways and a bad one is named.
+#[test]
+fn the_tracer_trait_renders_as_the_driver_does() {
+    use renderers::{CpuTracer, Tracer, TracerChoice};
+    let scene = std::sync::Arc::new(BuiltinScene::Cornell.build(1).unwrap());
+    let bvh = std::sync::Arc::new(Bvh::build(&scene.tris));
+    for choice in [TracerChoice::Path, TracerChoice::Whitted] {
+        let t = CpuTracer::new(choice, scene.clone(), bvh.clone()).unwrap();
+        assert_eq!(t.choice(), choice);
+        let opts = RenderOptions { width: 16, height: 12, spp: 2, threads: 2, tracer: choice, ..Default::default() };
+        let (a, sa) = t.render(&RenderOptions { tracer: TracerChoice::Path, ..opts.clone() }, None, &|_| {}).unwrap();
+        let (b, sb) = renderers::render(&scene, &bvh, &opts, None, &|_| {}).unwrap();
+        assert_eq!(a.pixels, b.pixels, "{choice}");
+        assert_eq!(sa.rays, sb.rays);
+        let mut p = t.progressive(16, 12, 0, 8).unwrap();
+        p.add(3).unwrap();
+        assert_eq!(p.spp(), 3);
+        let mean = p.mean().unwrap();
+        let mut sum = vec![glam::Vec3A::ZERO; 16 * 12];
+        for s in 0..3u64 {
+            let o = RenderOptions { spp: 1, seed: s, ..opts.clone() };
+            let (f, _) = renderers::render(&scene, &bvh, &o, None, &|_| {}).unwrap();
+            sum.iter_mut().zip(&f.pixels).for_each(|(a, b)| *a += *b);
+        }
+        for (m, s) in mean.pixels.iter().zip(&sum) {
+            assert!((*m - *s / 3.0).abs().max_element() < 1e-5, "{choice}: {m} vs {}", *s / 3.0);
+        }
+    }
+    for name in TracerChoice::NAMES {
+        assert_eq!(name.parse::<TracerChoice>().unwrap().name(), *name);
+    }
+    assert_eq!("cpu".parse::<TracerChoice>().unwrap(), TracerChoice::Path);
+    assert!("raymarch".parse::<TracerChoice>().unwrap_err().to_string().contains("raymarch"));
+    assert!(CpuTracer::new(TracerChoice::Gpu, scene.clone(), bvh.clone()).is_err());
+    let gpu_opts = RenderOptions { tracer: TracerChoice::Gpu, ..Default::default() };
+    assert!(renderers::render(&scene, &bvh, &gpu_opts, None, &|_| {}).unwrap_err().to_string().contains("gpu"));
 }

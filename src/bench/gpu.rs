@@ -24,7 +24,7 @@ pub struct GpuBench {
 
 pub fn run(scene_name: &str, subdivide: u32, (w, h): (u32, u32), o: &GpuBench) -> Result<()> {
     let scene = renderers::load_scene(scene_name, None, subdivide.max(1))?;
-    let bvh = Bvh::build(&scene.tris);
+    let bvh = std::sync::Arc::new(Bvh::build(&scene.tris));
     let mut gpu = gpu_tracer::GpuTracer::new(&scene, &bvh).context("the GPU tracer")?;
     let n = f64::from(w) * f64::from(h);
     let threads = std::thread::available_parallelism().map_or(1, |c| c.get());
@@ -170,21 +170,20 @@ pub fn run(scene_name: &str, subdivide: u32, (w, h): (u32, u32), o: &GpuBench) -
         println!("| tracer | rays | s | Mrays recorded/s |");
         println!("|---|---|---|---|");
         let opts = RenderOptions { width: w, height: h, spp: 1, threads, ..Default::default() };
-        let mut tracers: Vec<(&str, Option<&gpu_tracer::GpuTracer>)> = vec![("GPU", Some(&gpu))];
+        let cpu =
+            renderers::CpuTracer::new(renderers::TracerChoice::Path, std::sync::Arc::new(scene.clone()), bvh.clone())?;
+        let mut tracers: Vec<(&str, &dyn renderers::Tracer)> = vec![("GPU", &gpu)];
         if o.cpu {
-            tracers.push(("CPU", None));
+            tracers.push(("CPU", &cpu));
         }
-        for (name, g) in tracers {
+        for (name, tracer) in tracers {
             let dir = tempfile::tempdir()?;
             let rec = Recorder::create(
                 dir.path().join("t"),
                 RecorderOptions { payload: renderers::payload_schema(), ..Default::default() },
             )?;
             let t = Instant::now();
-            let (_, stats) = match g {
-                Some(g) => g.render_recorded(&opts, Some(&rec), &|_| {})?,
-                None => renderers::render(&scene, &bvh, &opts, Some(&rec), &|_| {})?,
-            };
+            let (_, stats) = tracer.render(&opts, Some(&rec), &|_| {})?;
             let summary = rec.finish()?;
             let secs = t.elapsed().as_secs_f64();
             if summary.rays != stats.rays {

@@ -171,6 +171,14 @@ impl Frame {
     }
 }
 
+/// The one conversion from the view's camera (f64) to a tracer's (f32).
+impl From<&ViewCamera> for renderers::Camera {
+    fn from(c: &ViewCamera) -> renderers::Camera {
+        let v = |a: [f64; 3]| glam::DVec3::from_array(a).as_vec3a();
+        renderers::Camera { position: v(c.position), target: v(c.target), up: v(c.up), fov_y: c.fov_y as f32 }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

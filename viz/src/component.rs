@@ -358,3 +358,17 @@ pub fn check_lines(kind: &str, line_width: f32, opacity: f32) -> Result<()> {
         Err(Error::Settings(format!("{kind}: line_width must be in (0, 64] pixels and opacity in 0..1")))
     }
 }
+
+/// A [`renderers::TracerChoice`] as a setting: its name (`cpu` is read as `path`).
+pub mod tracer_setting {
+    use renderers::TracerChoice;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(c: &TracerChoice, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(c.name())
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<TracerChoice, D::Error> {
+        String::deserialize(d)?.parse().map_err(serde::de::Error::custom)
+    }
+}

@@ -283,14 +283,9 @@ impl Sources {
         };
         let scene = match &parts.triangles {
             Some(t) => {
-                let c = camera.map_or(
+                let c = camera.as_ref().map_or(
                     Camera { position: glam::Vec3A::ZERO, target: glam::Vec3A::Z, up: glam::Vec3A::Y, fov_y: 40.0 },
-                    |c| Camera {
-                        position: glam::DVec3::from_array(c.position).as_vec3a(),
-                        target: glam::DVec3::from_array(c.target).as_vec3a(),
-                        up: glam::DVec3::from_array(c.up).as_vec3a(),
-                        fov_y: c.fov_y as f32,
-                    },
+                    Camera::from,
                 );
                 let name = attrs.get("scene").cloned().unwrap_or_else(|| "dataset".into());
                 Some(Arc::new(Scene::from_triangles_table(&name, t, c)?))

@@ -5,6 +5,7 @@ use std::sync::Arc;
 
 use arrow::array::{Array, AsArray};
 use arrow::datatypes::{DataType, Float64Type, UInt32Type};
+use renderers::TracerChoice;
 use serde::{Deserialize, Serialize};
 
 use crate::component::{Component, ComponentId, IdleCtx, LayerRole, Legend, RenderCtx, decode_settings};
@@ -55,7 +56,7 @@ impl Blitter {
 
 /// Where the image layer's picture comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
+#[serde(try_from = "String", into = "String")]
 pub enum ImageSource {
     /// The picture recorded with the dataset while the view is at the recorded camera; anywhere
     /// else (and with no recorded picture) path-traced from the view, on the GPU where the
@@ -65,17 +66,50 @@ pub enum ImageSource {
     /// The PNG recorded with the dataset, whatever the view (registered only at the recorded
     /// camera).
     Dataset,
-    /// The CPU path tracer, one sample per pixel per idle call, at the layer's camera and size.
-    #[serde(alias = "trace")]
-    Cpu,
-    /// The GPU path tracer on the pipeline's device, as many samples per idle call as fit in
-    /// about 50 ms, tone-mapped on the GPU (the CPU tracer where the adapter cannot run it).
-    Gpu,
+    /// Traced from the view by this tracer: a CPU tracer one sample per pixel per idle call
+    /// (`path`, also read as `cpu` or `trace`; `whitted`), or the GPU path tracer on the
+    /// pipeline's device, as many samples per idle call as fit in about 50 ms, tone-mapped on the
+    /// GPU (the CPU path tracer where the adapter cannot run it).
+    Traced(TracerChoice),
 }
 
 impl ImageSource {
     /// The values of the `source` setting, as the viewer's drop-down offers them.
-    pub const NAMES: &'static [&'static str] = &["auto", "dataset", "cpu", "gpu"];
+    pub const NAMES: &'static [&'static str] = &["auto", "dataset", "path", "whitted", "gpu"];
+
+    /// The CPU tracer that traces the image (the fallback of the GPU's).
+    fn cpu_tracer(self) -> TracerChoice {
+        match self {
+            ImageSource::Traced(TracerChoice::Whitted) => TracerChoice::Whitted,
+            _ => TracerChoice::Path,
+        }
+    }
+}
+
+impl TryFrom<String> for ImageSource {
+    type Error = String;
+
+    fn try_from(s: String) -> std::result::Result<ImageSource, String> {
+        match s.as_str() {
+            "auto" => Ok(ImageSource::Auto),
+            "dataset" => Ok(ImageSource::Dataset),
+            "trace" => Ok(ImageSource::Traced(TracerChoice::Path)),
+            other => other
+                .parse()
+                .map(ImageSource::Traced)
+                .map_err(|_| format!("source {other:?}: expected one of {}", ImageSource::NAMES.join(", "))),
+        }
+    }
+}
+
+impl From<ImageSource> for String {
+    fn from(s: ImageSource) -> String {
+        match s {
+            ImageSource::Auto => "auto".into(),
+            ImageSource::Dataset => "dataset".into(),
+            ImageSource::Traced(t) => t.name().into(),
+        }
+    }
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -121,6 +155,8 @@ struct Progressive {
     gpu: Option<GpuImage>,
     /// Why the GPU tracer does not run here (then the CPU traces; said once, in the report).
     gpu_failed: Option<String>,
+    /// The CPU tracer (source `path` or `whitted`, or the GPU's fallback), made on first use.
+    cpu: Option<Box<dyn renderers::Tracer>>,
 }
 
 /// Draws a [`GpuImage`]'s accumulation into a layer, tone-mapped on the GPU (`film.wgsl`).
@@ -219,7 +255,7 @@ impl Image {
             ImageSource::Dataset if self.recorded.is_none() => {
                 "the dataset has no rendered image; use source \"auto\", \"cpu\" or \"gpu\" to path-trace one"
             }
-            ImageSource::Cpu | ImageSource::Gpu if no_scene => "there is no scene (triangles table) to trace from",
+            ImageSource::Traced(_) if no_scene => "there is no scene (triangles table) to trace from",
             ImageSource::Auto if no_scene && self.recorded.is_none() => {
                 "there is no image and no scene (triangles table) to trace one from"
             }
@@ -232,7 +268,7 @@ impl Image {
     fn traces_at(&self, sources: &Sources, camera: &crate::camera::ViewCamera) -> bool {
         match self.settings.source {
             ImageSource::Dataset => false,
-            ImageSource::Cpu | ImageSource::Gpu => true,
+            ImageSource::Traced(_) => true,
             ImageSource::Auto => sources.scene.is_some() && !(self.recorded.is_some() && at_recorded(sources, camera)),
         }
     }
@@ -253,6 +289,11 @@ impl Image {
         }
         p.gpu.as_mut()
     }
+}
+
+/// Whether `source` traces on the GPU where the adapter allows.
+fn on_gpu_source(source: ImageSource) -> bool {
+    matches!(source, ImageSource::Traced(TracerChoice::Gpu) | ImageSource::Auto)
 }
 
 /// The estimated RMSE of the mean of `n` samples, from the sums of all samples and of the even
@@ -341,6 +382,7 @@ impl Component for Image {
             key: None,
             gpu: None,
             gpu_failed: None,
+            cpu: None,
         });
         if p.key != Some(key) {
             p.key = Some(key);
@@ -358,19 +400,15 @@ impl Component for Image {
         if p.spp >= self.settings.max_spp {
             return Ok(false);
         }
-        let mut s = (**scene).clone();
-        let c = ctx.camera;
-        let v = |a: [f64; 3]| glam::DVec3::from_array(a).as_vec3a();
-        s.camera =
-            renderers::Camera { position: v(c.position), target: v(c.target), up: v(c.up), fov_y: c.fov_y as f32 };
+        let camera = renderers::Camera::from(ctx.camera);
         let t0 = std::time::Instant::now();
-        let on_gpu = matches!(self.settings.source, ImageSource::Gpu | ImageSource::Auto);
+        let on_gpu = on_gpu_source(self.settings.source);
         let max_spp = self.settings.max_spp;
         let (spp, secs) = (p.spp, p.secs);
         let gpu_err = |e: gpu_tracer::Error| Error::Layer { layer: "image".into(), message: e.to_string() };
-        if let Some(g) = on_gpu.then(|| Self::gpu_tracer(p, ctx.gpu, &s)).flatten() {
+        if let Some(g) = on_gpu.then(|| Self::gpu_tracer(p, ctx.gpu, scene)).flatten() {
             // Two equal batches of k samples: one counts as the even samples, one as the odd.
-            g.tracer.set_camera(s.camera);
+            g.tracer.set_camera(camera);
             let k = g.batch.min((max_spp - spp).div_ceil(2)).max(1);
             if g.halves.is_none() {
                 let depth = renderers::RenderOptions::default().max_depth;
@@ -424,7 +462,15 @@ impl Component for Image {
                 seed: u64::from(p.spp),
                 ..Default::default()
             };
-            let (film, _) = renderers::render(&s, &p.bvh, &opts, None, &|_| {})?;
+            let choice = self.settings.source.cpu_tracer();
+            if p.cpu.as_ref().is_none_or(|t| t.choice() != choice) {
+                p.cpu = Some(gpu_tracer::tracer(choice, scene.clone(), p.bvh.clone(), None).map_err(|e| {
+                    Error::Layer { layer: "image".into(), message: format!("tracer \"{choice}\": {e}") }
+                })?);
+            }
+            let Some(tracer) = p.cpu.as_mut() else { return Ok(false) };
+            tracer.set_camera(camera);
+            let (film, _) = tracer.render(&opts, None, &|_| {})?;
             if p.sum.is_empty() {
                 p.sum = vec![glam::Vec3A::ZERO; film.pixels.len()];
                 p.even = p.sum.clone();
@@ -498,7 +544,7 @@ impl Component for Image {
         let Some(p) = &self.progressive else { return Vec::new() };
         let mut r = Vec::new();
         if let Some(why) = &p.gpu_failed
-            && self.settings.source != ImageSource::Cpu
+            && on_gpu_source(self.settings.source)
         {
             r.push(format!("image: the GPU tracer cannot run here ({why}); tracing on the CPU"));
         }

@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 
 use arrow::array::{Array, AsArray, RecordBatch};
 use arrow::datatypes::{Float32Type, UInt64Type};
+use renderers::TracerChoice;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
@@ -55,23 +56,10 @@ pub struct RaysSettings {
     pub gradient: bool,
     /// Highlight this tree (drawn wider).
     pub selected_tree: Option<u64>,
-    /// The tracer of immediate mode (Ctrl-click): `cpu` (the CPU path tracer) or `gpu` (the
-    /// GPU path tracer, recording the pixel's rays on the GPU).
-    pub tracer: ImmediateTracer,
-}
-
-/// Which tracer traces a pixel in immediate mode.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum ImmediateTracer {
-    #[default]
-    Cpu,
-    Gpu,
-}
-
-impl ImmediateTracer {
-    /// The values of the `tracer` setting (the viewer's drop-down).
-    pub const NAMES: &'static [&'static str] = &["cpu", "gpu"];
+    /// The tracer of immediate mode (Ctrl-click): `path` (`cpu`), `whitted` or `gpu` (the GPU
+    /// path tracer, recording the pixel's rays on the GPU).
+    #[serde(with = "crate::component::tracer_setting")]
+    pub tracer: TracerChoice,
 }
 
 impl Default for RaysSettings {
@@ -88,7 +76,7 @@ impl Default for RaysSettings {
             opacity: 1.0,
             gradient: true,
             selected_tree: None,
-            tracer: ImmediateTracer::Cpu,
+            tracer: TracerChoice::Path,
         }
     }
 }
@@ -251,8 +239,8 @@ pub struct Rays {
     traced_ids: Vec<([u32; 2], u64, u32)>,
     pick_pipeline: Option<wgpu::RenderPipeline>,
     bvh: Option<std::sync::Arc<renderers::Bvh>>,
-    /// The GPU tracer of immediate mode (settings `tracer: "gpu"`), made on first use.
-    gpu: Option<gpu_tracer::GpuTracer>,
+    /// The tracer of immediate mode (setting `tracer`), made on first use.
+    tracer: Option<Box<dyn renderers::Tracer>>,
     /// The last load was cancelled after this many segments (kept, drawn).
     cancelled_after: Option<u64>,
 }
@@ -280,7 +268,7 @@ impl Rays {
             traced_ids: Vec::new(),
             pick_pipeline: None,
             bvh: None,
-            gpu: None,
+            tracer: None,
             cancelled_after: None,
         };
         if !settings.is_null() {
@@ -558,7 +546,7 @@ impl Component for Rays {
         serde_json::to_value(&self.settings).unwrap_or_default()
     }
     fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
-        vec![("tracer", ImmediateTracer::NAMES)]
+        vec![("tracer", TracerChoice::NAMES)]
     }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
         let s: RaysSettings = decode_settings("rays", v)?;
@@ -598,11 +586,6 @@ impl Component for Rays {
             return Err(Error::Settings(format!("pixel {x},{y} is outside the {}x{} view", ctx.width, ctx.height)));
         }
         let bvh = self.bvh.get_or_insert_with(|| std::sync::Arc::new(renderers::Bvh::build(&scene.tris))).clone();
-        let mut s = (**scene).clone();
-        let c = ctx.camera;
-        let v = |a: [f64; 3]| glam::DVec3::from_array(a).as_vec3a();
-        s.camera =
-            renderers::Camera { position: v(c.position), target: v(c.target), up: v(c.up), fov_y: c.fov_y as f32 };
         // The pixel's ray tree through `rl` immediate mode, as a renderer records it.
         let options = rl::RecorderOptions { payload: renderers::payload_schema(), ..Default::default() };
         let (rec, trace) = rl::Recorder::immediate(options)?;
@@ -615,23 +598,18 @@ impl Component for Rays {
             threads: 1,
             ..Default::default()
         };
-        match self.settings.tracer {
-            ImmediateTracer::Cpu => {
-                renderers::render(&s, &bvh, &opts, Some(&rec), &|_| {})?;
-            }
-            ImmediateTracer::Gpu => {
-                let layer_err = |e: gpu_tracer::Error| Error::Layer {
-                    layer: "rays".into(),
-                    message: format!("tracer \"gpu\": {e}"),
-                };
-                if self.gpu.is_none() {
-                    self.gpu = Some(gpu_tracer::GpuTracer::with_gpu(ctx.gpu, &s, &bvh).map_err(layer_err)?);
-                }
-                if let Some(g) = self.gpu.as_mut() {
-                    g.set_camera(s.camera);
-                    g.render_recorded(&opts, Some(&rec), &|_| {}).map_err(layer_err)?;
-                }
-            }
+        let choice = self.settings.tracer;
+        let layer_err = |e: &dyn std::fmt::Display| Error::Layer {
+            layer: "rays".into(),
+            message: format!("tracer \"{choice}\": {e}"),
+        };
+        if self.tracer.as_ref().is_none_or(|t| t.choice() != choice) {
+            let t = gpu_tracer::tracer(choice, scene.clone(), bvh, Some(ctx.gpu)).map_err(|e| layer_err(&e))?;
+            self.tracer = Some(t);
+        }
+        if let Some(t) = self.tracer.as_mut() {
+            t.set_camera(ctx.camera.into());
+            t.render(&opts, Some(&rec), &|_| {}).map_err(|e| layer_err(&e))?;
         }
         rec.finish()?;
         let kinds = store::KindTable::default();

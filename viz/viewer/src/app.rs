@@ -28,7 +28,7 @@ pub struct ViewerOptions {
     /// Take a screenshot of the window once everything is drawn, write it here, and close.
     pub screenshot: Option<PathBuf>,
     /// The default layers trace with the GPU path tracer (image and Ctrl-click).
-    pub gpu: bool,
+    pub tracer: renderers::TracerChoice,
 }
 
 /// Wakes the UI from other threads (set once the UI's context is known).
@@ -118,7 +118,7 @@ impl Viewer {
         let w = waker.clone();
         let wake: Arc<dyn Fn() + Send + Sync> = Arc::new(move || w.wake());
         let service = options.connect.clone().map(|url| Service { url, token: options.token.clone() });
-        let worker = Worker::spawn(wake.clone(), options.gpu, display.is_some(), service);
+        let worker = Worker::spawn(wake.clone(), options.tracer, display.is_some(), service);
         let queries = QueryService::new(wake)?;
         let saved = saved.unwrap_or_default();
         let mut tree = saved.layout.clone().filter(|_| !options.reset_layout).unwrap_or_else(default_tree);

@@ -183,7 +183,12 @@ impl Worker {
     /// source and immediate mode).
     /// The render thread; with `share_frames` a frame crosses as the pipeline's display texture
     /// (the caller's window draws on the process's device, `rtvtk_gpu::Gpu::share`), else as RGBA.
-    pub fn spawn(wake: Arc<dyn Fn() + Send + Sync>, gpu: bool, share_frames: bool, service: Option<Service>) -> Worker {
+    pub fn spawn(
+        wake: Arc<dyn Fn() + Send + Sync>,
+        tracer: renderers::TracerChoice,
+        share_frames: bool,
+        service: Option<Service>,
+    ) -> Worker {
         let (tx, crx) = channel();
         let (etx, rx) = channel();
         let pending = Arc::new(std::sync::atomic::AtomicUsize::new(0));
@@ -193,7 +198,7 @@ impl Worker {
         let thread = std::thread::Builder::new()
             .name("rtvtk-render".into())
             .spawn(move || {
-                let opener = Opener { service, gpu_tracing: gpu, open: std::collections::HashMap::new() };
+                let opener = Opener { service, tracer, open: std::collections::HashMap::new() };
                 run(crx, etx, wake, p, pr, share_frames, opener)
             })
             .ok();
@@ -227,11 +232,13 @@ impl Drop for Worker {
     }
 }
 
-/// The components a fresh pipeline starts with, where the source offers them; with `gpu` the
-/// image is path-traced on the GPU and Ctrl-click traces on the GPU.
-pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], gpu: bool) -> Vec<LayerSpec> {
+/// The components a fresh pipeline starts with, where the source offers them; with a tracer
+/// other than the CPU path tracer (the default), the image is traced with it away from the
+/// recorded view, and Ctrl-click traces with it.
+pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], tracer: renderers::TracerChoice) -> Vec<LayerSpec> {
     let spec = |id, kind: &str, settings| LayerSpec { id, kind: kind.into(), settings, enabled: true };
-    let image = if gpu { serde_json::json!({ "source": "gpu" }) } else { serde_json::Value::Null };
+    let default = tracer == renderers::TracerChoice::Path;
+    let image = if default { serde_json::Value::Null } else { serde_json::json!({ "source": tracer.name() }) };
     let mut v = vec![
         spec(1, "image", image),
         LayerSpec {
@@ -247,8 +254,8 @@ pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], gpu: bool) -> Vec<Lay
     } else {
         v.push(spec(4, "rays", serde_json::json!({ "max_rays": 0 })));
     }
-    if gpu && let Some(obj) = v[3].settings.as_object_mut() {
-        obj.insert("tracer".into(), "gpu".into());
+    if !default && let Some(obj) = v[3].settings.as_object_mut() {
+        obj.insert("tracer".into(), tracer.name().into());
     }
     v
 }
@@ -257,8 +264,8 @@ pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], gpu: bool) -> Vec<Lay
 /// worker's life (kept for the next open), and the engine registers that same dataset.
 struct Opener {
     service: Option<Service>,
-    /// The default layers path-trace the image and Ctrl-click on the GPU.
-    gpu_tracing: bool,
+    /// The tracer of the default layers' image and Ctrl-click.
+    tracer: renderers::TracerChoice,
     open: std::collections::HashMap<PathBuf, Arc<store::Dataset>>,
 }
 
@@ -507,7 +514,7 @@ fn apply(
         let size = sources.image_size;
         let mut pipeline = Pipeline::new(gpu, sources);
         pipeline.progress = progress.clone();
-        let specs = if specs.is_empty() { default_layers(has_dataset, size, opener.gpu_tracing) } else { specs };
+        let specs = if specs.is_empty() { default_layers(has_dataset, size, opener.tracer) } else { specs };
         let mut failed = Vec::new();
         for spec in &specs {
             if let Err(e) = make(&mut pipeline, spec) {

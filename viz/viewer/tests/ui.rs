@@ -269,11 +269,14 @@ fn ctrl_click_traces_a_pixel_on_the_gpu() {
 }
 
 fn ctrl_click_traces(gpu: bool) {
-    let mut h =
-        harness_with(ViewerOptions { sources: vec![Source::Scene("cornell".into())], gpu, ..Default::default() });
+    let mut h = harness_with(ViewerOptions {
+        sources: vec![Source::Scene("cornell".into())],
+        tracer: if gpu { renderers::TracerChoice::Gpu } else { renderers::TracerChoice::Path },
+        ..Default::default()
+    });
     wait(&mut h, "the scene", ready);
     let layer = |v: &Viewer, kind: &str| v.state.layers.iter().find(|l| l.kind == kind).unwrap().clone();
-    let tracer = if gpu { "gpu" } else { "cpu" };
+    let tracer = if gpu { "gpu" } else { "path" };
     assert_eq!(layer(h.state(), "rays").settings["tracer"], tracer);
     assert_eq!(layer(h.state(), "image").settings["source"], if gpu { "gpu" } else { "auto" });
     let (rect, size) = h.state().state.image_rect.unwrap();
