@@ -35,14 +35,19 @@ enum Backend {
     Flight { url: String, channel: Channel, token: Option<String> },
 }
 
-/// A runtime the engine made for itself (sync callers): shut down without blocking, so the last
-/// engine may be dropped anywhere, inside a runtime too.
+/// A runtime the engine made for itself (sync callers). The last engine may be dropped anywhere:
+/// outside a runtime its threads are joined (for a second at most), inside one (a task holding
+/// the last reference) they are told to stop and left to end on their own.
 struct Owned(Option<tokio::runtime::Runtime>);
 
 impl Drop for Owned {
     fn drop(&mut self) {
         if let Some(rt) = self.0.take() {
-            rt.shutdown_background();
+            if Handle::try_current().is_ok() {
+                rt.shutdown_background();
+            } else {
+                rt.shutdown_timeout(std::time::Duration::from_secs(1));
+            }
         }
     }
 }

@@ -224,22 +224,39 @@ impl PickCtx<'_> {
     }
 }
 
-/// What a click picked: the layer, the item's index in it and what the item is.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct Picked {
-    pub layer: Option<ComponentId>,
-    /// The layer's kind (`rays`, `bvh`, `query`).
-    pub kind: String,
-    pub index: u32,
-    /// A ray: its tree and index in the tree.
-    pub tree: Option<u64>,
-    pub ray: Option<u32>,
+/// What a layer's item is (a component's answer to [`Component::picked`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Picked {
+    /// A recorded ray: its tree and index in the tree.
+    Ray { tree: u64, ray: u32 },
+    /// A ray traced in immediate mode: its pixel, its tree in the live trace and its index.
+    Traced { pixel: [u32; 2], tree: u64, ray: u32 },
     /// A BVH node.
-    pub node: Option<u64>,
-    /// A row of the layer's query result (0-based).
-    pub row: Option<u64>,
-    /// In words.
-    pub label: String,
+    Node { node: u64 },
+    /// A row of a query layer's result (0-based).
+    Row { row: u64 },
+}
+
+impl Picked {
+    /// The item in words.
+    pub fn label(&self) -> String {
+        match *self {
+            Picked::Ray { tree, ray } => format!("ray {ray} of tree {tree}"),
+            Picked::Traced { pixel: [x, y], tree, ray } => {
+                format!("traced ray {ray} of pixel {x},{y} (immediate mode, tree {tree} of the live trace)")
+            }
+            Picked::Node { node } => format!("BVH node {node}"),
+            Picked::Row { row } => format!("row {row} of the query"),
+        }
+    }
+}
+
+/// What a click picked: the layer, the item's index in its pick drawing, and the item.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Pick {
+    pub layer: ComponentId,
+    pub index: u32,
+    pub item: Picked,
 }
 
 /// What a trace of one pixel produced (immediate mode).
@@ -333,6 +350,25 @@ pub struct ConvergencePoint {
     /// Estimated RMSE of the mean image (linear radiance, over pixels and channels), from the
     /// difference of the even- and odd-sample half images: needs no reference image.
     pub rmse: f64,
+}
+
+/// A component kind's settings: plain data that the pipeline, saved layouts and the viewer's
+/// commands carry as JSON, decoded and encoded by these two functions only, so code that
+/// changes a setting names its field (a renamed field does not compile) and a bad value names
+/// the kind.
+pub trait Settings: Serialize + serde::de::DeserializeOwned + Default + Clone + PartialEq {
+    /// The registry name of the component kind.
+    const KIND: &'static str;
+
+    /// From JSON (null: the defaults).
+    fn decode(v: &serde_json::Value) -> Result<Self> {
+        if v.is_null() { Ok(Self::default()) } else { decode_settings(Self::KIND, v) }
+    }
+
+    /// To JSON.
+    fn encode(&self) -> serde_json::Value {
+        serde_json::to_value(self).unwrap_or_default()
+    }
 }
 
 /// Decodes a component's settings, naming the component on error.

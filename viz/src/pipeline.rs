@@ -5,7 +5,7 @@
 
 use crate::camera::ViewCamera;
 use crate::component::{
-    Component, ComponentId, Frame, IdleCtx, LayerRole, LayerTarget, Legend, PickCtx, PickTarget, Picked, RenderCtx,
+    Component, ComponentId, Frame, IdleCtx, LayerRole, LayerTarget, Legend, Pick, PickCtx, PickTarget, RenderCtx,
     depth_range,
 };
 use crate::gpu::{COLOR_FORMAT, Gpu};
@@ -108,6 +108,15 @@ pub fn crop_matrix([x, y]: [u32; 2], [w, h]: [u32; 2], size: u32) -> glam::Mat4 
 
 /// Relative depth bias of the composition: a segment ending on a surface stays visible.
 const DEPTH_BIAS: f32 = 2e-3;
+
+/// A pipeline's work finishes before it goes: nothing it submitted still runs on the device
+/// when its buffers are freed or the process exits (lavapipe's exit handlers tear down LLVM
+/// while a queue thread may still be compiling a draw's shader variant).
+impl Drop for Pipeline {
+    fn drop(&mut self) {
+        let _ = self.gpu.wait();
+    }
+}
 
 /// The layered visualizer, headless: `render` composites into an offscreen texture, `snapshot`
 /// reads it back with legends.
@@ -391,7 +400,7 @@ impl Pipeline {
     /// pixels of `pixel` of the view. The shown layers draw their items' ids into a small
     /// target around the cursor (the projection cropped to it, depth tested), which is read back:
     /// no CPU search over the segments.
-    pub fn pick(&mut self, [x, y]: [u32; 2], radius: u32) -> Result<Option<Picked>> {
+    pub fn pick(&mut self, [x, y]: [u32; 2], radius: u32) -> Result<Option<Pick>> {
         let (w, h) = (self.width, self.height);
         if x >= w || y >= h {
             return Err(Error::Settings(format!("pixel {x},{y} is outside the {w}x{h} view")));
@@ -429,11 +438,7 @@ impl Pipeline {
         }
         let Some((_, slot, index)) = best else { return Ok(None) };
         let Some(l) = self.layers.get(slot as usize - 1) else { return Ok(None) };
-        Ok(l.component.picked(index).map(|mut p| {
-            p.layer = Some(l.component.id());
-            p.index = index;
-            p
-        }))
+        Ok(l.component.picked(index).map(|item| Pick { layer: l.component.id(), index, item }))
     }
 
     /// The legends of the shown layers, bottom to top.

@@ -7,10 +7,7 @@
 //! tests on each (`WGPU_BACKEND=gl` for the second) against the same stored pictures.
 //! `UPDATE_SNAPSHOTS=1` rewrites them (look at them before committing).
 
-use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
-
-use rl::{Recorder, RecorderOptions};
+use std::path::Path;
 
 #[path = "../../tests/common/snapshot.rs"]
 mod snapshot;
@@ -18,37 +15,9 @@ use rtvtk_viz::{ComponentId, Gpu, Pipeline, Sources, ViewCamera};
 use serde_json::{Value, json};
 use snapshot::snapshot;
 
-const W: u32 = 96;
-const H: u32 = 72;
-
-/// A 96x72, 2-spp path-traced Cornell box with every ray, the BVH visits and the image.
-fn dataset() -> &'static Path {
-    static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
-    &DIR.get_or_init(|| {
-        let tmp = tempfile::tempdir().unwrap();
-        let dir = tmp.path().join("trace");
-        let scene = renderers::BuiltinScene::Cornell.build(1).unwrap();
-        let bvh = renderers::Bvh::build(&scene.tris);
-        let opts = renderers::RenderOptions {
-            width: W,
-            height: H,
-            spp: 2,
-            threads: 2,
-            record_visits: true,
-            ..Default::default()
-        };
-        let rec =
-            Recorder::create(&dir, RecorderOptions { payload: renderers::payload_schema(), ..Default::default() })
-                .unwrap();
-        renderers::describe_recording(&rec, &scene, &bvh, &opts).unwrap();
-        rec.set_attributes([("image.png", "image.png")]).unwrap();
-        let (film, _) = renderers::render(&scene, &bvh, &opts, Some(&rec), &|_| {}).unwrap();
-        rec.finish().unwrap();
-        film.write_png(&dir.join("image.png"), 1.0).unwrap();
-        (tmp, dir)
-    })
-    .1
-}
+#[path = "../../tests/common/fixture.rs"]
+mod fixture;
+use fixture::{H, W, dataset};
 
 fn pipeline(layers: &[(&str, Value)]) -> Pipeline {
     let gpu = Gpu::shared().expect("a GPU adapter");
@@ -130,7 +99,7 @@ fn composition_hides_a_segment_behind_the_tall_box() {
     assert!(!bright(&img, back), "the segment behind the box is hidden");
     // Picking sees what the picture shows: the front segment, not the one behind the box.
     let front_pick = with.pick([front.0, front.1], 2).unwrap().expect("the front segment is picked");
-    assert_eq!(front_pick.kind, "query");
+    assert!(matches!(front_pick.item, rtvtk_viz::component::Picked::Row { .. }), "{front_pick:?}");
     assert_eq!(with.pick([back.0, back.1], 2).unwrap(), None, "no pick through the tall box");
     let mut without = pipeline(&[("query", q)]);
     without.resize(4 * W, 4 * H).unwrap();

@@ -6,7 +6,7 @@ use arrow::datatypes::{DataType, Float64Type};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, Settings};
 use crate::components::rays::f32_columns;
 use crate::draw::{Blend, GpuSegment, SegmentBuffers, pack_rgba, scene_pipeline, shader};
 use crate::legend::colour_map;
@@ -33,6 +33,10 @@ pub struct BvhSettings {
     pub map: String,
     pub line_width: f32,
     pub opacity: f32,
+}
+
+impl crate::component::Settings for BvhSettings {
+    const KIND: &'static str = "bvh";
 }
 
 impl Default for BvhSettings {
@@ -170,10 +174,10 @@ impl Component for BvhBoxes {
         self.generation
     }
     fn settings(&self) -> serde_json::Value {
-        serde_json::to_value(&self.settings).unwrap_or_default()
+        self.settings.encode()
     }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s: BvhSettings = decode_settings("bvh", v)?;
+        let s = BvhSettings::decode(v)?;
         colour_map(&s.map)?;
         if s.levels[0] > s.levels[1] {
             return Err(Error::Settings(format!("bvh: level range {}..{} is empty", s.levels[0], s.levels[1])));
@@ -202,12 +206,7 @@ impl Component for BvhBoxes {
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let node = *self.nodes.get(index as usize)?;
-        Some(crate::component::Picked {
-            kind: "bvh".into(),
-            node: Some(node),
-            label: format!("BVH node {node}"),
-            ..Default::default()
-        })
+        Some(crate::component::Picked::Node { node })
     }
     fn legend(&self) -> Vec<Legend> {
         let Some((min, max)) = self.range else { return Vec::new() };

@@ -5,7 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, Settings};
 use crate::draw::{Blend, bind_view_storage, layer_pass, scene_pipeline, shader, uniform};
 use crate::gpu::Gpu;
 use crate::sources::Sources;
@@ -33,6 +33,10 @@ pub struct GeometrySettings {
     pub opacity: f32,
     /// Wireframe line width in pixels.
     pub line_width: f32,
+}
+
+impl crate::component::Settings for GeometrySettings {
+    const KIND: &'static str = "geometry";
 }
 
 impl Default for GeometrySettings {
@@ -171,13 +175,13 @@ impl Component for Geometry {
         self.generation
     }
     fn settings(&self) -> serde_json::Value {
-        serde_json::to_value(&self.settings).unwrap_or_default()
+        self.settings.encode()
     }
     fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
         vec![("style", SurfaceStyle::NAMES)]
     }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s: GeometrySettings = decode_settings("geometry", v)?;
+        let s = GeometrySettings::decode(v)?;
         if !((0.0..=1.0).contains(&s.opacity) && s.line_width > 0.0 && s.line_width <= 64.0) {
             return Err(Error::Settings("geometry: opacity must be in 0..1 and line_width in (0, 64] pixels".into()));
         }

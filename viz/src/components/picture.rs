@@ -8,7 +8,7 @@ use arrow::datatypes::{DataType, Float64Type, UInt32Type};
 use renderers::TracerChoice;
 use serde::{Deserialize, Serialize};
 
-use crate::component::{Component, ComponentId, IdleCtx, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::component::{Component, ComponentId, IdleCtx, LayerRole, Legend, RenderCtx, Settings};
 use crate::gpu::Gpu;
 use crate::legend::colour_map;
 use crate::sources::{Picture, Sources};
@@ -120,6 +120,10 @@ pub struct ImageSettings {
     pub exposure: f32,
     /// Stop refining after this many samples per pixel.
     pub max_spp: u32,
+}
+
+impl crate::component::Settings for ImageSettings {
+    const KIND: &'static str = "image";
 }
 
 impl Default for ImageSettings {
@@ -341,13 +345,13 @@ impl Component for Image {
         self.generation
     }
     fn settings(&self) -> serde_json::Value {
-        serde_json::to_value(&self.settings).unwrap_or_default()
+        self.settings.encode()
     }
     fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
         vec![("source", ImageSource::NAMES)]
     }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s: ImageSettings = decode_settings("image", v)?;
+        let s = ImageSettings::decode(v)?;
         if !((0.0..=1.0).contains(&s.opacity) && s.exposure.is_finite() && s.exposure > 0.0) {
             return Err(Error::Settings("image: opacity must be in 0..1 and exposure positive".into()));
         }
@@ -568,6 +572,10 @@ pub struct HeatmapSettings {
     pub opacity: f32,
 }
 
+impl crate::component::Settings for HeatmapSettings {
+    const KIND: &'static str = "heatmap";
+}
+
 impl Default for HeatmapSettings {
     fn default() -> Self {
         HeatmapSettings {
@@ -676,10 +684,10 @@ impl Component for Heatmap {
         self.generation
     }
     fn settings(&self) -> serde_json::Value {
-        serde_json::to_value(&self.settings).unwrap_or_default()
+        self.settings.encode()
     }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s: HeatmapSettings = decode_settings("heatmap", v)?;
+        let s = HeatmapSettings::decode(v)?;
         colour_map(&s.map)?;
         if !(0.0..=1.0).contains(&s.opacity) {
             return Err(Error::Settings("heatmap: opacity must be in 0..1".into()));

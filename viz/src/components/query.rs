@@ -9,7 +9,7 @@ use arrow::datatypes::{DataType, Float64Type};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, decode_settings};
+use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, Settings};
 use crate::components::rays::{SegmentBuilder, f32_columns, kind_names};
 use crate::draw::{Blend, SegmentBuffers, scene_pipeline, shader};
 use crate::legend::colour_map;
@@ -27,6 +27,10 @@ pub struct QuerySettings {
     pub map: String,
     pub line_width: f32,
     pub opacity: f32,
+}
+
+impl crate::component::Settings for QuerySettings {
+    const KIND: &'static str = "query";
 }
 
 impl Default for QuerySettings {
@@ -221,10 +225,10 @@ impl Component for Query {
         self.generation
     }
     fn settings(&self) -> serde_json::Value {
-        serde_json::to_value(&self.settings).unwrap_or_default()
+        self.settings.encode()
     }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s: QuerySettings = decode_settings("query", v)?;
+        let s = QuerySettings::decode(v)?;
         if s.sql.trim().is_empty() {
             return Err(Error::Settings("query: the layer needs a SQL query (--sql)".into()));
         }
@@ -253,12 +257,7 @@ impl Component for Query {
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let row = *self.row_of.get(index as usize)?;
-        Some(crate::component::Picked {
-            kind: "query".into(),
-            row: Some(row),
-            label: format!("row {row} of the query"),
-            ..Default::default()
-        })
+        Some(crate::component::Picked::Row { row })
     }
     fn legend(&self) -> Vec<Legend> {
         self.legend.clone()

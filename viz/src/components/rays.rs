@@ -10,9 +10,7 @@ use renderers::TracerChoice;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{
-    Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, TraceCtx, TracedPixel, decode_settings,
-};
+use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, Settings, TraceCtx, TracedPixel};
 use crate::draw::{Blend, GpuSegment, SEGMENT_BYTES, SegmentBuffers, pack_rgba, scene_pipeline, shader};
 use crate::gpu::Gpu;
 use crate::sources::Sources;
@@ -60,6 +58,10 @@ pub struct RaysSettings {
     /// path tracer, recording the pixel's rays on the GPU).
     #[serde(with = "crate::component::tracer_setting")]
     pub tracer: TracerChoice,
+}
+
+impl crate::component::Settings for RaysSettings {
+    const KIND: &'static str = "rays";
 }
 
 impl Default for RaysSettings {
@@ -543,13 +545,13 @@ impl Component for Rays {
         self.generation
     }
     fn settings(&self) -> serde_json::Value {
-        serde_json::to_value(&self.settings).unwrap_or_default()
+        self.settings.encode()
     }
     fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
         vec![("tracer", TracerChoice::NAMES)]
     }
     fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s: RaysSettings = decode_settings("rays", v)?;
+        let s = RaysSettings::decode(v)?;
         s.predicate()?;
         crate::component::check_lines("rays", s.line_width, s.opacity)?;
         crate::component::replace_settings(&mut self.settings, s, &mut self.generation);
@@ -638,22 +640,11 @@ impl Component for Rays {
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let i = index as usize;
         if let (Some(&tree), Some(&ray)) = (self.pick_trees.get(i), self.pick_rays.get(i)) {
-            return Some(crate::component::Picked {
-                kind: "rays".into(),
-                tree: Some(tree),
-                ray: Some(ray),
-                label: format!("ray {ray} of tree {tree}"),
-                ..Default::default()
-            });
+            return Some(crate::component::Picked::Ray { tree, ray });
         }
         let j = i.checked_sub(self.pick_trees.len())?;
-        let ([x, y], tree, ray) = *self.traced_ids.get(j)?;
-        Some(crate::component::Picked {
-            kind: "rays".into(),
-            ray: Some(ray),
-            label: format!("traced ray {ray} of pixel {x},{y} (immediate mode, tree {tree} of the live trace)"),
-            ..Default::default()
-        })
+        let (pixel, tree, ray) = *self.traced_ids.get(j)?;
+        Some(crate::component::Picked::Traced { pixel, tree, ray })
     }
     fn legend(&self) -> Vec<Legend> {
         let mut all = self.kinds.clone();

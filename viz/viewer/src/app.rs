@@ -6,6 +6,9 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use egui::{Color32, RichText, Ui};
+use viz::component::{Picked, Settings};
+use viz::components::query::QuerySettings;
+use viz::components::rays::RaysSettings;
 use viz::{Legend, ViewCamera};
 
 use crate::query_service::{QueryService, Tag};
@@ -289,17 +292,21 @@ impl Viewer {
                 }
                 Event::Picked { pixel, picked } => match picked {
                     Some(p) => {
-                        s.info(format!("picked {} at {},{}", p.label, pixel[0], pixel[1]));
-                        if let (Some(tree), Some(ray)) = (p.tree, p.ray) {
-                            select(s, &mut self.queries, Selection { tree, ray });
-                        } else if let Some(node) = p.node {
-                            s.inspector.note = Some(p.label.clone());
-                            self.queries
-                                .submit(Tag::Inspect, format!("SELECT * FROM bvh_nodes WHERE node_id = {node}"));
-                            s.inspector.tree = None;
-                        } else if let Some(row) = p.row {
-                            s.console.selected_row = Some(row as usize);
-                            s.inspector.note = Some(p.label.clone());
+                        let label = p.item.label();
+                        s.info(format!("picked {label} at {},{}", pixel[0], pixel[1]));
+                        match p.item {
+                            Picked::Ray { tree, ray } => select(s, &mut self.queries, Selection { tree, ray }),
+                            Picked::Traced { .. } => s.inspector.note = Some(label),
+                            Picked::Node { node } => {
+                                s.inspector.note = Some(label);
+                                self.queries
+                                    .submit(Tag::Inspect, format!("SELECT * FROM bvh_nodes WHERE node_id = {node}"));
+                                s.inspector.tree = None;
+                            }
+                            Picked::Row { row } => {
+                                s.console.selected_row = Some(row as usize);
+                                s.inspector.note = Some(label);
+                            }
                         }
                         s.picked = Some(p);
                     }
@@ -345,11 +352,8 @@ impl Viewer {
                         if let Some(c) = count {
                             s.tree_rays.insert(tree, c as u32);
                         }
-                        s.patch(id, |m| {
-                            m.insert("tree".into(), tree.into());
-                            m.insert("selected_tree".into(), tree.into());
-                            m.insert("pixel".into(), serde_json::Value::Null);
-                            m.insert("ray_upto".into(), serde_json::Value::Null);
+                        s.patch(id, |r: &mut RaysSettings| {
+                            (r.tree, r.selected_tree, r.pixel, r.ray_upto) = (Some(tree), Some(tree), None, None);
                         });
                     }
                     (None, _) => s.info("no further tree in that direction"),
@@ -614,8 +618,13 @@ fn pipeline_ui(ui: &mut Ui, s: &mut State) {
             if b.clicked() {
                 let id = s.next_id;
                 s.next_id += 1;
-                let settings = if o.kind == "query" {
-                    serde_json::json!({ "sql": "SELECT origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t, depth FROM rays WHERE kind = 'shadow' LIMIT 10000", "colour_by": "depth" })
+                let settings = if o.kind == QuerySettings::KIND {
+                    QuerySettings {
+                        sql: "SELECT origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t, depth FROM rays WHERE kind = 'shadow' LIMIT 10000".into(),
+                        colour_by: Some("depth".into()),
+                        ..Default::default()
+                    }
+                    .encode()
                 } else {
                     serde_json::Value::Null
                 };
@@ -669,9 +678,9 @@ fn component_ui(ui: &mut Ui, s: &mut State, q: &mut QueryService, id: u64) {
     if let Some(e) = s.layer_errors.get(&id) {
         ui.colored_label(Color32::from_rgb(240, 90, 80), e);
     }
-    if l.kind == "rays" {
+    if let Some(extra) = crate::component_ui::of(&l.kind) {
         ui.separator();
-        crate::timers::tree_navigation(ui, s, q, id);
+        (extra.extras)(ui, s, q, id);
     }
     ui.separator();
     ui.label(RichText::new("Settings").strong());

@@ -6,6 +6,9 @@ use egui_extras::{Column, TableBuilder};
 
 use crate::query_service::{QueryResult, QueryService, Tag};
 use crate::state::{Selection, State, select};
+use viz::component::Settings;
+use viz::components::query::QuerySettings;
+
 use crate::worker::{Cmd, LayerSpec};
 
 const HISTORY: usize = 200;
@@ -119,16 +122,14 @@ fn drawable(r: &QueryResult) -> bool {
 pub fn draw(s: &mut State, sql: String) {
     let colour =
         ["depth", "kind"].into_iter().find(|c| s.console.result.as_ref().is_some_and(|r| r.schema.index_of(c).is_ok()));
-    match s.layers.iter().find(|l| l.kind == "query").map(|l| l.id.0) {
-        Some(id) => s.patch(id, |m| {
-            m.insert("sql".into(), sql.into());
-            m.insert("colour_by".into(), colour.map_or(serde_json::Value::Null, |c| c.into()));
-        }),
+    let colour = colour.map(String::from);
+    match s.layers_of::<QuerySettings>().first().copied() {
+        Some(id) => s.patch(id, |q: &mut QuerySettings| (q.sql, q.colour_by) = (sql, colour)),
         None => {
             let id = s.next_id;
             s.next_id += 1;
-            let settings = serde_json::json!({ "sql": sql, "colour_by": colour });
-            s.cmds.push(Cmd::Add(LayerSpec { id, kind: "query".into(), settings, enabled: true }));
+            let settings = QuerySettings { sql, colour_by: colour, ..Default::default() }.encode();
+            s.cmds.push(Cmd::Add(LayerSpec { id, kind: QuerySettings::KIND.into(), settings, enabled: true }));
         }
     }
 }

@@ -5,6 +5,7 @@ extern crate rtvtk_viz as viz;
 
 pub mod app;
 pub mod camera_ctl;
+pub mod component_ui;
 pub mod console;
 mod error;
 pub mod plots;

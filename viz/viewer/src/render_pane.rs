@@ -178,7 +178,7 @@ pub fn ui(ui: &mut Ui, s: &mut State, _q: &mut QueryService) {
         painter.text(
             egui::pos2(img.min.x + 8.0, img.max.y - 8.0),
             egui::Align2::LEFT_BOTTOM,
-            format!("picked: {}", p.label),
+            format!("picked: {}", p.item.label()),
             egui::FontId::proportional(13.0),
             Color32::from_rgb(255, 210, 90),
         );

@@ -5,7 +5,8 @@
 use std::collections::HashMap;
 
 use serde::{Deserialize, Serialize};
-use viz::component::Picked;
+use viz::component::{Pick, Settings};
+use viz::components::rays::RaysSettings;
 use viz::{ComponentId, ViewCamera};
 
 use crate::camera_ctl::Mode;
@@ -134,7 +135,7 @@ pub struct State {
     pub plots: PlotState,
     pub timers: Vec<Timer>,
     pub selection: Option<Selection>,
-    pub picked: Option<Picked>,
+    pub picked: Option<Pick>,
     pub tree_rays: HashMap<u64, u32>,
     pub traced: Option<([u32; 2], usize)>,
     pub next_id: u64,
@@ -156,17 +157,32 @@ impl State {
         self.messages.push((false, m.into()));
     }
     fn rays_layers(&self) -> Vec<u64> {
-        self.layers.iter().filter(|l| l.kind == "rays").map(|l| l.id.0).collect()
+        self.layers_of::<RaysSettings>()
+    }
+    /// The components of the kind whose settings are `S`, bottom to top.
+    pub(crate) fn layers_of<S: Settings>(&self) -> Vec<u64> {
+        self.layers.iter().filter(|l| l.kind == S::KIND).map(|l| l.id.0).collect()
+    }
+    /// Component `id`'s settings as its kind's type (`None`: no such component, or another kind).
+    pub(crate) fn typed<S: Settings>(&self, id: u64) -> Option<S> {
+        let kind = &self.layers.iter().find(|l| l.id.0 == id)?.kind;
+        if kind != S::KIND {
+            return None;
+        }
+        S::decode(&self.settings_of(id)?).ok()
     }
     pub(crate) fn settings_of(&self, id: u64) -> Option<serde_json::Value> {
         self.edits.get(&id).cloned().or_else(|| self.layers.iter().find(|l| l.id.0 == id).map(|l| l.settings.clone()))
     }
-    /// Changes some fields of a component's settings and sends them.
-    pub fn patch(&mut self, id: u64, f: impl FnOnce(&mut serde_json::Map<String, serde_json::Value>)) {
-        let Some(mut v) = self.settings_of(id) else { return };
-        if let serde_json::Value::Object(m) = &mut v {
-            f(m);
-        }
+    /// Changes component `id`'s settings, typed (`S` is its kind's settings: a component of
+    /// another kind is left alone and the UI says so), and sends them.
+    pub fn patch<S: Settings>(&mut self, id: u64, f: impl FnOnce(&mut S)) {
+        let Some(mut s) = self.typed::<S>(id) else {
+            self.error(format!("component #{id} is not a {} component", S::KIND));
+            return;
+        };
+        f(&mut s);
+        let v = s.encode();
         self.edits.insert(id, v.clone());
         self.cmds.push(Cmd::Settings(ComponentId(id), v));
     }
@@ -213,9 +229,7 @@ pub struct Timer {
 pub fn select(s: &mut State, q: &mut QueryService, sel: Selection) {
     s.selection = Some(sel);
     for id in s.rays_layers() {
-        s.patch(id, |m| {
-            m.insert("selected_tree".into(), sel.tree.into());
-        });
+        s.patch(id, |r: &mut RaysSettings| r.selected_tree = Some(sel.tree));
     }
     s.inspector.note = Some(format!("ray {} of tree {}", sel.ray, sel.tree));
     if s.has_dataset() {

@@ -4,14 +4,14 @@
 
 use egui::Ui;
 
+use viz::components::rays::RaysSettings;
+
 use crate::query_service::{QueryService, Tag};
 use crate::state::State;
 pub use crate::state::{Action, Timer};
 
 fn current(s: &State, id: u64) -> (Option<u64>, Option<u32>) {
-    let v = s.edits.get(&id).cloned().or_else(|| s.layers.iter().find(|l| l.id.0 == id).map(|l| l.settings.clone()));
-    let v = v.unwrap_or_default();
-    (v.get("tree").and_then(|t| t.as_u64()), v.get("ray_upto").and_then(|t| t.as_u64()).map(|r| r as u32))
+    s.typed::<RaysSettings>(id).map_or((None, None), |r| (r.tree, r.ray_upto))
 }
 
 /// Performs `action` on ray component `id`.
@@ -33,9 +33,7 @@ pub fn perform(s: &mut State, q: &mut QueryService, id: u64, action: Action) {
                 Some(r) if r + 1 >= count => 0,
                 Some(r) => r + 1,
             };
-            s.patch(id, |m| {
-                m.insert("ray_upto".into(), next.into());
-            });
+            s.patch(id, |r: &mut RaysSettings| r.ray_upto = Some(next));
         }
     }
 }
@@ -75,7 +73,7 @@ pub fn tick(s: &mut State, q: &mut QueryService, ctx: &egui::Context) {
 
 /// The timers tab.
 pub fn ui(ui: &mut Ui, s: &mut State) {
-    let rays: Vec<u64> = s.layers.iter().filter(|l| l.kind == "rays").map(|l| l.id.0).collect();
+    let rays: Vec<u64> = s.layers_of::<RaysSettings>();
     ui.label("Timers drive a ray component's actions: the animated playback of trees.");
     let mut remove = None;
     for (i, t) in s.timers.iter_mut().enumerate() {
@@ -135,10 +133,8 @@ pub fn tree_navigation(ui: &mut Ui, s: &mut State, q: &mut QueryService, id: u64
                 perform(s, q, id, Action::NextTree);
             }
             if ui.button("All trees").clicked() {
-                s.patch(id, |m| {
-                    for k in ["tree", "pixel", "ray_upto", "selected_tree"] {
-                        m.insert(k.into(), serde_json::Value::Null);
-                    }
+                s.patch(id, |r: &mut RaysSettings| {
+                    (r.tree, r.pixel, r.ray_upto, r.selected_tree) = (None, None, None, None);
                 });
             }
             ui.label(match tree {
@@ -149,17 +145,13 @@ pub fn tree_navigation(ui: &mut Ui, s: &mut State, q: &mut QueryService, id: u64
         ui.horizontal(|ui| {
             ui.add_enabled_ui(tree.is_some(), |ui| {
                 if ui.button("First ray").clicked() {
-                    s.patch(id, |m| {
-                        m.insert("ray_upto".into(), 0.into());
-                    });
+                    s.patch(id, |r: &mut RaysSettings| r.ray_upto = Some(0));
                 }
                 if ui.button("Next ray").clicked() {
                     perform(s, q, id, Action::NextRay);
                 }
                 if ui.button("Whole tree").clicked() {
-                    s.patch(id, |m| {
-                        m.insert("ray_upto".into(), serde_json::Value::Null);
-                    });
+                    s.patch(id, |r: &mut RaysSettings| r.ray_upto = None);
                 }
             });
             let count = tree.and_then(|t| s.tree_rays.get(&t).copied());
@@ -178,10 +170,8 @@ pub fn tree_navigation(ui: &mut Ui, s: &mut State, q: &mut QueryService, id: u64
         ui.add(egui::DragValue::new(&mut px[1]).prefix("y "));
         ui.data_mut(|d| d.insert_temp(key, px));
         if ui.add_enabled(has_dataset, egui::Button::new("Show")).clicked() {
-            s.patch(id, |m| {
-                m.insert("pixel".into(), serde_json::json!(px));
-                m.insert("tree".into(), serde_json::Value::Null);
-                m.insert("ray_upto".into(), serde_json::Value::Null);
+            s.patch(id, |r: &mut RaysSettings| {
+                (r.pixel, r.tree, r.ray_upto) = (Some(px), None, None);
             });
         }
     });

@@ -10,7 +10,7 @@ use std::sync::mpsc::{Receiver, Sender, TryRecvError, channel};
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
-use viz::component::Picked;
+use viz::component::Pick;
 use viz::{ComponentId, Gpu, Legend, Pipeline, Sources, ViewCamera};
 
 /// What the viewer shows: a recorded dataset, a dataset an `rtvtk serve` service serves, or a
@@ -161,7 +161,7 @@ pub enum Event {
     },
     Picked {
         pixel: [u32; 2],
-        picked: Option<Picked>,
+        picked: Option<Pick>,
     },
     Screenshot(Result<PathBuf, String>),
 }
@@ -236,28 +236,27 @@ impl Drop for Worker {
 /// other than the CPU path tracer (the default), the image is traced with it away from the
 /// recorded view, and Ctrl-click traces with it.
 pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], tracer: renderers::TracerChoice) -> Vec<LayerSpec> {
-    let spec = |id, kind: &str, settings| LayerSpec { id, kind: kind.into(), settings, enabled: true };
-    let default = tracer == renderers::TracerChoice::Path;
-    let image = if default { serde_json::Value::Null } else { serde_json::json!({ "source": tracer.name() }) };
-    let mut v = vec![
-        spec(1, "image", image),
-        LayerSpec {
-            enabled: false,
-            ..spec(2, "geometry", serde_json::json!({ "style": "wireframe", "opacity": 0.6, "line_width": 1.0 }))
-        },
-        spec(3, "composition", serde_json::Value::Null),
-    ];
-    if has_dataset {
-        // The ray trees of the centre pixel to start with (readable, as the paper's Figure 3):
-        // all trees are one click away in the rays tab ("All trees").
-        v.push(spec(4, "rays", serde_json::json!({ "pixel": [w / 2, h / 2], "max_rays": 100_000 })));
-    } else {
-        v.push(spec(4, "rays", serde_json::json!({ "max_rays": 0 })));
+    use viz::component::Settings;
+    use viz::components::geometry::{GeometrySettings, SurfaceStyle};
+    use viz::components::picture::{ImageSettings, ImageSource};
+    use viz::components::rays::RaysSettings;
+    fn spec<S: Settings>(id: u64, s: S) -> LayerSpec {
+        LayerSpec { id, kind: S::KIND.into(), settings: s.encode(), enabled: true }
     }
-    if !default && let Some(obj) = v[3].settings.as_object_mut() {
-        obj.insert("tracer".into(), tracer.name().into());
-    }
-    v
+    let source = if tracer == renderers::TracerChoice::Path { ImageSource::Auto } else { ImageSource::Traced(tracer) };
+    // The ray trees of the centre pixel to start with (readable, as the paper's Figure 3): all
+    // trees are one click away in the rays tab ("All trees"). With no dataset, none.
+    let rays = match has_dataset {
+        true => RaysSettings { pixel: Some([w / 2, h / 2]), max_rays: Some(100_000), tracer, ..Default::default() },
+        false => RaysSettings { max_rays: Some(0), tracer, ..Default::default() },
+    };
+    let geometry = GeometrySettings { style: SurfaceStyle::Wireframe, opacity: 0.6, line_width: 1.0 };
+    vec![
+        spec(1, ImageSettings { source, ..Default::default() }),
+        LayerSpec { enabled: false, ..spec(2, geometry) },
+        LayerSpec { id: 3, kind: "composition".into(), settings: serde_json::Value::Null, enabled: true },
+        spec(4, rays),
+    ]
 }
 
 /// Opens sources and the one engine over them; each dataset directory is opened once in the

@@ -4,46 +4,16 @@
 //! a row clicked selecting its ray; ctrl-click tracing a tree with no dataset; clicking a ray
 //! picking it; a snapshot of the whole window.
 
-use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use egui_kittest::Harness;
 use egui_kittest::kittest::Queryable;
-use rl::{Recorder, RecorderOptions};
 use rtvtk_viewer::{Source, Viewer, ViewerOptions};
+use rtvtk_viz::components::rays::RaysSettings;
 
-const W: u32 = 96;
-const H: u32 = 72;
-
-/// A 96x72, 2-spp path-traced Cornell box with its scene, BVH, visits and image.
-fn dataset() -> &'static Path {
-    static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
-    &DIR.get_or_init(|| {
-        let tmp = tempfile::tempdir().unwrap();
-        let dir = tmp.path().join("trace");
-        let scene = renderers::BuiltinScene::Cornell.build(1).unwrap();
-        let bvh = renderers::Bvh::build(&scene.tris);
-        let opts = renderers::RenderOptions {
-            width: W,
-            height: H,
-            spp: 2,
-            threads: 2,
-            record_visits: true,
-            ..Default::default()
-        };
-        let rec =
-            Recorder::create(&dir, RecorderOptions { payload: renderers::payload_schema(), ..Default::default() })
-                .unwrap();
-        renderers::describe_recording(&rec, &scene, &bvh, &opts).unwrap();
-        rec.set_attributes([("image.png", "image.png")]).unwrap();
-        let (film, _) = renderers::render(&scene, &bvh, &opts, Some(&rec), &|_| {}).unwrap();
-        rec.finish().unwrap();
-        film.write_png(&dir.join("image.png"), 1.0).unwrap();
-        (tmp, dir)
-    })
-    .1
-}
+#[path = "../../../tests/common/fixture.rs"]
+mod fixture;
+use fixture::{H, W, dataset};
 
 fn harness(sources: Vec<Source>) -> Harness<'static, Viewer> {
     harness_with(ViewerOptions { sources, ..Default::default() })
@@ -143,9 +113,7 @@ fn components_are_added_reordered_toggled_and_removed_from_the_pipeline_tab() {
     assert!(errors(h.state()).is_empty(), "{:?}", errors(h.state()));
     // A bad setting is refused with a message and the old settings stay.
     let id = rays.id.0;
-    h.state_mut().state.patch(id, |m| {
-        m.insert("line_width".into(), (-3.0).into());
-    });
+    h.state_mut().state.patch(id, |r: &mut RaysSettings| r.line_width = -3.0);
     wait(&mut h, "the refusal", |v| v.state.layer_errors.contains_key(&id) && v.settled());
     let lw = h.state().state.layers.iter().find(|l| l.id.0 == id).unwrap().settings["line_width"].as_f64();
     assert_eq!(lw, Some(1.5), "the old line width stays");
@@ -181,9 +149,7 @@ fn a_timer_advances_trees_and_steps_rays() {
     let tree = ds.trees_at_pixel(W / 2, H / 2, None).unwrap().into_iter().find(|t| t.rays.len() >= 3).unwrap();
     let t = tree.info.id.0;
     h.state_mut().state.tree_rays.insert(t, tree.rays.len() as u32);
-    h.state_mut().state.patch(rays, |m| {
-        m.insert("tree".into(), t.into());
-    });
+    h.state_mut().state.patch(rays, |r: &mut RaysSettings| r.tree = Some(t));
     wait(&mut h, "the middle tree", |v| tree_of(v) == Some(t) && v.settled());
     click(&mut h, "First ray");
     wait(&mut h, "ray 0", |v| {
@@ -324,9 +290,7 @@ fn clicking_a_ray_picks_it_and_the_window_matches_its_snapshot() {
     // project onto that pixel.
     h.state_mut().state.resolution = rtvtk_viewer::app::Resolution::Dataset;
     let rays = h.state().state.layers.iter().find(|l| l.kind == "rays").unwrap().id.0;
-    h.state_mut().state.patch(rays, |m| {
-        m.insert("pixel".into(), serde_json::json!([40, 30]));
-    });
+    h.state_mut().state.patch(rays, |r: &mut RaysSettings| r.pixel = Some([40, 30]));
     wait(&mut h, "the pixel's trees", |v| {
         v.state.shown.as_ref().is_some_and(|s| s.size == [W, H])
             && v.state.layers.iter().any(|l| l.id.0 == rays && l.settings["pixel"] == serde_json::json!([40, 30]))
@@ -346,9 +310,8 @@ fn clicking_a_ray_picks_it_and_the_window_matches_its_snapshot() {
         h.step();
     }
     wait(&mut h, "the pick", |v| v.state.picked.is_some() && v.state.inspector.fields.is_some() && v.settled());
-    let p = h.state().state.picked.clone().unwrap();
-    assert_eq!(p.kind, "rays");
-    let tree = p.tree.unwrap();
+    let p = h.state().state.picked.unwrap();
+    let rtvtk_viz::component::Picked::Ray { tree, .. } = p.item else { panic!("a recorded ray: {p:?}") };
     let f = h.state().state.inspector.fields.clone().unwrap();
     assert_eq!(
         (f.int(0, "pixel_x"), f.int(0, "pixel_y")),
