@@ -9,7 +9,7 @@ use renderers::geometry::Ray;
 use renderers::{Bvh, RenderOptions, RenderStats, TraversalStats};
 use rl::{Kind, Recorder, RecorderOptions};
 
-use crate::bench::query::median;
+use crate::query::median;
 
 /// What `rtvtk bench gpu` measures.
 pub struct GpuBench {

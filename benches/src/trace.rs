@@ -13,7 +13,7 @@ use renderers::tracer::{SampleRecord, TraceCtx, path_sample};
 use renderers::{BuiltinScene, Bvh, TraversalStats};
 use rl::Kind;
 
-use crate::bench::query::median;
+use crate::query::median;
 
 struct BenchRay {
     o: Vec3A,
@@ -130,7 +130,7 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32, rounds: u32) -> R
     );
     println!();
     #[cfg(feature = "embree")]
-    let embree = crate::bench::embree::EmbreeScene::new(&scene.tris);
+    let embree = crate::embree::EmbreeScene::new(&scene.tris);
     println!(
         "| kind | rays | ours Mrays/s | obvhs BVH2 stock | obvhs CWBVH stock | Embree 3 | ours / CWBVH | ours / Embree | boxes/ray | tris/ray |"
     );

@@ -16,7 +16,7 @@ use datafusion::prelude::SessionContext;
 use futures::TryStreamExt;
 use tonic::transport::Channel;
 
-use crate::bench::query::{median, same_answer};
+use crate::query::{median, same_answer};
 
 /// What `rtvtk bench serve` does.
 pub struct ServeBench {
@@ -78,13 +78,13 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
 }
 
 pub fn run(dataset: &Path, o: &ServeBench) -> Result<()> {
-    if !crate::sql::is_dataset(&dataset.to_string_lossy()) {
+    if !dataset.join(store::MANIFEST_FILE).is_file() {
         bail!("{}: not a dataset directory (expected {})", dataset.display(), store::MANIFEST_FILE);
     }
     if o.clients == 0 || o.seconds.is_nan() || o.seconds <= 0.0 {
         bail!("--clients and --seconds must be positive");
     }
-    let rt = crate::runtime()?;
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async {
         let sources = vec![query::TraceSource::parse(&dataset.to_string_lossy())];
         let ctx = query::session(&sources).await?;

@@ -1,14 +1,26 @@
-//! `rtvtk bench`: whole-system benchmarks, each beside a baseline in the same run.
+#![doc = include_str!("../README.md")]
+//!
+//! rtvtk's whole-system benchmarks, each beside a baseline in the same run and reported as
+//! ratios; `rtvtk bench ...` (the CLI's thin `src/bench.rs`) parses the arguments and calls
+//! them. A tool crate, like the binary: its errors are `anyhow`'s.
+//!
+//! - [`store_bench`], [`fetch_bench`]: recording throughput, bytes per ray and one-tree fetches
+//!   beside Parquet and DuckDB (`bench store`, `bench fetch`)
+//! - [`record`]: `rtvtk record` against `record --no-record`, end to end (`bench record`)
+//! - [`query`]: the SQL suite beside DuckDB and on Ballista clusters (`bench query`)
+//! - [`serve`]: many Flight SQL clients against one service (`bench serve`)
+//! - [`trace`]: BVH traversal beside obvhs (and Embree) (`bench trace`)
+//! - [`gpu`]: the GPU tracer beside the CPU's (`bench gpu`)
+//! - [`viz`]: the visualizer's frames, on the GPU and read back (`bench viz`)
 
 #[cfg(feature = "embree")]
 mod embree;
-mod gpu;
-mod query;
-mod record;
-mod serve;
-mod trace;
-
-mod viz;
+pub mod gpu;
+pub mod query;
+pub mod record;
+pub mod serve;
+pub mod trace;
+pub mod viz;
 
 use std::fs::File;
 use std::path::PathBuf;
@@ -16,242 +28,12 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use arrow::array::RecordBatch;
-use clap::Subcommand;
 use parquet::arrow::ArrowWriter;
 use parquet::basic::{Compression, ZstdLevel};
 use parquet::file::properties::WriterProperties;
 use rl::demo::{RayList, pixel_rays};
 use rl::{Dataset, Payload, RayId, Recorder, RecorderOptions, TreeId};
 use store::{Encoding, KindTable, PayloadSchema, RayColumns, TreeRow};
-
-#[derive(Subcommand)]
-pub enum BenchCommand {
-    /// Single-core traversal speed per ray kind: our BVH traversal beside obvhs's stock BVH2 and
-    /// CWBVH traversals on the same rays (and Embree when built with `--features embree`).
-    Trace {
-        /// Split every quad of the Cornell box n × n (31 gives ~30K triangles, 130 ~0.5M).
-        #[arg(long, default_value_t = 31)]
-        subdivide: u32,
-        /// Rotate the scene off the axes (the stock CWBVH is slow on axis-aligned walls).
-        #[arg(long)]
-        rotate: bool,
-        /// Image width (and height) of the path-traced frame the rays come from.
-        #[arg(long, default_value_t = 256)]
-        width: u32,
-        #[arg(long, default_value_t = 4)]
-        spp: u32,
-        /// Timing rounds; each round runs every traversal once, in turn, so slow phases of a
-        /// shared machine hit all of them (best time and median per-round ratio are reported).
-        #[arg(long, default_value_t = 5)]
-        rounds: u32,
-    },
-    /// Write throughput and bytes per ray against plain arrow-rs Parquet, and one-tree fetch latency.
-    Store {
-        /// Rays to record (at least).
-        #[arg(long, default_value_t = 2_000_000)]
-        rays: u64,
-        /// Tracing threads replaying the trees into the recorder.
-        #[arg(long, default_value_t = 1)]
-        threads: usize,
-        /// Recorder background writer threads.
-        #[arg(long, default_value_t = 1)]
-        workers: usize,
-        /// Rays per chunk handed from the tracing threads to the writers.
-        #[arg(long, default_value_t = RecorderOptions::default().chunk_rays)]
-        chunk_rays: usize,
-        /// Rows per Parquet data page of the ray files (the unit a one-tree fetch decompresses).
-        #[arg(long, default_value_t = store::WriteOptions::default().page_rows)]
-        page_rows: usize,
-        /// Random trees fetched for the latency figures.
-        #[arg(long, default_value_t = 2000)]
-        fetches: usize,
-        /// Where to write (default: a temporary directory, removed afterwards).
-        #[arg(long)]
-        dir: Option<PathBuf>,
-        /// Take the rays from the path tracer on this scene (cornell, cornell-glass, glossy, FILE.obj)
-        /// instead of the small demo tracer.
-        #[arg(long)]
-        scene: Option<String>,
-        /// Encodings to record the trace in, each timed and sized against the baseline; the first
-        /// one is used for the fetch figures.
-        #[arg(long, value_delimiter = ',', default_value = "lossless,plain,oct16,oct12")]
-        encodings: Vec<String>,
-        /// Skip the DuckDB comparison (needs `python3` with the `duckdb` module).
-        #[arg(long)]
-        no_duckdb: bool,
-        /// Do not fsync sealed segments (the baseline does not either; crash safety against
-        /// power loss needs it, a killed process does not).
-        #[arg(long)]
-        no_sync: bool,
-        /// Write rounds; each writes the baseline and then every encoding, so slow phases of a
-        /// shared machine hit both (best speed and median per-round ratios are reported).
-        #[arg(long, default_value_t = 3)]
-        rounds: u32,
-    },
-    /// A fixed query suite (anchors' six queries, coherence, BVH cost) on a dataset, beside
-    /// DuckDB on the same Parquet files: time and peak-memory ratios.
-    Query {
-        dataset: PathBuf,
-        /// A plain export of the dataset for DuckDB (made in a temporary directory when absent and
-        /// the dataset is encoded).
-        #[arg(long)]
-        plain: Option<PathBuf>,
-        /// Timed runs per query (after one untimed).
-        #[arg(long, default_value_t = 3)]
-        runs: usize,
-        /// rtvtk's memory limit, e.g. 2GiB.
-        #[arg(long)]
-        memory_limit: Option<String>,
-        #[arg(long)]
-        no_duckdb: bool,
-        /// Instead of DuckDB: the suite on Ballista clusters of this many executors (comma
-        /// separated, e.g. 1,2,4) started on this machine, beside the in-process session.
-        #[arg(long, value_delimiter = ',')]
-        cluster: Vec<usize>,
-        /// Task slots per executor with --cluster.
-        #[arg(long, default_value_t = 1)]
-        executor_cores: usize,
-    },
-    /// Recording overhead: wall time of `rtvtk record ARGS` with write-mode recording over the
-    /// same command with `--no-record` (same scene, seed and threads), alternating pairs of runs.
-    Record {
-        /// Pairs of runs.
-        #[arg(long, default_value_t = 5)]
-        runs: usize,
-        /// Arguments of `rtvtk record` without `--out`, e.g. `--scene cornell --subdivide 118
-        /// --size 256x256 --spp 8 --threads 1`.
-        #[arg(trailing_var_arg = true, allow_hyphen_values = true, required = true)]
-        args: Vec<String>,
-    },
-    /// The query service under load: N Flight SQL clients for S seconds (queries per second,
-    /// p50/p99 latency per query type, every answer checked), beside the same queries alone
-    /// in-process.
-    Serve {
-        dataset: PathBuf,
-        #[arg(long, default_value_t = 32)]
-        clients: usize,
-        #[arg(long, default_value_t = 10.0)]
-        seconds: f64,
-        /// Against a running `rtvtk serve` (http://HOST:PORT) instead of one started in-process.
-        #[arg(long)]
-        connect: Option<String>,
-        /// Bearer token to send (default: RTVTK_TOKEN).
-        #[arg(long)]
-        token: Option<String>,
-        /// Mix in a query over the per-query memory limit (4 MiB in-process; with --connect,
-        /// start the server with --query-memory 4MiB; needs a trace of 200K rays or more): it
-        /// must fail alone.
-        #[arg(long)]
-        over_limit: bool,
-    },
-    /// The visualizer's ray layer: load time of N rays beside `rtvtk sql` scanning the same
-    /// columns, frame time of the layer, GPU memory per segment.
-    Viz {
-        dataset: PathBuf,
-        /// Ray counts to load (comma separated; each at most the dataset's rays).
-        #[arg(long, value_delimiter = ',', default_value = "1000000")]
-        rays: Vec<u64>,
-        /// Frame size WxH.
-        #[arg(long, default_value = "1920x1080", value_parser = crate::args::parse_size)]
-        size: (u32, u32),
-        /// Timed frames per ray count.
-        #[arg(long, default_value_t = 20)]
-        frames: usize,
-        /// Load rounds (the baseline scan and our load alternate).
-        #[arg(long, default_value_t = 3)]
-        rounds: usize,
-    },
-    /// The GPU tracer beside the CPU in the same run: primary rays per second (same rays, hits
-    /// compared), path-traced samples and rays per second by kind, frames of one sample per
-    /// pixel per second, and with --record rays recorded per second.
-    Gpu {
-        #[arg(long, default_value = "cornell")]
-        scene: String,
-        /// Subdivide every triangle into n² (a larger scene from the same geometry).
-        #[arg(long, default_value_t = 1)]
-        subdivide: u32,
-        #[arg(long, default_value = "1920x1080", value_parser = crate::args::parse_size)]
-        size: (u32, u32),
-        #[arg(long, default_value_t = 5)]
-        rounds: usize,
-        /// Samples per pixel of each GPU path-tracing round (one dispatch per sample).
-        #[arg(long, default_value_t = 4)]
-        spp: u32,
-        /// Leave out the CPU baselines (the CPU path tracer at 1080p takes long in a dev build).
-        #[arg(long)]
-        no_cpu: bool,
-        /// Also record one sample per pixel into a dataset with each tracer (rays recorded per
-        /// second, through `rl` into the store).
-        #[arg(long)]
-        record: bool,
-    },
-    /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
-    Fetch {
-        dataset: PathBuf,
-        #[arg(long, default_value_t = 2000)]
-        fetches: usize,
-        #[arg(long)]
-        no_duckdb: bool,
-    },
-}
-
-pub fn run(cmd: BenchCommand) -> Result<()> {
-    match cmd {
-        BenchCommand::Trace { subdivide, rotate, width, spp, rounds } => {
-            crate::bench::trace::run(subdivide, rotate, width, spp, rounds.max(1))
-        }
-        BenchCommand::Serve { dataset, clients, seconds, connect, token, over_limit } => {
-            let token = token.or_else(|| std::env::var("RTVTK_TOKEN").ok());
-            let o = crate::bench::serve::ServeBench { connect, token, clients, seconds, over_limit };
-            crate::bench::serve::run(&dataset, &o)
-        }
-        BenchCommand::Viz { dataset, rays, size, frames, rounds } => {
-            crate::bench::viz::run(&dataset, &rays, size, frames.max(1), rounds.max(1))
-        }
-        BenchCommand::Gpu { scene, subdivide, size, rounds, spp, no_cpu, record } => {
-            let o = crate::bench::gpu::GpuBench { rounds: rounds.max(1), spp: spp.max(1), cpu: !no_cpu, record };
-            crate::bench::gpu::run(&scene, subdivide, size, &o)
-        }
-        BenchCommand::Fetch { dataset, fetches, no_duckdb } => fetch_bench(&dataset, fetches, !no_duckdb),
-        BenchCommand::Record { runs, args } => crate::bench::record::run(runs, &args),
-        BenchCommand::Query { dataset, plain, runs, memory_limit, no_duckdb, cluster, executor_cores } => {
-            if let Some(m) = &memory_limit {
-                crate::sql::parse_bytes(m).map_err(anyhow::Error::msg)?;
-            }
-            if !cluster.is_empty() {
-                return crate::bench::query::run_cluster(&dataset, &cluster, executor_cores.max(1), runs.max(1));
-            }
-            crate::bench::query::run(&dataset, plain, runs.max(1), memory_limit.as_deref(), !no_duckdb)
-        }
-        BenchCommand::Store {
-            rays,
-            threads,
-            workers,
-            chunk_rays,
-            page_rows,
-            fetches,
-            dir,
-            scene,
-            encodings,
-            no_duckdb,
-            no_sync,
-            rounds,
-        } => {
-            let encodings = encodings.iter().map(|e| Encoding::parse(e)).collect::<Result<Vec<_>, _>>()?;
-            let args = StoreArgs {
-                threads: threads.max(1),
-                workers: workers.max(1),
-                chunk_rays: chunk_rays.max(1),
-                page_rows: page_rows.max(1),
-                fetches,
-                duckdb: !no_duckdb,
-                sync: !no_sync,
-                rounds: rounds.max(1),
-            };
-            store_bench(rays, &args, dir, scene.as_deref(), &encodings)
-        }
-    }
-}
 
 /// Traced trees: (pixel x, pixel y, sample, rays).
 struct Trace {
@@ -366,15 +148,17 @@ pub(crate) fn dir_bytes(dir: &std::path::Path) -> u64 {
     walk(dir)
 }
 
-struct StoreArgs {
-    sync: bool,
-    rounds: u32,
-    threads: usize,
-    workers: usize,
-    chunk_rays: usize,
-    page_rows: usize,
-    fetches: usize,
-    duckdb: bool,
+pub struct StoreArgs {
+    /// fsync at seal (what a crash-safe recording pays).
+    pub sync: bool,
+    pub rounds: u32,
+    pub threads: usize,
+    pub workers: usize,
+    pub chunk_rays: usize,
+    pub page_rows: usize,
+    pub fetches: usize,
+    /// DuckDB's fetch beside ours.
+    pub duckdb: bool,
 }
 
 /// Records `trace` through the `rl` API in write mode; returns seconds, the summary and the tree
@@ -519,7 +303,7 @@ print(times[len(times)//2] * 1e3, times[int((len(times)-1)*0.99)] * 1e3)
     }
 }
 
-fn store_bench(
+pub fn store_bench(
     min_rays: u64,
     args: &StoreArgs,
     dir: Option<PathBuf>,
@@ -622,7 +406,7 @@ fn store_bench(
     let median_ratio = |ours: &[(f64, f64)], f: &dyn Fn((f64, f64), (f64, f64)) -> f64| {
         let mut r: Vec<f64> = base_runs.iter().zip(ours).map(|(&b, &o)| f(b, o)).collect();
         r.sort_by(f64::total_cmp);
-        (crate::bench::query::median(&r), r)
+        (crate::query::median(&r), r)
     };
 
     println!("## rtvtk bench store ({} rays, {} trees of {source})", trace.rays, trace.trees.len());
@@ -720,7 +504,7 @@ fn store_bench(
 
 /// One-tree fetch latency on an existing dataset, by id and by (pixel, sample), warm, beside
 /// DuckDB's `WHERE tree_id = k` on the same files.
-fn fetch_bench(fetch_path: &std::path::Path, fetches: usize, duckdb: bool) -> Result<()> {
+pub fn fetch_bench(fetch_path: &std::path::Path, fetches: usize, duckdb: bool) -> Result<()> {
     // Warm: the ray files read once into the page cache, the tree index loaded (timed apart).
     let ds = Dataset::open(fetch_path)?;
     let t = Instant::now();

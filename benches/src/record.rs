@@ -8,8 +8,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 
-use crate::bench::dir_bytes;
-use crate::bench::query::median;
+use crate::dir_bytes;
+use crate::query::median;
 
 /// Wall seconds of `rtvtk record ARGS --out OUT --quiet [--no-record]`. Both runs write the same
 /// PNG and EXR beside OUT (a recording writes them into OUT by default, `--no-record` writes none
