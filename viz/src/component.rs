@@ -369,6 +369,114 @@ pub trait Settings: Serialize + serde::de::DeserializeOwned + Default + Clone + 
     fn encode(&self) -> serde_json::Value {
         serde_json::to_value(self).unwrap_or_default()
     }
+
+    /// The settings that take one of a few values, with those values (the viewer draws them as
+    /// drop-downs, not text fields).
+    fn choices() -> Vec<(&'static str, &'static [&'static str])> {
+        Vec::new()
+    }
+}
+
+/// A component written against its typed settings. [`Component`], the object-safe trait the
+/// pipeline holds, is implemented once for every `Layer`: its kind is its settings' `KIND`, and
+/// its settings cross as JSON through `Settings::decode` and `encode`, so a component says only
+/// what is its own (the methods below mean what [`Component`]'s of the same names do).
+pub trait Layer: Send {
+    type Settings: Settings;
+    fn id(&self) -> ComponentId;
+    fn role(&self) -> LayerRole;
+    fn generation(&self) -> u64;
+    /// Its settings now.
+    fn current(&self) -> &Self::Settings;
+    /// Checks and takes `settings` (bumping the generation when the output changes); on an error
+    /// the old settings stay.
+    fn apply(&mut self, settings: Self::Settings) -> Result<()>;
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()>;
+    fn uses_camera(&self) -> bool {
+        self.role() != LayerRole::Flat
+    }
+    fn previews(&self) -> bool {
+        false
+    }
+    fn idle(&mut self, _ctx: &mut IdleCtx) -> Result<bool> {
+        Ok(false)
+    }
+    fn resize(&mut self, _width: u32, _height: u32) {}
+    fn trace_ray(&mut self, _ctx: &mut TraceCtx, _pixel: [u32; 2]) -> Result<Option<TracedPixel>> {
+        Ok(None)
+    }
+    fn pick(&mut self, _ctx: &mut PickCtx) -> Result<bool> {
+        Ok(false)
+    }
+    fn picked(&self, _index: u32) -> Option<Picked> {
+        None
+    }
+    fn legend(&self) -> Vec<Legend> {
+        Vec::new()
+    }
+    fn report(&self) -> Vec<String> {
+        Vec::new()
+    }
+    fn convergence(&self) -> Vec<ConvergencePoint> {
+        Vec::new()
+    }
+}
+
+impl<L: Layer> Component for L {
+    fn id(&self) -> ComponentId {
+        Layer::id(self)
+    }
+    fn kind(&self) -> &'static str {
+        L::Settings::KIND
+    }
+    fn role(&self) -> LayerRole {
+        Layer::role(self)
+    }
+    fn uses_camera(&self) -> bool {
+        Layer::uses_camera(self)
+    }
+    fn previews(&self) -> bool {
+        Layer::previews(self)
+    }
+    fn generation(&self) -> u64 {
+        Layer::generation(self)
+    }
+    fn settings(&self) -> serde_json::Value {
+        self.current().encode()
+    }
+    fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
+        L::Settings::choices()
+    }
+    fn set_settings(&mut self, settings: &serde_json::Value) -> Result<()> {
+        self.apply(L::Settings::decode(settings)?)
+    }
+    fn idle(&mut self, ctx: &mut IdleCtx) -> Result<bool> {
+        Layer::idle(self, ctx)
+    }
+    fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
+        Layer::render(self, ctx)
+    }
+    fn resize(&mut self, width: u32, height: u32) {
+        Layer::resize(self, width, height)
+    }
+    fn trace_ray(&mut self, ctx: &mut TraceCtx, pixel: [u32; 2]) -> Result<Option<TracedPixel>> {
+        Layer::trace_ray(self, ctx, pixel)
+    }
+    fn pick(&mut self, ctx: &mut PickCtx) -> Result<bool> {
+        Layer::pick(self, ctx)
+    }
+    fn picked(&self, index: u32) -> Option<Picked> {
+        Layer::picked(self, index)
+    }
+    fn legend(&self) -> Vec<Legend> {
+        Layer::legend(self)
+    }
+    fn report(&self) -> Vec<String> {
+        Layer::report(self)
+    }
+    fn convergence(&self) -> Vec<ConvergencePoint> {
+        Layer::convergence(self)
+    }
 }
 
 /// Decodes a component's settings, naming the component on error.

@@ -172,11 +172,71 @@ fn pick_pipeline_with(
     })
 }
 
+/// The shape a line layer draws: segments (rays, query rows; 6 vertices each) or box edges (BVH
+/// nodes; 72 vertices each), from the same 32-byte items and `lines.wgsl`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LineShape {
+    Segments,
+    Boxes,
+}
+
+impl LineShape {
+    fn vertex_entry(self) -> &'static str {
+        match self {
+            LineShape::Segments => "vs_seg",
+            LineShape::Boxes => "vs_box",
+        }
+    }
+
+    fn per_item(self) -> u32 {
+        match self {
+            LineShape::Segments => 6,
+            LineShape::Boxes => 72,
+        }
+    }
+}
+
+/// What every line layer (rays, query, bvh) draws and picks with: its colour and pick pipelines,
+/// made on first use, over sets of [`SegmentBuffers`].
+pub struct Lines {
+    shape: LineShape,
+    pipeline: Option<wgpu::RenderPipeline>,
+    pick: Option<wgpu::RenderPipeline>,
+}
+
+impl Lines {
+    pub fn new(shape: LineShape) -> Lines {
+        Lines { shape, pipeline: None, pick: None }
+    }
+
+    /// Draws `sets` into the layer (the first clears it; with `preview`, the first is thinned to
+    /// the layer's preview budget): lines `view.params`' width and opacity, as `view` says.
+    pub fn draw(&mut self, ctx: &RenderCtx, view: &ViewUniform, sets: &[Option<&SegmentBuffers>], preview: bool) {
+        let shape = self.shape;
+        let p = self.pipeline.get_or_insert_with(|| {
+            let m = shader(ctx.gpu, "lines", include_str!("shaders/lines.wgsl"));
+            scene_pipeline(ctx.gpu, &m, shape.vertex_entry(), "fs_line", Blend::Opaque)
+        });
+        for (i, set) in sets.iter().enumerate() {
+            let Some(set) = set else { continue };
+            let stride = if preview && i == 0 { set.stride_for(ctx.preview) } else { 1 };
+            set.draw_strided(ctx.gpu, ctx, p, view, shape.per_item(), i == 0, stride);
+        }
+    }
+
+    /// Picking: the ids of `sets`' items, numbered across the sets in order; false when there is
+    /// nothing to pick.
+    pub fn pick(&mut self, ctx: &crate::component::PickCtx, line_width: f32, sets: &[Option<&SegmentBuffers>]) -> bool {
+        let shape = self.shape;
+        pick_sets(&mut self.pick, ctx, shape.vertex_entry(), shape.per_item(), line_width, sets)
+    }
+}
+
 /// Picking for layers of line segments or boxes (`vs`: `vs_seg` or `vs_box`, `per` vertices
 /// each): the pick pipeline is made on first use in `slot`, then the ids of every set are drawn,
 /// numbered on from one set to the next, lines at least 3 pixels wide so thin ones are easy to hit.
 /// Returns whether anything was drawn.
-pub fn pick_sets(
+fn pick_sets(
     slot: &mut Option<wgpu::RenderPipeline>,
     ctx: &crate::component::PickCtx,
     vs: &str,

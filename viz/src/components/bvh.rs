@@ -6,9 +6,9 @@ use arrow::datatypes::{DataType, Float64Type};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, Settings};
+use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, RenderCtx};
 use crate::components::rays::f32_columns;
-use crate::draw::{Blend, GpuSegment, SegmentBuffers, pack_rgba, scene_pipeline, shader};
+use crate::draw::{GpuSegment, SegmentBuffers, pack_rgba};
 use crate::legend::colour_map;
 use crate::sources::Sources;
 use crate::{Error, Result};
@@ -62,8 +62,8 @@ pub struct BvhBoxes {
     boxes: Option<SegmentBuffers>,
     /// Node id of every box, in buffer order (picking).
     nodes: Vec<u64>,
-    pick_pipeline: Option<wgpu::RenderPipeline>,
-    pipeline: Option<wgpu::RenderPipeline>,
+    /// The line pipelines it draws and picks with.
+    lines: crate::draw::Lines,
     range: Option<(f64, f64)>,
 }
 
@@ -79,8 +79,7 @@ impl BvhBoxes {
             loaded: None,
             boxes: None,
             nodes: Vec::new(),
-            pick_pipeline: None,
-            pipeline: None,
+            lines: crate::draw::Lines::new(crate::draw::LineShape::Boxes),
             range: None,
         };
         if !settings.is_null() {
@@ -160,12 +159,11 @@ impl BvhBoxes {
     }
 }
 
-impl Component for BvhBoxes {
+impl Layer for BvhBoxes {
+    type Settings = BvhSettings;
+
     fn id(&self) -> ComponentId {
         self.id
-    }
-    fn kind(&self) -> &'static str {
-        "bvh"
     }
     fn role(&self) -> LayerRole {
         LayerRole::Scene
@@ -173,11 +171,10 @@ impl Component for BvhBoxes {
     fn generation(&self) -> u64 {
         self.generation
     }
-    fn settings(&self) -> serde_json::Value {
-        self.settings.encode()
+    fn current(&self) -> &BvhSettings {
+        &self.settings
     }
-    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s = BvhSettings::decode(v)?;
+    fn apply(&mut self, s: BvhSettings) -> Result<()> {
         colour_map(&s.map)?;
         if s.levels[0] > s.levels[1] {
             return Err(Error::Settings(format!("bvh: level range {}..{} is empty", s.levels[0], s.levels[1])));
@@ -190,19 +187,13 @@ impl Component for BvhBoxes {
         if self.loaded.as_ref() != Some(&(ctx.frame, self.settings.clone())) {
             self.load(ctx)?;
         }
-        if self.pipeline.is_none() {
-            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
-            self.pipeline = Some(scene_pipeline(ctx.gpu, &m, "vs_box", "fs_line", Blend::Opaque));
-        }
-        let (Some(p), Some(b)) = (&self.pipeline, &self.boxes) else { return Ok(()) };
         let s = &self.settings;
         let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, 0.0);
-        b.draw(ctx.gpu, ctx, p, &view, 72, true);
+        self.lines.draw(ctx, &view, &[self.boxes.as_ref()], false);
         Ok(())
     }
     fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
-        let sets = [self.boxes.as_ref()];
-        Ok(crate::draw::pick_sets(&mut self.pick_pipeline, ctx, "vs_box", 72, self.settings.line_width, &sets))
+        Ok(self.lines.pick(ctx, self.settings.line_width, &[self.boxes.as_ref()]))
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let node = *self.nodes.get(index as usize)?;

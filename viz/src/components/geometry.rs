@@ -5,7 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, Settings};
+use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, RenderCtx};
 use crate::draw::{Blend, bind_view_storage, layer_pass, scene_pipeline, shader, uniform};
 use crate::gpu::Gpu;
 use crate::sources::Sources;
@@ -36,6 +36,9 @@ pub struct GeometrySettings {
 }
 
 impl crate::component::Settings for GeometrySettings {
+    fn choices() -> Vec<(&'static str, &'static [&'static str])> {
+        vec![("style", SurfaceStyle::NAMES)]
+    }
     const KIND: &'static str = "geometry";
 }
 
@@ -161,12 +164,11 @@ impl Geometry {
     }
 }
 
-impl Component for Geometry {
+impl Layer for Geometry {
+    type Settings = GeometrySettings;
+
     fn id(&self) -> ComponentId {
         self.id
-    }
-    fn kind(&self) -> &'static str {
-        "geometry"
     }
     fn role(&self) -> LayerRole {
         LayerRole::Scene
@@ -174,14 +176,10 @@ impl Component for Geometry {
     fn generation(&self) -> u64 {
         self.generation
     }
-    fn settings(&self) -> serde_json::Value {
-        self.settings.encode()
+    fn current(&self) -> &GeometrySettings {
+        &self.settings
     }
-    fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
-        vec![("style", SurfaceStyle::NAMES)]
-    }
-    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s = GeometrySettings::decode(v)?;
+    fn apply(&mut self, s: GeometrySettings) -> Result<()> {
         if !((0.0..=1.0).contains(&s.opacity) && s.line_width > 0.0 && s.line_width <= 64.0) {
             return Err(Error::Settings("geometry: opacity must be in 0..1 and line_width in (0, 64] pixels".into()));
         }
@@ -212,6 +210,15 @@ impl Component for Geometry {
     }
 }
 
+/// The composition layer has no settings (`{}`; any field is refused, naming it).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CompositionSettings {}
+
+impl crate::component::Settings for CompositionSettings {
+    const KIND: &'static str = "composition";
+}
+
 /// The 2D/3D composition layer: the scene's depth, no colour.
 pub struct Composition {
     id: ComponentId,
@@ -231,12 +238,11 @@ impl Composition {
     }
 }
 
-impl Component for Composition {
+impl Layer for Composition {
+    type Settings = CompositionSettings;
+
     fn id(&self) -> ComponentId {
         self.id
-    }
-    fn kind(&self) -> &'static str {
-        "composition"
     }
     fn role(&self) -> LayerRole {
         LayerRole::Occluder
@@ -244,15 +250,11 @@ impl Component for Composition {
     fn generation(&self) -> u64 {
         0
     }
-    fn settings(&self) -> serde_json::Value {
-        serde_json::json!({})
+    fn current(&self) -> &CompositionSettings {
+        &CompositionSettings {}
     }
-    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        match v.as_object() {
-            Some(o) if o.is_empty() => Ok(()),
-            None if v.is_null() => Ok(()),
-            _ => Err(Error::Settings("composition has no settings".into())),
-        }
+    fn apply(&mut self, _settings: CompositionSettings) -> Result<()> {
+        Ok(())
     }
     fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
         if self.gpu.as_ref().is_none_or(|g| g.mesh.frame != ctx.frame) {

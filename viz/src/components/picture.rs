@@ -8,7 +8,7 @@ use arrow::datatypes::{DataType, Float64Type, UInt32Type};
 use renderers::TracerChoice;
 use serde::{Deserialize, Serialize};
 
-use crate::component::{Component, ComponentId, IdleCtx, LayerRole, Legend, RenderCtx, Settings};
+use crate::component::{Component, ComponentId, IdleCtx, Layer, LayerRole, Legend, RenderCtx};
 use crate::gpu::Gpu;
 use crate::legend::colour_map;
 use crate::sources::{Picture, Sources};
@@ -123,6 +123,9 @@ pub struct ImageSettings {
 }
 
 impl crate::component::Settings for ImageSettings {
+    fn choices() -> Vec<(&'static str, &'static [&'static str])> {
+        vec![("source", ImageSource::NAMES)]
+    }
     const KIND: &'static str = "image";
 }
 
@@ -328,12 +331,11 @@ pub fn half_difference_rmse(sum: &[glam::Vec3A], even: &[glam::Vec3A], n: u32) -
     Some((diff_ms / f64::from(n) / (1.0 / ne + 1.0 / no)).sqrt())
 }
 
-impl Component for Image {
+impl Layer for Image {
+    type Settings = ImageSettings;
+
     fn id(&self) -> ComponentId {
         self.id
-    }
-    fn kind(&self) -> &'static str {
-        "image"
     }
     fn role(&self) -> LayerRole {
         LayerRole::Flat
@@ -344,14 +346,10 @@ impl Component for Image {
     fn generation(&self) -> u64 {
         self.generation
     }
-    fn settings(&self) -> serde_json::Value {
-        self.settings.encode()
+    fn current(&self) -> &ImageSettings {
+        &self.settings
     }
-    fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
-        vec![("source", ImageSource::NAMES)]
-    }
-    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s = ImageSettings::decode(v)?;
+    fn apply(&mut self, s: ImageSettings) -> Result<()> {
         if !((0.0..=1.0).contains(&s.opacity) && s.exposure.is_finite() && s.exposure > 0.0) {
             return Err(Error::Settings("image: opacity must be in 0..1 and exposure positive".into()));
         }
@@ -670,12 +668,11 @@ impl Heatmap {
     }
 }
 
-impl Component for Heatmap {
+impl Layer for Heatmap {
+    type Settings = HeatmapSettings;
+
     fn id(&self) -> ComponentId {
         self.id
-    }
-    fn kind(&self) -> &'static str {
-        "heatmap"
     }
     fn role(&self) -> LayerRole {
         LayerRole::Flat
@@ -683,11 +680,10 @@ impl Component for Heatmap {
     fn generation(&self) -> u64 {
         self.generation
     }
-    fn settings(&self) -> serde_json::Value {
-        self.settings.encode()
+    fn current(&self) -> &HeatmapSettings {
+        &self.settings
     }
-    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s = HeatmapSettings::decode(v)?;
+    fn apply(&mut self, s: HeatmapSettings) -> Result<()> {
         colour_map(&s.map)?;
         if !(0.0..=1.0).contains(&s.opacity) {
             return Err(Error::Settings("heatmap: opacity must be in 0..1".into()));

@@ -9,9 +9,9 @@ use arrow::datatypes::{DataType, Float64Type};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, Settings};
+use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, RenderCtx};
 use crate::components::rays::{SegmentBuilder, f32_columns, kind_names};
-use crate::draw::{Blend, SegmentBuffers, scene_pipeline, shader};
+use crate::draw::SegmentBuffers;
 use crate::legend::colour_map;
 use crate::{Error, Result};
 
@@ -52,13 +52,13 @@ pub struct Query {
     generation: u64,
     loaded: Option<(Frame, QuerySettings)>,
     segments: Option<SegmentBuffers>,
-    pipeline: Option<wgpu::RenderPipeline>,
+    /// The line pipelines it draws and picks with.
+    lines: crate::draw::Lines,
     legend: Vec<Legend>,
     rows: u64,
     skipped: u64,
     /// Result row of every drawn segment or point (picking).
     row_of: Vec<u64>,
-    pick_pipeline: Option<wgpu::RenderPipeline>,
 }
 
 fn palette(i: usize) -> [u8; 4] {
@@ -75,12 +75,11 @@ impl Query {
             generation: 0,
             loaded: None,
             segments: None,
-            pipeline: None,
+            lines: crate::draw::Lines::new(crate::draw::LineShape::Segments),
             legend: Vec::new(),
             rows: 0,
             skipped: 0,
             row_of: Vec::new(),
-            pick_pipeline: None,
         };
         q.set_settings(settings)?;
         Ok(q)
@@ -211,12 +210,11 @@ impl Query {
     }
 }
 
-impl Component for Query {
+impl Layer for Query {
+    type Settings = QuerySettings;
+
     fn id(&self) -> ComponentId {
         self.id
-    }
-    fn kind(&self) -> &'static str {
-        "query"
     }
     fn role(&self) -> LayerRole {
         LayerRole::Scene
@@ -224,11 +222,10 @@ impl Component for Query {
     fn generation(&self) -> u64 {
         self.generation
     }
-    fn settings(&self) -> serde_json::Value {
-        self.settings.encode()
+    fn current(&self) -> &QuerySettings {
+        &self.settings
     }
-    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s = QuerySettings::decode(v)?;
+    fn apply(&mut self, s: QuerySettings) -> Result<()> {
         if s.sql.trim().is_empty() {
             return Err(Error::Settings("query: the layer needs a SQL query (--sql)".into()));
         }
@@ -241,19 +238,13 @@ impl Component for Query {
         if self.loaded.as_ref() != Some(&(ctx.frame, self.settings.clone())) {
             self.load(ctx)?;
         }
-        if self.pipeline.is_none() {
-            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
-            self.pipeline = Some(scene_pipeline(ctx.gpu, &m, "vs_seg", "fs_line", Blend::Opaque));
-        }
-        let (Some(p), Some(segs)) = (&self.pipeline, &self.segments) else { return Ok(()) };
         let s = &self.settings;
         let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, 1.0);
-        segs.draw(ctx.gpu, ctx, p, &view, 6, true);
+        self.lines.draw(ctx, &view, &[self.segments.as_ref()], false);
         Ok(())
     }
     fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
-        let sets = [self.segments.as_ref()];
-        Ok(crate::draw::pick_sets(&mut self.pick_pipeline, ctx, "vs_seg", 6, self.settings.line_width, &sets))
+        Ok(self.lines.pick(ctx, self.settings.line_width, &[self.segments.as_ref()]))
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let row = *self.row_of.get(index as usize)?;

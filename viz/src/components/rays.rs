@@ -10,8 +10,8 @@ use renderers::TracerChoice;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
-use crate::component::{Component, ComponentId, Frame, LayerRole, Legend, RenderCtx, Settings, TraceCtx, TracedPixel};
-use crate::draw::{Blend, GpuSegment, SEGMENT_BYTES, SegmentBuffers, pack_rgba, scene_pipeline, shader};
+use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, RenderCtx, TraceCtx, TracedPixel};
+use crate::draw::{GpuSegment, SEGMENT_BYTES, SegmentBuffers, pack_rgba};
 use crate::gpu::Gpu;
 use crate::sources::Sources;
 use crate::{Error, Result};
@@ -61,6 +61,9 @@ pub struct RaysSettings {
 }
 
 impl crate::component::Settings for RaysSettings {
+    fn choices() -> Vec<(&'static str, &'static [&'static str])> {
+        vec![("tracer", TracerChoice::NAMES)]
+    }
     const KIND: &'static str = "rays";
 }
 
@@ -225,7 +228,8 @@ pub struct Rays {
     generation: u64,
     loaded: Option<(Frame, DataKey)>,
     segments: Option<SegmentBuffers>,
-    pipeline: Option<wgpu::RenderPipeline>,
+    /// The line pipelines it draws and picks with.
+    lines: crate::draw::Lines,
     kinds: BTreeMap<String, u64>,
     skipped: u64,
     misses: u64,
@@ -239,7 +243,6 @@ pub struct Rays {
     pick_rays: Vec<u32>,
     /// Pixel, tree and ray index of every traced segment.
     traced_ids: Vec<([u32; 2], u64, u32)>,
-    pick_pipeline: Option<wgpu::RenderPipeline>,
     bvh: Option<std::sync::Arc<renderers::Bvh>>,
     /// The tracer of immediate mode (setting `tracer`), made on first use.
     tracer: Option<Box<dyn renderers::Tracer>>,
@@ -258,7 +261,7 @@ impl Rays {
             generation: 0,
             loaded: None,
             segments: None,
-            pipeline: None,
+            lines: crate::draw::Lines::new(crate::draw::LineShape::Segments),
             kinds: BTreeMap::new(),
             skipped: 0,
             misses: 0,
@@ -268,7 +271,6 @@ impl Rays {
             pick_trees: Vec::new(),
             pick_rays: Vec::new(),
             traced_ids: Vec::new(),
-            pick_pipeline: None,
             bvh: None,
             tracer: None,
             cancelled_after: None,
@@ -528,12 +530,11 @@ fn kind_codes(col: &dyn Array) -> Result<(Vec<Option<String>>, Vec<usize>)> {
     Ok((names, codes))
 }
 
-impl Component for Rays {
+impl Layer for Rays {
+    type Settings = RaysSettings;
+
     fn id(&self) -> ComponentId {
         self.id
-    }
-    fn kind(&self) -> &'static str {
-        "rays"
     }
     fn role(&self) -> LayerRole {
         LayerRole::Scene
@@ -544,14 +545,10 @@ impl Component for Rays {
     fn generation(&self) -> u64 {
         self.generation
     }
-    fn settings(&self) -> serde_json::Value {
-        self.settings.encode()
+    fn current(&self) -> &RaysSettings {
+        &self.settings
     }
-    fn choices(&self) -> Vec<(&'static str, &'static [&'static str])> {
-        vec![("tracer", TracerChoice::NAMES)]
-    }
-    fn set_settings(&mut self, v: &serde_json::Value) -> Result<()> {
-        let s = RaysSettings::decode(v)?;
+    fn apply(&mut self, s: RaysSettings) -> Result<()> {
         s.predicate()?;
         crate::component::check_lines("rays", s.line_width, s.opacity)?;
         crate::component::replace_settings(&mut self.settings, s, &mut self.generation);
@@ -562,24 +559,12 @@ impl Component for Rays {
         if self.loaded.as_ref() != Some(&key) {
             self.load_with(ctx.gpu, ctx.sources, ctx.frame, ctx.progress)?;
         }
-        if self.pipeline.is_none() {
-            let m = shader(ctx.gpu, "lines", include_str!("../shaders/lines.wgsl"));
-            self.pipeline = Some(scene_pipeline(ctx.gpu, &m, "vs_seg", "fs_line", Blend::Opaque));
-        }
-        let (Some(p), Some(segs)) = (&self.pipeline, &self.segments) else { return Ok(()) };
         let s = &self.settings;
-        let view = ViewUniform::new(
-            ctx.view_proj(),
-            ctx.target.width,
-            ctx.target.height,
-            s.line_width,
-            s.opacity,
-            if s.gradient { 1.0 } else { 0.0 },
-        );
-        segs.draw_strided(ctx.gpu, ctx, p, &view, 6, true, segs.stride_for(ctx.preview));
-        if let Some(t) = &self.traced {
-            t.draw(ctx.gpu, ctx, p, &view, 6, false);
-        }
+        let gradient = if s.gradient { 1.0 } else { 0.0 };
+        let view =
+            ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, gradient);
+        // The loaded rays (thinned while the camera moves), then the traced tree over them.
+        self.lines.draw(ctx, &view, &[self.segments.as_ref(), self.traced.as_ref()], true);
         Ok(())
     }
     fn trace_ray(&mut self, ctx: &mut TraceCtx, [x, y]: [u32; 2]) -> Result<Option<TracedPixel>> {
@@ -634,8 +619,7 @@ impl Component for Rays {
         Ok(Some(TracedPixel { pixel: [x, y], rays: n }))
     }
     fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
-        let sets = [self.segments.as_ref(), self.traced.as_ref()];
-        Ok(crate::draw::pick_sets(&mut self.pick_pipeline, ctx, "vs_seg", 6, self.settings.line_width, &sets))
+        Ok(self.lines.pick(ctx, self.settings.line_width, &[self.segments.as_ref(), self.traced.as_ref()]))
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let i = index as usize;
