@@ -37,3 +37,5 @@ cargo nextest run --workspace --locked --no-fail-fast
 WGPU_BACKEND=gl cargo nextest run --workspace --locked --no-fail-fast \
   -E 'binary_id(rtvtk-viz::layers) | binary_id(rtvtk-gpu::device) | (binary_id(rtvtk::cli) & test(demo_draws_a_picture))'
 cargo test --workspace --doc --locked
+# The Python package: its wheel built and installed into a fresh venv, and its tests.
+bash scripts/python-check.sh

@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Keeps workspace-hack/Cargo.toml's feature pins current (issue 29).
 
-`cargo run -- demo` builds the root package without its SQL engine; the test command builds the
-whole workspace with every target. Cargo gives a shared dependency the features its dependents
+`cargo run -- demo` builds the root package without its SQL engine, and maturin builds the Python
+package's native module (`python/`) alone; the test command builds the whole workspace with every
+target. Cargo gives a shared dependency the features its dependents
 ask for in *that* build, so without pins the two builds compile arrow, parquet, syn, ... twice.
 This script compares, with `cargo tree`, the features every package of the demo build gets with
 those it gets in the test build, and pins the difference in workspace-hack/Cargo.toml (target
@@ -22,7 +23,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 HACK = os.path.join(ROOT, "workspace-hack", "Cargo.toml")
 # Workspace crates differ by design (the SQL feature); memchr differs only on the host side of the
 # test build, which no crate of the demo build shares; syn is pinned on the host side.
-SKIP = {"rtvtk", "rtvtk-viz", "rtvtk-workspace-hack", "memchr"}
+SKIP = {"rtvtk", "rtvtk-viz", "rtvtk-python", "rtvtk-workspace-hack", "memchr"}
 HOST = {"syn"}
 
 
@@ -97,15 +98,16 @@ def write(pins):
 
 
 def diff():
-    demo = tree(["-p", "rtvtk", "--no-default-features", "-e", "normal,build"])
     full = tree(["--workspace", "-e", "normal,build,dev"])
     out = {}
-    for (name, ver), variants in demo.items():
-        if name in SKIP or (name, ver) not in full:
-            continue
-        if sorted(map(sorted, variants)) != sorted(map(sorted, full[(name, ver)])):
-            section = "[build-dependencies]" if name in HOST else "[dependencies]"
-            out[(section, name, ver)] = max(full[(name, ver)], key=len)
+    # The demo's build, and the Python package's native module as maturin builds it alone.
+    for part in (["-p", "rtvtk", "--no-default-features"], ["-p", "rtvtk-python"]):
+        for (name, ver), variants in tree([*part, "-e", "normal,build"]).items():
+            if name in SKIP or (name, ver) not in full:
+                continue
+            if sorted(map(sorted, variants)) != sorted(map(sorted, full[(name, ver)])):
+                section = "[build-dependencies]" if name in HOST else "[dependencies]"
+                out[(section, name, ver)] = max(full[(name, ver)], key=len)
     return out
 
 

@@ -3,6 +3,7 @@
 # otherwise the script stops naming them. Nothing here is skipped: every test runs everywhere.
 #   gcc, libc6-dev                the C ABI test compiles a C tracer
 #   python3, python3-pip          DuckDB and the ADBC Flight SQL driver (installed from PyPI below)
+#   python3-venv                  the Python package's wheel is tested in a fresh venv
 #   mesa-vulkan-drivers           lavapipe: the visualizer's pictures on Vulkan
 #   libegl-mesa0, libgl1-mesa-dri llvmpipe: the same pictures on wgpu's GL backend
 #   xvfb and X11 client libraries the test that opens the viewer's real window
@@ -11,6 +12,7 @@ rtvtk_missing_packages() {
   local need=()
   command -v cc >/dev/null || need+=(gcc libc6-dev)
   { command -v python3 >/dev/null && python3 -m pip --version >/dev/null 2>&1; } || need+=(python3 python3-pip)
+  python3 -c "import ensurepip, venv" >/dev/null 2>&1 || need+=(python3-venv)
   ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || need+=(mesa-vulkan-drivers libvulkan1)
   ls /usr/share/glvnd/egl_vendor.d/*mesa*.json >/dev/null 2>&1 || need+=(libegl1 libegl-mesa0 libgl1-mesa-dri)
   command -v Xvfb >/dev/null || need+=(xvfb xauth libxkbcommon-x11-0 libxcursor1 libxi6 libxrandr2 libx11-xcb1)

@@ -4,8 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::Parser;
-use rtvtk_viz::{Gpu, Pipeline, Sources, ViewCamera};
-use serde_json::{Value, json};
+use rtvtk_viz::{Sources, ViewCamera};
 
 #[derive(Parser, Debug)]
 pub struct RenderArgs {
@@ -120,42 +119,6 @@ fn parse_camera(s: &str) -> Result<ViewCamera, String> {
     Ok(c)
 }
 
-/// The settings of a layer from the command line.
-fn layer_settings(kind: &str, a: &RenderArgs, has_query_layer: bool) -> Result<Value> {
-    Ok(match kind {
-        "rays" => json!({
-            "tree": a.tree,
-            "pixel": a.pixel.map(|(x, y)| [x, y]),
-            "sample": a.sample,
-            "kinds": a.kinds,
-            "depth": a.depth,
-            "max_rays": a.max_rays.or(Some(10_000_000)),
-            "line_width": a.line_width,
-            "opacity": 1.0,
-            "gradient": true,
-            "selected_tree": null,
-        }),
-        "image" => json!({"source": a.image_source, "max_spp": a.image_spp}),
-        "geometry" => json!({"style": a.geometry, "opacity": 0.8, "line_width": 1.2}),
-        "bvh" => {
-            let mut s = json!({"only_visited": a.bvh_visited, "tree": a.tree});
-            if let Some(l) = a.bvh_levels {
-                s["levels"] = json!(l);
-            }
-            s
-        }
-        "query" => {
-            let Some(sql) = &a.sql else { bail!("the query layer needs --sql \"SELECT ...\"") };
-            json!({"sql": sql, "colour_by": a.colour_by, "line_width": a.line_width.max(2.0)})
-        }
-        "heatmap" => match (&a.sql, has_query_layer) {
-            (Some(sql), false) => json!({"sql": sql, "title": a.colour_by.clone().unwrap_or_else(|| "value".into())}),
-            _ => Value::Null,
-        },
-        _ => Value::Null,
-    })
-}
-
 /// Renders the layers of a dataset into a PNG; returns what the layers reported.
 pub fn render_to_png(a: &RenderArgs) -> Result<Vec<String>> {
     let sources = match (&a.dataset, &a.connect) {
@@ -163,46 +126,29 @@ pub fn render_to_png(a: &RenderArgs) -> Result<Vec<String>> {
         (None, Some(url)) => served(a, url)?,
         (None, None) => bail!("no dataset: give a dataset directory or --connect grpc://HOST:PORT"),
     };
-    let layers = match &a.layers {
-        Some(l) => l.clone(),
-        None => {
-            let first = if sources.picture.is_some() { "image" } else { "geometry" };
-            let mut l = vec![first.to_string()];
-            if sources.scene.is_some() {
-                l.push("composition".into());
-            }
-            l.push("rays".into());
-            l
-        }
+    let request = rtvtk_viz::headless::RenderRequest {
+        layers: a.layers.clone(),
+        sql: a.sql.clone(),
+        colour_by: a.colour_by.clone(),
+        tree: a.tree,
+        pixel: a.pixel.map(|(x, y)| [x, y]),
+        sample: a.sample,
+        kinds: a.kinds.clone(),
+        depth: a.depth,
+        max_rays: a.max_rays,
+        bvh_levels: a.bvh_levels,
+        bvh_visited: a.bvh_visited,
+        geometry: a.geometry.clone(),
+        camera: a.camera,
+        size: a.size.map(|(w, h)| [w, h]),
+        line_width: a.line_width,
+        image_source: a.image_source.clone(),
+        image_spp: a.image_spp,
+        legend: !a.no_legend,
     };
-    for l in &layers {
-        rtvtk_viz::registry::info(l)?;
-    }
-    let has_query = layers.iter().any(|l| l == "query");
-    let gpu = Gpu::shared()?;
-    let mut p = Pipeline::new(gpu, sources);
-    match a.size {
-        Some((w, h)) => p.resize(w, h)?,
-        None => {
-            // Small images are drawn larger (same aspect, so registration holds), with room
-            // for legends and lines of a few pixels.
-            let [w, h] = p.size();
-            let k = 640u32.div_ceil(w.max(h)).clamp(1, 8);
-            p.resize(w * k, h * k)?;
-        }
-    }
-    if let Some(c) = a.camera {
-        p.set_camera(c)?;
-    }
-    for l in &layers {
-        let s = layer_settings(l, a, has_query)?;
-        p.add(l, &s).with_context(|| format!("adding the {l} layer"))?;
-    }
-    // Progressive layers (an image traced from the view) refine to their sample count.
-    while p.idle()? {}
-    let img = p.snapshot(!a.no_legend)?;
+    let (img, report) = rtvtk_viz::headless::render(sources, &request)?;
     save(&img, &a.out)?;
-    Ok(p.report())
+    Ok(report)
 }
 
 /// The sources of a dataset a service serves (`--connect`), read through the query engine.

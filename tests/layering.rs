@@ -137,6 +137,12 @@ fn dependency_direction_holds() {
     // The benchmarks: everything headless, no GUI; the CLI's `bench` calls them.
     forbid(&g, "rtvtk-bench", &["egui", "eframe", "winit", "rtvtk-viewer", "rtvtk-cluster"]);
     assert!(g.closure("rtvtk").contains("rtvtk-bench"));
+    // The Python package's native module: the engine, the recorder and the headless pictures,
+    // no GUI and no Ballista (a user's notebook gets the same engine the CLI has).
+    forbid(&g, "rtvtk-python", &["egui", "eframe", "winit", "rtvtk-viewer", "rtvtk-cluster", "ballista"]);
+    for needed in ["rtvtk-query", "rl", "rtvtk-viz", "pyo3"] {
+        assert!(g.closure("rtvtk-python").contains(needed), "rtvtk-python goes through {needed}");
+    }
     // The feature pins (scripts/feature-pins.py) pin third-party crates, none of ours.
     forbid(&g, "rtvtk-workspace-hack", &["rtvtk-store", "rl", "rtvtk-query", "rtvtk-renderers", "rtvtk-viz"]);
 }
@@ -296,10 +302,11 @@ fn no_module_imports_itself_around_a_circle() {
         "viz/viewer/src",
         "cluster/src",
         "benches/src",
+        "python/src",
         "src",
     ] {
         let g = module_graph(&root.join(dir));
-        assert!(g.len() > 1 || ["gpu/src", "cluster/src"].contains(&dir), "{dir}: modules found {g:?}");
+        assert!(g.len() > 1 || ["gpu/src", "cluster/src", "python/src"].contains(&dir), "{dir}: modules found {g:?}");
         if let Some(c) = circle(&g) {
             panic!("{dir}: modules import each other around a circle: {}", c.join(" -> "));
         }

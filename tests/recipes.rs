@@ -20,7 +20,8 @@ fn sources() -> Vec<(PathBuf, String)> {
             let name = p.file_name().unwrap().to_string_lossy().to_string();
             if p.is_dir() {
                 // A crate's own `benches/` holds criterion targets; the root's is the bench crate.
-                let skipped = ["target", "tests", ".git", "python", "node_modules"].contains(&name.as_str())
+                let skipped = ["target", "tests", ".git", ".venv", "__pycache__", "node_modules"]
+                    .contains(&name.as_str())
                     || (name == "benches" && d != root);
                 if !skipped {
                     dirs.push(p);

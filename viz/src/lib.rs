@@ -6,6 +6,7 @@ pub mod components;
 pub mod draw;
 mod error;
 pub mod gpu;
+pub mod headless;
 pub mod legend;
 pub mod pipeline;
 pub mod registry;

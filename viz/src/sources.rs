@@ -4,7 +4,9 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use arrow::array::{Array, AsArray, RecordBatch};
+use arrow::array::RecordBatch;
+#[cfg(feature = "sql")]
+use arrow::array::{Array, AsArray};
 use renderers::{Camera, Scene};
 use store::Dataset;
 use store::scene::{BVH_NODES_TABLE, CameraAttrs, RAY_NODES_TABLE, TRIANGLES_TABLE, attr};

@@ -1,0 +1,358 @@
+"""rtvtk: record, store, query and draw the rays a ray tracer traces.
+
+The same engine as the ``rtvtk`` command line: ``open`` and ``connect`` give a ``Session`` whose
+SQL answers arrive as ``pyarrow`` tables (through the Arrow C stream interface, no copy);
+``Recorder`` writes a dataset from a Python renderer; ``Session.render`` draws the layered
+pictures ``rtvtk render`` draws.
+"""
+
+from __future__ import annotations
+
+import builtins
+import contextlib
+import os
+from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import pyarrow as pa
+
+from . import _rtvtk
+from ._rtvtk import Error
+
+__all__ = ["Error", "Session", "Picture", "Recorder", "Tree", "open", "connect", "KINDS"]
+__version__ = _rtvtk.__version__
+
+#: The built-in ray kinds, in the order of their codes.
+KINDS = ("camera", "shadow", "diffuse", "specular", "transmission")
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+def _name_of(path: PathLike) -> str:
+    base = os.path.basename(os.path.normpath(os.fspath(path)))
+    name = "".join(c if c.isalnum() else "_" for c in base)
+    if not name or name[0].isdigit():
+        name = "t_" + name
+    return name
+
+
+def open(datasets: Union[PathLike, Sequence[PathLike], Mapping[str, PathLike]]) -> "Session":
+    """Opens one dataset (a path), several (a list, or ``{"name": path}``): each dataset's tables
+    are ``NAME.rays``, ``NAME.trees``, ...; the first one's also plain ``rays``, ``trees``."""
+    if isinstance(datasets, Mapping):
+        pairs = [(str(k), os.fspath(v)) for k, v in datasets.items()]
+    elif isinstance(datasets, (str, os.PathLike)):
+        pairs = [(_name_of(datasets), os.fspath(datasets))]
+    else:
+        pairs = [(_name_of(p), os.fspath(p)) for p in datasets]
+    return Session(_rtvtk.Session.open(pairs))
+
+
+def connect(url: str, token: Optional[str] = None) -> "Session":
+    """Connects to a running ``rtvtk serve`` (``grpc://HOST:PORT``), with its bearer token."""
+    return Session(_rtvtk.Session.connect(url, token))
+
+
+class Picture:
+    """A PNG picture: shows inline in Jupyter, saves with ``save``."""
+
+    def __init__(self, png: bytes, report: List[str]):
+        self.png = png
+        #: What the layers reported (rays drawn, what the dataset lacks, ...).
+        self.report = report
+
+    def _repr_png_(self) -> bytes:
+        return self.png
+
+    def save(self, path: PathLike) -> None:
+        with builtins.open(path, "wb") as f:
+            f.write(self.png)
+
+    @property
+    def size(self) -> Tuple[int, int]:
+        """Width and height in pixels (from the PNG header)."""
+        w = int.from_bytes(self.png[16:20], "big")
+        h = int.from_bytes(self.png[20:24], "big")
+        return (w, h)
+
+
+class Session:
+    """SQL over traces and the pictures drawn from them (see ``open`` and ``connect``)."""
+
+    def __init__(self, native: Any):
+        self._native = native
+
+    def sql(self, query: str) -> pa.Table:
+        """Runs a read-only query; the whole result as a ``pyarrow.Table``."""
+        return pa.table(self._native.stream(query))
+
+    def sql_batches(self, query: str) -> pa.RecordBatchReader:
+        """Runs a read-only query; its batches as they come (results larger than memory)."""
+        return pa.RecordBatchReader.from_stream(self._native.stream(query))
+
+    def tables(self) -> List[str]:
+        """The tables queries can name."""
+        return list(self._native.tables())
+
+    def tree(self, tree_id: int) -> pa.Table:
+        """Every ray of one tree, in order."""
+        return self.sql(f"SELECT * FROM rays WHERE tree_id = {int(tree_id)} ORDER BY ray")
+
+    def trees_at_pixel(self, x: int, y: int, sample: Optional[int] = None) -> pa.Table:
+        """Every ray of the trees of pixel (x, y) (and one sample)."""
+        where = f"pixel_x = {int(x)} AND pixel_y = {int(y)}"
+        if sample is not None:
+            where += f" AND sample = {int(sample)}"
+        return self.sql(f"SELECT * FROM rays WHERE {where} ORDER BY tree_id, ray")
+
+    def info(self, name: Optional[str] = None) -> Dict[str, Any]:
+        """Counts, segments, tables, payload and attributes of a dataset opened here."""
+        return dict(self._native.info(name))
+
+    def check(self, name: Optional[str] = None) -> List[str]:
+        """``rtvtk check``: the errors found (an empty list: the dataset is consistent)."""
+        return list(self._native.check(name))
+
+    def render(self, **options: Any) -> Picture:
+        """``rtvtk render`` with the same options: ``layers=["geometry", "rays"]``,
+        ``pixel=(x, y)``, ``tree=``, ``sample=``, ``kinds=[...]``, ``depth=(a, b)``,
+        ``max_rays=``, ``sql=``, ``colour_by=``, ``bvh_levels=(a, b)``, ``bvh_visited=``,
+        ``geometry="wireframe"``, ``camera=((x, y, z), (x, y, z), fov)``, ``size=(w, h)``,
+        ``line_width=``, ``image_source=``, ``image_spp=``, ``legend=``."""
+        png, report = self._native.render(options)
+        return Picture(bytes(png), list(report))
+
+    def __repr__(self) -> str:
+        return f"rtvtk.Session({self._native.describe()})"
+
+
+class Tree:
+    """One ray tree being recorded (``with recorder.tree(x, y, sample) as t``). Rays are added
+    under the current ray (``descend``/``ascend``) or under an explicit parent index."""
+
+    def __init__(self, recorder: "Recorder", x: int, y: int, sample: int):
+        self._recorder = recorder
+        self.pixel = (int(x), int(y))
+        self.sample = int(sample)
+        self._rays: List[Tuple[int, Tuple[float, float, float], Tuple[float, float, float], float, str, int, Dict[str, Any]]] = []
+        self._stack: List[int] = []
+        self._last: Optional[int] = None
+
+    def add_ray(
+        self,
+        origin: Sequence[float],
+        direction: Sequence[float],
+        t: Optional[float],
+        kind: str,
+        prim: Optional[int] = None,
+        parent: Optional[int] = None,
+        **payload: Any,
+    ) -> int:
+        """Adds a ray (``t`` None: a miss); returns its index in the tree. Its parent is
+        ``parent`` when given, else the ray the last ``descend`` went into (a root before)."""
+        if parent is None:
+            parent = self._stack[-1] if self._stack else -1
+        elif not 0 <= parent < len(self._rays):
+            raise Error(f"parent {parent} is not a ray of this tree (it has {len(self._rays)})")
+        o = tuple(float(v) for v in origin)
+        d = tuple(float(v) for v in direction)
+        if len(o) != 3 or len(d) != 3:
+            raise Error("origin and direction are three numbers each")
+        self._rays.append((parent, o, d, float("nan") if t is None else float(t), kind, -1 if prim is None else int(prim), payload))  # type: ignore[arg-type]
+        self._last = len(self._rays) - 1
+        return self._last
+
+    def descend(self) -> None:
+        """The next rays are children of the last one added."""
+        if self._last is None:
+            raise Error("descend: no ray was added yet")
+        self._stack.append(self._last)
+
+    def ascend(self) -> None:
+        """Back to the parent level."""
+        if not self._stack:
+            raise Error("ascend: already at the root level")
+        self._stack.pop()
+
+    def end(self) -> int:
+        """Records the tree; returns its id in the dataset."""
+        ids = self._recorder._add_trees([self])
+        return ids[0]
+
+
+class Recorder:
+    """Records ray trees into a dataset directory (``Recorder(path, payload={...})``) or into
+    memory (``Recorder.immediate(...)``). Payload columns are declared by type: ``"f32"``,
+    ``"f32x3"`` (three per ray), ``"u32"``, ``"i64"``, ``"f64x4"``, ..."""
+
+    def __init__(self, path: Optional[PathLike] = None, payload: Optional[Mapping[str, str]] = None, _native: Any = None):
+        if _native is not None:
+            self._native = _native
+        else:
+            if path is None:
+                raise Error("Recorder(path): the dataset directory to write (or Recorder.immediate())")
+            self._native = _rtvtk.NativeRecorder.create(os.fspath(path), list((payload or {}).items()))
+        self._payload = dict(self._native.payload())
+        self._closed = False
+
+    @classmethod
+    def immediate(cls, payload: Optional[Mapping[str, str]] = None) -> "Recorder":
+        """An in-memory trace (queried while recording)."""
+        return cls(_native=_rtvtk.NativeRecorder.immediate(list((payload or {}).items())))
+
+    @contextlib.contextmanager
+    def tree(self, x: int, y: int, sample: int = 0) -> Iterator[Tree]:
+        """A tree of pixel (x, y), recorded when the ``with`` block ends without an error."""
+        t = Tree(self, x, y, sample)
+        yield t
+        if t._rays:
+            self._add_trees([t])
+
+    def _add_trees(self, trees: List[Tree]) -> List[int]:
+        rays = [(i, r) for i, t in enumerate(trees) for r in t._rays]
+        n = len(rays)
+        if n == 0:
+            return []
+        kinds = sorted({r[4] for _, r in rays})
+        code = {k: i for i, k in enumerate(kinds)}
+        extra = {k for _, r in rays for k in r[6]} - set(self._payload)
+        if extra:
+            raise Error(f"payload {sorted(extra)[0]!r} was not declared when the recorder was made")
+        payload = {}
+        for name, spec in self._payload.items():
+            dtype, width = _dtype(spec)
+            missing = np.nan if dtype.kind == "f" else 0
+            default = [missing] * width if width > 1 else missing
+            try:
+                values = np.asarray([r[6].get(name, default) for _, r in rays], dtype=dtype)
+            except (TypeError, ValueError) as e:
+                raise Error(f"payload {name!r} is declared {spec}: {e}") from None
+            if values.shape != ((n, width) if width > 1 else (n,)):
+                raise Error(f"payload {name!r} is declared {spec}: each ray needs {width} value(s)")
+            payload[name] = values
+        return self.add_rays(
+            tree=np.asarray([i for i, _ in rays], dtype=np.int64),
+            parent=np.asarray([r[0] for _, r in rays], dtype=np.int32),
+            origin=np.asarray([r[1] for _, r in rays], dtype=np.float32),
+            direction=np.asarray([r[2] for _, r in rays], dtype=np.float32),
+            t=np.asarray([r[3] for _, r in rays], dtype=np.float32),
+            kind=[kinds[code[r[4]]] for _, r in rays],
+            pixel=np.asarray([trees[i].pixel for i, _ in rays], dtype=np.uint32),
+            sample=np.asarray([trees[i].sample for i, _ in rays], dtype=np.uint32),
+            prim=np.asarray([r[5] for _, r in rays], dtype=np.int64),
+            **payload,
+        )
+
+    def add_rays(
+        self,
+        tree: Any,
+        parent: Any,
+        origin: Any,
+        direction: Any,
+        t: Any,
+        kind: Any,
+        pixel: Any,
+        sample: Any = None,
+        prim: Any = None,
+        **payload: Any,
+    ) -> List[int]:
+        """Records whole trees from arrays (a wavefront renderer's batch). Rays of one tree are
+        contiguous and share ``tree``; ``parent`` is each ray's parent index within its tree
+        (-1 for a root); ``origin``/``direction`` are (n, 3); ``t`` NaN is a miss; ``kind`` is
+        a sequence of kind names, or a ``(codes, names)`` pair of uint8 codes into names;
+        ``pixel`` (n, 2) and ``sample`` of a tree are its first ray's; ``prim`` -1 is none.
+        Returns the dataset's id of each tree, in order."""
+        self._check_open()
+        tree = np.ascontiguousarray(tree, dtype=np.int64)
+        n = tree.shape[0]
+        if isinstance(kind, tuple) and len(kind) == 2:
+            codes, names = np.ascontiguousarray(kind[0], dtype=np.uint8), [str(k) for k in kind[1]]
+        else:
+            names, inverse = np.unique(np.asarray(kind, dtype=object).astype(str), return_inverse=True)
+            codes, names = np.ascontiguousarray(inverse, dtype=np.uint8), [str(k) for k in names]
+        sample = np.zeros(n, dtype=np.uint32) if sample is None else sample
+        prim = np.full(n, -1, dtype=np.int64) if prim is None else prim
+        arrays = []
+        for name, value in payload.items():
+            spec = self._payload.get(name)
+            if spec is None:
+                raise Error(f"payload {name!r} was not declared when the recorder was made")
+            dtype, _ = _dtype(spec)
+            arr = np.asarray(value)
+            if arr.dtype != dtype:
+                raise Error(f"payload {name!r} is declared {spec}: expected {dtype.name} values, got {arr.dtype.name}")
+            arrays.append((name, np.ascontiguousarray(arr)))
+        return list(
+            self._native.add_rays(
+                tree,
+                np.ascontiguousarray(parent, dtype=np.int32),
+                np.ascontiguousarray(origin, dtype=np.float32),
+                np.ascontiguousarray(direction, dtype=np.float32),
+                np.ascontiguousarray(t, dtype=np.float32),
+                codes,
+                names,
+                np.ascontiguousarray(pixel, dtype=np.uint32),
+                np.ascontiguousarray(sample, dtype=np.uint32),
+                np.ascontiguousarray(prim, dtype=np.int64),
+                arrays,
+            )
+        )
+
+    def set_scene(self, vertices: Any, materials: Any, colors: Any, emission: Any, names: Optional[Sequence[str]] = None) -> None:
+        """The scene's triangles so the viewer can draw it: ``vertices`` (n, 3, 3), ``materials``
+        (n,) indices into the per-material ``colors`` and ``emission`` (m, 3); emissive
+        triangles become the ``lights`` table (the paper's wrong-shadow query reads it)."""
+        self._check_open()
+        colors = np.ascontiguousarray(colors, dtype=np.float32)
+        m = colors.shape[0] if colors.ndim > 1 else colors.size // 3
+        names = list(names) if names is not None else [f"material{i}" for i in range(m)]
+        self._native.set_triangles(
+            np.ascontiguousarray(vertices, dtype=np.float32),
+            np.ascontiguousarray(materials, dtype=np.uint32),
+            colors,
+            np.ascontiguousarray(emission, dtype=np.float32),
+            names,
+        )
+
+    def set_camera(self, position: Sequence[float], target: Sequence[float], up: Sequence[float], fov_y: float, width: int, height: int) -> None:
+        """The pinhole camera the rays were traced from (vertical field of view in degrees) and
+        the image size."""
+        self._check_open()
+        self._native.set_camera(list(map(float, position)), list(map(float, target)), list(map(float, up)), float(fov_y), int(width), int(height))
+
+    def set_attributes(self, attributes: Mapping[str, str]) -> None:
+        """Attributes of the recording (``{"image.png": "image.png"}`` names its picture)."""
+        self._check_open()
+        self._native.set_attributes([(str(k), str(v)) for k, v in attributes.items()])
+
+    def flush(self) -> None:
+        """Seals what was recorded so far (readable, crash-safe)."""
+        self._check_open()
+        self._native.flush()
+
+    def finish(self) -> Dict[str, int]:
+        """Ends the recording: trees, rays, segments and bytes written."""
+        self._check_open()
+        trees, rays, segments, nbytes = self._native.finish()
+        self._closed = True
+        return {"trees": trees, "rays": rays, "segments": segments, "bytes": nbytes}
+
+    def rays_recorded(self) -> int:
+        """Immediate mode: rays recorded so far."""
+        return int(self._native.immediate_rays())
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise Error("the recorder is finished: nothing more can be recorded")
+
+    def __enter__(self) -> "Recorder":
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if not self._closed:
+            self.finish()
+
+
+def _dtype(spec: str) -> Tuple[np.dtype, int]:
+    base, _, width = spec.partition("x")
+    return np.dtype({"f32": "float32", "f64": "float64", "i32": "int32", "i64": "int64", "u8": "uint8", "u16": "uint16", "u32": "uint32", "u64": "uint64"}[base]), int(width or 1)

@@ -1,0 +1,100 @@
+"""Type stubs of the rtvtk package (see the docstrings in __init__.py)."""
+
+import os
+from typing import Any, ContextManager, Dict, List, Mapping, Optional, Sequence, Tuple, Union
+
+import numpy as np
+import pyarrow as pa
+
+__version__: str
+KINDS: Tuple[str, ...]
+PathLike = Union[str, os.PathLike[str]]
+
+class Error(Exception):
+    """An rtvtk call failed; the message says what and where."""
+
+def open(datasets: Union[PathLike, Sequence[PathLike], Mapping[str, PathLike]]) -> Session: ...
+def connect(url: str, token: Optional[str] = ...) -> Session: ...
+
+class Picture:
+    png: bytes
+    report: List[str]
+    def _repr_png_(self) -> bytes: ...
+    def save(self, path: PathLike) -> None: ...
+    @property
+    def size(self) -> Tuple[int, int]: ...
+
+class Session:
+    def sql(self, query: str) -> pa.Table: ...
+    def sql_batches(self, query: str) -> pa.RecordBatchReader: ...
+    def tables(self) -> List[str]: ...
+    def tree(self, tree_id: int) -> pa.Table: ...
+    def trees_at_pixel(self, x: int, y: int, sample: Optional[int] = ...) -> pa.Table: ...
+    def info(self, name: Optional[str] = ...) -> Dict[str, Any]: ...
+    def check(self, name: Optional[str] = ...) -> List[str]: ...
+    def render(
+        self,
+        *,
+        layers: Optional[Sequence[str]] = ...,
+        sql: Optional[str] = ...,
+        colour_by: Optional[str] = ...,
+        tree: Optional[int] = ...,
+        pixel: Optional[Tuple[int, int]] = ...,
+        sample: Optional[int] = ...,
+        kinds: Optional[Sequence[str]] = ...,
+        depth: Optional[Tuple[int, int]] = ...,
+        max_rays: Optional[int] = ...,
+        bvh_levels: Optional[Tuple[int, int]] = ...,
+        bvh_visited: bool = ...,
+        geometry: str = ...,
+        camera: Optional[Tuple[Tuple[float, float, float], Tuple[float, float, float], float]] = ...,
+        size: Optional[Tuple[int, int]] = ...,
+        line_width: float = ...,
+        image_source: str = ...,
+        image_spp: int = ...,
+        legend: bool = ...,
+    ) -> Picture: ...
+
+class Tree:
+    pixel: Tuple[int, int]
+    sample: int
+    def add_ray(
+        self,
+        origin: Sequence[float],
+        direction: Sequence[float],
+        t: Optional[float],
+        kind: str,
+        prim: Optional[int] = ...,
+        parent: Optional[int] = ...,
+        **payload: Any,
+    ) -> int: ...
+    def descend(self) -> None: ...
+    def ascend(self) -> None: ...
+    def end(self) -> int: ...
+
+class Recorder:
+    def __init__(self, path: Optional[PathLike] = ..., payload: Optional[Mapping[str, str]] = ...) -> None: ...
+    @classmethod
+    def immediate(cls, payload: Optional[Mapping[str, str]] = ...) -> Recorder: ...
+    def tree(self, x: int, y: int, sample: int = ...) -> ContextManager[Tree]: ...
+    def add_rays(
+        self,
+        tree: Any,
+        parent: Any,
+        origin: Any,
+        direction: Any,
+        t: Any,
+        kind: Any,
+        pixel: Any,
+        sample: Any = ...,
+        prim: Any = ...,
+        **payload: np.ndarray,
+    ) -> List[int]: ...
+    def set_scene(self, vertices: Any, materials: Any, colors: Any, emission: Any, names: Optional[Sequence[str]] = ...) -> None: ...
+    def set_camera(self, position: Sequence[float], target: Sequence[float], up: Sequence[float], fov_y: float, width: int, height: int) -> None: ...
+    def set_attributes(self, attributes: Mapping[str, str]) -> None: ...
+    def flush(self) -> None: ...
+    def finish(self) -> Dict[str, int]: ...
+    def rays_recorded(self) -> int: ...
+    def __enter__(self) -> Recorder: ...
+    def __exit__(self, *args: Any) -> None: ...

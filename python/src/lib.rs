@@ -1,0 +1,614 @@
+//! `rtvtk._rtvtk`: the native half of the Python package (`python/rtvtk/__init__.py` is the
+//! other). It adds no road of its own: SQL goes through `query::Engine` (results cross to pyarrow
+//! through the Arrow C stream interface, `__arrow_c_stream__`, with no copy), recording through
+//! `rl::Recorder`, pictures through `rtvtk_viz::headless::render` — what the CLI calls. The GIL is
+//! released while a call works; every error is an `rtvtk.Error` carrying the library's message.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use arrow::array::{RecordBatch, RecordBatchReader};
+use arrow::datatypes::{DataType, SchemaRef};
+use arrow::error::ArrowError;
+use arrow::ffi_stream::FFI_ArrowArrayStream;
+use futures::StreamExt;
+use pyo3::buffer::PyBuffer;
+use pyo3::exceptions::PyException;
+use pyo3::prelude::*;
+use pyo3::types::{PyBytes, PyCapsule, PyDict};
+use query::Engine;
+use rl::{Kind, ListValue, Payload, PayloadField, PayloadSchema, RayFields, RayId, Recorder, RecorderOptions, Value};
+
+pyo3::create_exception!(_rtvtk, Error, PyException, "An rtvtk call failed; the message says what and where.");
+
+fn err(e: impl std::fmt::Display) -> PyErr {
+    Error::new_err(e.to_string())
+}
+
+/// A query's batches as an Arrow `RecordBatchReader`, pulled from the engine's stream on demand.
+struct EngineReader {
+    engine: Arc<Engine>,
+    stream: datafusion::execution::SendableRecordBatchStream,
+    schema: SchemaRef,
+}
+
+impl Iterator for EngineReader {
+    type Item = Result<RecordBatch, ArrowError>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        let next = self.engine.block_on(self.stream.next())?;
+        Some(next.map_err(|e| ArrowError::ExternalError(Box::new(e))))
+    }
+}
+
+impl RecordBatchReader for EngineReader {
+    fn schema(&self) -> SchemaRef {
+        self.schema.clone()
+    }
+}
+
+/// A query's result not yet read: pyarrow takes it through the Arrow PyCapsule interface
+/// (`pa.table(x)`, `pa.RecordBatchReader.from_stream(x)`), once.
+#[pyclass(module = "rtvtk._rtvtk")]
+struct ArrowStream {
+    reader: Mutex<Option<Box<dyn RecordBatchReader + Send>>>,
+}
+
+#[pymethods]
+impl ArrowStream {
+    #[pyo3(signature = (requested_schema=None))]
+    fn __arrow_c_stream__<'py>(
+        &self,
+        py: Python<'py>,
+        requested_schema: Option<Bound<'py, PyAny>>,
+    ) -> PyResult<Bound<'py, PyCapsule>> {
+        let _ = requested_schema;
+        let reader = self
+            .reader
+            .lock()
+            .map_err(err)?
+            .take()
+            .ok_or_else(|| err("this result was already read (a query's stream is read once)"))?;
+        // The capsule points at the stream struct; the consumer moves it out (leaving `release`
+        // null), and whatever is left is released when the capsule goes.
+        PyCapsule::new_with_value(py, FFI_ArrowArrayStream::new(reader), c"arrow_array_stream")
+    }
+}
+
+/// SQL over datasets, in this process or at an `rtvtk serve` service.
+#[pyclass(module = "rtvtk._rtvtk", frozen)]
+struct Session {
+    engine: Arc<Engine>,
+}
+
+#[pymethods]
+impl Session {
+    /// Opens datasets, `[(name, path), ...]`: the first one's tables are also unqualified.
+    #[staticmethod]
+    fn open(py: Python<'_>, datasets: Vec<(String, String)>) -> PyResult<Session> {
+        let sources: Vec<query::TraceSource> =
+            datasets.into_iter().map(|(name, path)| query::TraceSource { name, path: path.into() }).collect();
+        if sources.is_empty() {
+            return Err(err("no dataset given"));
+        }
+        let engine =
+            py.detach(|| Engine::blocking(Engine::open(&sources, &query::SessionOptions::default()))).map_err(err)?;
+        Ok(Session { engine: Arc::new(engine) })
+    }
+
+    /// Connects to `rtvtk serve` at `url` (`grpc://HOST:PORT`).
+    #[staticmethod]
+    #[pyo3(signature = (url, token=None))]
+    fn connect(py: Python<'_>, url: String, token: Option<String>) -> PyResult<Session> {
+        let engine = py.detach(|| Engine::blocking(Engine::connect(&url, token))).map_err(err)?;
+        Ok(Session { engine: Arc::new(engine) })
+    }
+
+    /// A read-only query's result as a stream (see `ArrowStream`).
+    fn stream(&self, py: Python<'_>, sql: String) -> PyResult<ArrowStream> {
+        let engine = self.engine.clone();
+        let stream = py.detach(|| engine.block_on(engine.stream(&sql))).map_err(err)?;
+        let schema = stream.schema();
+        let reader = EngineReader { engine: self.engine.clone(), stream, schema };
+        Ok(ArrowStream { reader: Mutex::new(Some(Box::new(reader))) })
+    }
+
+    /// The tables queries can name (schema-qualified outside `public`).
+    fn tables(&self, py: Python<'_>) -> PyResult<Vec<String>> {
+        let engine = self.engine.clone();
+        Ok(py.detach(|| engine.block_on(engine.catalog())).map_err(err)?.tables)
+    }
+
+    /// Where queries run, in words.
+    fn describe(&self) -> String {
+        self.engine.describe()
+    }
+
+    /// Counts, segments, payload and attributes of a dataset open here (`None`: the first).
+    #[pyo3(signature = (name=None))]
+    fn info<'py>(&self, py: Python<'py>, name: Option<&str>) -> PyResult<Bound<'py, PyDict>> {
+        let ds = self.dataset(name)?;
+        let d = PyDict::new(py);
+        let m = ds.manifest();
+        d.set_item("path", ds.dir().display().to_string())?;
+        d.set_item("rays", ds.ray_count())?;
+        d.set_item("trees", ds.tree_count())?;
+        d.set_item("segments", m.segments.len())?;
+        d.set_item("tables", m.tables.keys().cloned().collect::<Vec<_>>())?;
+        d.set_item("attributes", m.attributes.clone())?;
+        d.set_item(
+            "payload",
+            ds.payload_schema().fields.iter().map(|f| (f.name.clone(), describe_field(f))).collect::<Vec<_>>(),
+        )?;
+        Ok(d)
+    }
+
+    /// `rtvtk check`: the dataset's invariants; the errors found (empty: consistent).
+    #[pyo3(signature = (name=None))]
+    fn check(&self, py: Python<'_>, name: Option<&str>) -> PyResult<Vec<String>> {
+        let ds = self.dataset(name)?;
+        Ok(py.detach(|| ds.check()).errors)
+    }
+
+    /// `rtvtk render` over this session's first dataset: the picture as PNG bytes, and what the
+    /// layers reported. `options` holds `rtvtk_viz::headless::RenderRequest`'s fields by name.
+    fn render<'py>(
+        &self,
+        py: Python<'py>,
+        options: &Bound<'py, PyDict>,
+    ) -> PyResult<(Bound<'py, PyBytes>, Vec<String>)> {
+        let request = render_request(options)?;
+        let engine = self.engine.clone();
+        let png = py
+            .detach(|| -> Result<(Vec<u8>, Vec<String>), String> {
+                let sources = rtvtk_viz::Sources::with_engine(engine, None).map_err(|e| e.to_string())?;
+                let (img, report) = rtvtk_viz::headless::render(sources, &request).map_err(|e| e.to_string())?;
+                let mut png = Vec::new();
+                img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+                    .map_err(|e| e.to_string())?;
+                Ok((png, report))
+            })
+            .map_err(err)?;
+        Ok((PyBytes::new(py, &png.0), png.1))
+    }
+}
+
+impl Session {
+    fn dataset(&self, name: Option<&str>) -> PyResult<Arc<store::Dataset>> {
+        self.engine.dataset(name).ok_or_else(|| match name {
+            Some(n) => err(format!("no dataset {n:?} is open in this session")),
+            None => err("the session's datasets are at a service: info and check need a dataset opened here"),
+        })
+    }
+}
+
+/// `camera=((x, y, z), (x, y, z), fov_y)`: position, target, vertical field of view in degrees.
+type CameraArg = ((f64, f64, f64), (f64, f64, f64), f64);
+
+/// A render request from Python keyword arguments (unknown names are refused, naming them).
+fn render_request(o: &Bound<'_, PyDict>) -> PyResult<rtvtk_viz::headless::RenderRequest> {
+    let mut r = rtvtk_viz::headless::RenderRequest::default();
+    for (k, v) in o.iter() {
+        let key: String = k.extract()?;
+        match key.as_str() {
+            "layers" => r.layers = v.extract()?,
+            "sql" => r.sql = v.extract()?,
+            "colour_by" | "color_by" => r.colour_by = v.extract()?,
+            "tree" => r.tree = v.extract()?,
+            "pixel" => r.pixel = v.extract::<Option<(u32, u32)>>()?.map(|(x, y)| [x, y]),
+            "sample" => r.sample = v.extract()?,
+            "kinds" => r.kinds = v.extract()?,
+            "depth" => r.depth = v.extract::<Option<(u32, u32)>>()?.map(|(a, b)| [a, b]),
+            "max_rays" => r.max_rays = v.extract()?,
+            "bvh_levels" => r.bvh_levels = v.extract::<Option<(u32, u32)>>()?.map(|(a, b)| [a, b]),
+            "bvh_visited" => r.bvh_visited = v.extract()?,
+            "geometry" => r.geometry = v.extract()?,
+            "size" => r.size = v.extract::<Option<(u32, u32)>>()?.map(|(w, h)| [w, h]),
+            "line_width" => r.line_width = v.extract()?,
+            "image_source" => r.image_source = v.extract()?,
+            "image_spp" => r.image_spp = v.extract()?,
+            "legend" => r.legend = v.extract()?,
+            "camera" => {
+                let c: Option<CameraArg> = v.extract()?;
+                r.camera = match c {
+                    Some((p, t, fov)) => {
+                        let c = rtvtk_viz::ViewCamera {
+                            position: [p.0, p.1, p.2],
+                            target: [t.0, t.1, t.2],
+                            up: [0.0, 1.0, 0.0],
+                            fov_y: fov,
+                        };
+                        c.validate().map_err(err)?;
+                        Some(c)
+                    }
+                    None => None,
+                };
+            }
+            other => return Err(err(format!("render: unknown option {other:?}"))),
+        }
+    }
+    Ok(r)
+}
+
+/// `f32`, `u32x4`, ...: a payload column's declaration.
+fn describe_field(f: &PayloadField) -> String {
+    let t = match f.element {
+        DataType::Boolean => "bool",
+        DataType::Int8 => "i8",
+        DataType::Int16 => "i16",
+        DataType::Int32 => "i32",
+        DataType::Int64 => "i64",
+        DataType::UInt8 => "u8",
+        DataType::UInt16 => "u16",
+        DataType::UInt32 => "u32",
+        DataType::UInt64 => "u64",
+        DataType::Float32 => "f32",
+        DataType::Float64 => "f64",
+        _ => "?",
+    };
+    match f.list_len {
+        Some(n) => format!("{t}x{n}"),
+        None => t.to_string(),
+    }
+}
+
+/// The payload column `name` declared as `spec` (`f32`, `f32x3`, `u32`, `i64`, `f64x4`, ...).
+fn parse_field(name: &str, spec: &str) -> PyResult<PayloadField> {
+    let (t, n) = match spec.split_once('x') {
+        Some((t, n)) => {
+            let n: usize = n.parse().ok().filter(|n| *n >= 1).ok_or_else(|| {
+                err(format!("payload {name:?}: {spec:?}: expected TYPE or TYPExN with N >= 1 (f32x3)"))
+            })?;
+            (t, Some(n))
+        }
+        None => (spec, None),
+    };
+    let element = match t {
+        "f32" => DataType::Float32,
+        "f64" => DataType::Float64,
+        "i32" => DataType::Int32,
+        "i64" => DataType::Int64,
+        "u8" => DataType::UInt8,
+        "u16" => DataType::UInt16,
+        "u32" => DataType::UInt32,
+        "u64" => DataType::UInt64,
+        _ => {
+            return Err(err(format!(
+                "payload {name:?}: type {t:?} is not one of f32, f64, i32, i64, u8, u16, u32, u64 (with xN for N per ray)"
+            )));
+        }
+    };
+    Ok(PayloadField { name: name.to_string(), element, list_len: n })
+}
+
+/// A payload column's values for a run of rays, as read from a Python buffer.
+enum Column {
+    F32(Vec<f32>),
+    F64(Vec<f64>),
+    I32(Vec<i32>),
+    I64(Vec<i64>),
+    U8(Vec<u8>),
+    U16(Vec<u16>),
+    U32(Vec<u32>),
+    U64(Vec<u64>),
+}
+
+impl Column {
+    /// Ray `i`'s value (`n` elements per ray for a list column).
+    fn value(&self, i: usize, n: Option<usize>) -> Value<'_> {
+        macro_rules! pick {
+            ($v:expr, $scalar:ident, $list:ident) => {
+                match n {
+                    None => Value::$scalar($v[i]),
+                    Some(n) => Value::List(ListValue::$list(&$v[i * n..(i + 1) * n])),
+                }
+            };
+        }
+        match self {
+            Column::F32(v) => pick!(v, F32, F32),
+            Column::F64(v) => pick!(v, F64, F64),
+            Column::I32(v) => pick!(v, I32, I32),
+            Column::I64(v) => pick!(v, I64, I64),
+            Column::U8(v) => pick!(v, U8, U8),
+            Column::U16(v) => pick!(v, U16, U16),
+            Column::U32(v) => pick!(v, U32, U32),
+            Column::U64(v) => pick!(v, U64, U64),
+        }
+    }
+}
+
+/// The elements of a buffer (numpy array, memoryview, array.array) of element type `T`, as
+/// many as `want` (naming `what` when the type or the count is wrong).
+fn elements<T: pyo3::buffer::Element + Copy>(obj: &Bound<'_, PyAny>, what: &str, want: usize) -> PyResult<Vec<T>> {
+    let buf = PyBuffer::<T>::get(obj).map_err(|e| {
+        err(format!(
+            "{what}: expected a contiguous buffer of {} (a numpy array of that dtype): {e}",
+            std::any::type_name::<T>()
+        ))
+    })?;
+    let v = buf.to_vec(obj.py())?;
+    if v.len() != want {
+        return Err(err(format!("{what}: {} values, expected {want}", v.len())));
+    }
+    Ok(v)
+}
+
+fn column(obj: &Bound<'_, PyAny>, f: &PayloadField, rays: usize) -> PyResult<Column> {
+    let want = rays * f.list_len.unwrap_or(1);
+    let what = format!("payload {:?} ({})", f.name, describe_field(f));
+    Ok(match f.element {
+        DataType::Float32 => Column::F32(elements(obj, &what, want)?),
+        DataType::Float64 => Column::F64(elements(obj, &what, want)?),
+        DataType::Int32 => Column::I32(elements(obj, &what, want)?),
+        DataType::Int64 => Column::I64(elements(obj, &what, want)?),
+        DataType::UInt8 => Column::U8(elements(obj, &what, want)?),
+        DataType::UInt16 => Column::U16(elements(obj, &what, want)?),
+        DataType::UInt32 => Column::U32(elements(obj, &what, want)?),
+        DataType::UInt64 => Column::U64(elements(obj, &what, want)?),
+        _ => return Err(err(format!("{what}: unsupported type"))),
+    })
+}
+
+/// Records rays into a dataset (write mode) or into memory (immediate mode).
+#[pyclass(module = "rtvtk._rtvtk", frozen)]
+struct NativeRecorder {
+    rec: Mutex<Option<Recorder>>,
+    kinds: Mutex<HashMap<String, Kind>>,
+    /// Immediate mode: the trace in memory, queryable while recording.
+    memory: Option<rl::MemoryTrace>,
+}
+
+fn options(payload: Vec<(String, String)>) -> PyResult<RecorderOptions> {
+    let fields = payload.iter().map(|(n, s)| parse_field(n, s)).collect::<PyResult<Vec<_>>>()?;
+    let schema = PayloadSchema::new(fields, None).map_err(err)?;
+    Ok(RecorderOptions { payload: schema, ..Default::default() })
+}
+
+impl NativeRecorder {
+    fn with<T>(&self, f: impl FnOnce(&Recorder) -> PyResult<T>) -> PyResult<T> {
+        let g = self.rec.lock().map_err(err)?;
+        let rec = g.as_ref().ok_or_else(|| err("the recorder is finished: nothing more can be recorded"))?;
+        f(rec)
+    }
+
+    fn kind(&self, rec: &Recorder, name: &str) -> PyResult<Kind> {
+        let mut kinds = self.kinds.lock().map_err(err)?;
+        if let Some(k) = kinds.get(name) {
+            return Ok(*k);
+        }
+        let k = rec.register_kind(name).map_err(err)?;
+        kinds.insert(name.to_string(), k);
+        Ok(k)
+    }
+}
+
+#[pymethods]
+impl NativeRecorder {
+    /// Write mode: a dataset at `path` with payload columns `[(name, "f32x3"), ...]`.
+    #[staticmethod]
+    fn create(py: Python<'_>, path: String, payload: Vec<(String, String)>) -> PyResult<NativeRecorder> {
+        let options = options(payload)?;
+        let rec = py.detach(|| Recorder::create(&path, options)).map_err(err)?;
+        Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: None })
+    }
+
+    /// Immediate mode: the trace stays in memory.
+    #[staticmethod]
+    fn immediate(payload: Vec<(String, String)>) -> PyResult<NativeRecorder> {
+        let (rec, memory) = Recorder::immediate(options(payload)?).map_err(err)?;
+        Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: Some(memory) })
+    }
+
+    /// The payload columns as declared, `[(name, spec)]`.
+    fn payload(&self) -> PyResult<Vec<(String, String)>> {
+        self.with(|r| Ok(r.payload_schema().fields.iter().map(|f| (f.name.clone(), describe_field(f))).collect()))
+    }
+
+    /// Records whole trees at once. Rays of one tree are contiguous and share `tree` (any
+    /// integer naming the tree in this call); `parent` is the parent's index within its tree
+    /// (-1: a root); `pixel` (n × 2) and `sample` of a tree come from its first ray; `t` NaN is a
+    /// miss; `prim` -1 is none; `kind` names per ray index into `kind_names`. Returns the
+    /// dataset's tree ids, one per tree, in order.
+    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (tree, parent, origin, direction, t, kind, kind_names, pixel, sample, prim, payload))]
+    fn add_rays(
+        &self,
+        py: Python<'_>,
+        tree: &Bound<'_, PyAny>,
+        parent: &Bound<'_, PyAny>,
+        origin: &Bound<'_, PyAny>,
+        direction: &Bound<'_, PyAny>,
+        t: &Bound<'_, PyAny>,
+        kind: &Bound<'_, PyAny>,
+        kind_names: Vec<String>,
+        pixel: &Bound<'_, PyAny>,
+        sample: &Bound<'_, PyAny>,
+        prim: &Bound<'_, PyAny>,
+        payload: Vec<(String, Bound<'_, PyAny>)>,
+    ) -> PyResult<Vec<u64>> {
+        let n = PyBuffer::<i64>::get(tree)
+            .map(|b| b.item_count())
+            .map_err(|e| err(format!("tree: expected int64 values: {e}")))?;
+        let tree: Vec<i64> = elements(tree, "tree (int64)", n)?;
+        let parent: Vec<i32> = elements(parent, "parent (int32)", n)?;
+        let origin: Vec<f32> = elements(origin, "origin (float32, n x 3)", n * 3)?;
+        let direction: Vec<f32> = elements(direction, "direction (float32, n x 3)", n * 3)?;
+        let t: Vec<f32> = elements(t, "t (float32)", n)?;
+        let kind: Vec<u8> = elements(kind, "kind (uint8 indices into kind_names)", n)?;
+        let pixel: Vec<u32> = elements(pixel, "pixel (uint32, n x 2)", n * 2)?;
+        let sample: Vec<u32> = elements(sample, "sample (uint32)", n)?;
+        let prim: Vec<i64> = elements(prim, "prim (int64, -1 for none)", n)?;
+        self.with(|rec| {
+            let kinds: Vec<Kind> = kind_names.iter().map(|k| self.kind(rec, k)).collect::<PyResult<_>>()?;
+            let fields = rec.payload_schema().fields.clone();
+            let mut cols = Vec::with_capacity(fields.len());
+            for f in &fields {
+                let obj = payload
+                    .iter()
+                    .find(|(name, _)| *name == f.name)
+                    .ok_or_else(|| err(format!("payload {:?} is declared but not given", f.name)))?;
+                cols.push(column(&obj.1, f, n)?);
+            }
+            if let Some((name, _)) = payload.iter().find(|(name, _)| !fields.iter().any(|f| f.name == *name)) {
+                return Err(err(format!("payload {name:?} was not declared when the recorder was made")));
+            }
+            if let Some(k) = kind.iter().find(|k| usize::from(**k) >= kinds.len()) {
+                return Err(err(format!("kind index {k} is outside kind_names ({} names)", kinds.len())));
+            }
+            // Checked before anything is recorded: a bad call records nothing.
+            let mut start = 0;
+            while start < n {
+                let mut end = start + 1;
+                while end < n && tree[end] == tree[start] {
+                    end += 1;
+                }
+                for (k, &p) in parent[start..end].iter().enumerate() {
+                    if p >= 0 && p as usize >= k {
+                        return Err(err(format!(
+                            "ray {}: parent {p} is not an earlier ray of its tree (it has {k} before it)",
+                            start + k
+                        )));
+                    }
+                }
+                start = end;
+            }
+            Ok(py.detach(|| {
+                let mut ids = Vec::new();
+                let mut start = 0;
+                let mut values: Vec<Value<'_>> = Vec::with_capacity(fields.len());
+                let mut rays: Vec<RayId> = Vec::new();
+                while start < n {
+                    let mut end = start + 1;
+                    while end < n && tree[end] == tree[start] {
+                        end += 1;
+                    }
+                    let mut b = rec.begin_tree(pixel[start * 2], pixel[start * 2 + 1], sample[start]);
+                    rays.clear();
+                    for i in start..end {
+                        let fields_i = RayFields {
+                            origin: [origin[i * 3], origin[i * 3 + 1], origin[i * 3 + 2]],
+                            direction: [direction[i * 3], direction[i * 3 + 1], direction[i * 3 + 2]],
+                            t: (!t[i].is_nan()).then_some(t[i]),
+                            kind: kinds[usize::from(kind[i])],
+                            prim: u32::try_from(prim[i]).ok(),
+                        };
+                        values.clear();
+                        values.extend(cols.iter().zip(&fields).map(|(c, f)| c.value(i, f.list_len)));
+                        let id = match usize::try_from(parent[i]) {
+                            Ok(p) => b.add_ray_under(rays[p], &fields_i, Payload::values(&values)),
+                            Err(_) => b.add_ray(&fields_i, Payload::values(&values)),
+                        };
+                        rays.push(id);
+                    }
+                    ids.push(b.end().0);
+                    start = end;
+                }
+                ids
+            }))
+        })
+    }
+
+    /// The scene's triangles: `vertices` (n × 3 × 3 float32), `materials` (n uint32 indices),
+    /// per material its RGB colour and emission (m × 3 float32) and name.
+    fn set_triangles(
+        &self,
+        vertices: &Bound<'_, PyAny>,
+        materials: &Bound<'_, PyAny>,
+        colors: &Bound<'_, PyAny>,
+        emission: &Bound<'_, PyAny>,
+        names: Vec<String>,
+    ) -> PyResult<()> {
+        let m = names.len();
+        let n = PyBuffer::<u32>::get(materials)
+            .map(|b| b.item_count())
+            .map_err(|e| err(format!("materials: expected uint32 values: {e}")))?;
+        let v: Vec<f32> = elements(vertices, "vertices (float32, n x 3 x 3)", n * 9)?;
+        let mats: Vec<u32> = elements(materials, "materials (uint32)", n)?;
+        let c: Vec<f32> = elements(colors, "colors (float32, m x 3)", m * 3)?;
+        let e: Vec<f32> = elements(emission, "emission (float32, m x 3)", m * 3)?;
+        if v.iter().chain(&c).chain(&e).any(|x| !x.is_finite()) {
+            return Err(err("set_triangles: vertices, colors and emission must be finite"));
+        }
+        let mut rows = Vec::with_capacity(n);
+        for (i, &k) in mats.iter().enumerate() {
+            let k = k as usize;
+            if k >= m {
+                return Err(err(format!("triangle {i} uses material {k}, but {m} materials were named")));
+            }
+            let p = |j: usize| [v[i * 9 + j * 3], v[i * 9 + j * 3 + 1], v[i * 9 + j * 3 + 2]];
+            let rgb = |a: &[f32]| [a[k * 3], a[k * 3 + 1], a[k * 3 + 2]];
+            rows.push(store::scene::TriangleRow {
+                vertices: [p(0), p(1), p(2)],
+                material: k as u32,
+                material_name: &names[k],
+                material_kind: "diffuse",
+                diffuse: rgb(&c),
+                specular: [0.0; 3],
+                exponent: 0.0,
+                ior: 1.0,
+                emission: rgb(&e),
+            });
+        }
+        let batch = store::scene::triangles_batch(&rows).map_err(err)?;
+        // The emitters as the renderers list them (the paper's wrong-shadow query reads them).
+        let camera =
+            renderers::Camera { position: glam::Vec3A::ZERO, target: glam::Vec3A::Z, up: glam::Vec3A::Y, fov_y: 40.0 };
+        let lights = renderers::Scene::from_triangles_table("python", &batch, camera)
+            .map_err(err)?
+            .lights_table()
+            .map_err(err)?;
+        self.with(|r| {
+            r.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(err)?;
+            r.write_table(store::scene::LIGHTS_TABLE, lights).map_err(err)
+        })
+    }
+
+    /// The camera the rays were traced from (the CODE_STYLE camera convention of `rl.h`).
+    fn set_camera(
+        &self,
+        position: [f32; 3],
+        target: [f32; 3],
+        up: [f32; 3],
+        fov_y: f32,
+        width: u32,
+        height: u32,
+    ) -> PyResult<()> {
+        let cam = store::scene::CameraAttrs { position, target, up, fov_y, width, height };
+        let attrs: std::collections::BTreeMap<String, String> = cam.to_attributes().into_iter().collect();
+        store::scene::CameraAttrs::from_attributes(&attrs).map_err(err)?;
+        self.with(|r| r.set_attributes(cam.to_attributes()).map_err(err))
+    }
+
+    /// Attributes of the recording (`image.png` names its picture, for example).
+    fn set_attributes(&self, attributes: Vec<(String, String)>) -> PyResult<()> {
+        self.with(|r| r.set_attributes(attributes).map_err(err))
+    }
+
+    /// Seals what was recorded so far (write mode: readable, crash-safe).
+    fn flush(&self, py: Python<'_>) -> PyResult<()> {
+        self.with(|r| py.detach(|| r.flush()).map_err(err))
+    }
+
+    /// Ends the recording; `(trees, rays, segments, bytes)`. Recording after it raises.
+    fn finish(&self, py: Python<'_>) -> PyResult<(u64, u64, u64, u64)> {
+        let rec = self.rec.lock().map_err(err)?.take().ok_or_else(|| err("the recorder is already finished"))?;
+        let s = py.detach(|| rec.finish()).map_err(err)?;
+        Ok((s.trees, s.rays, s.segments, s.bytes))
+    }
+
+    /// Immediate mode: rays recorded so far, readable while recording.
+    fn immediate_rays(&self) -> PyResult<u64> {
+        let m = self.memory.as_ref().ok_or_else(|| err("only an immediate-mode recorder holds its trace in memory"))?;
+        Ok(m.stats().rays)
+    }
+}
+
+#[pymodule]
+fn _rtvtk(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("Error", m.py().get_type::<Error>())?;
+    m.add_class::<Session>()?;
+    m.add_class::<ArrowStream>()?;
+    m.add_class::<NativeRecorder>()?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    Ok(())
+}
