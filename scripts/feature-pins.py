@@ -21,9 +21,10 @@ import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 HACK = os.path.join(ROOT, "workspace-hack", "Cargo.toml")
+PYHACK = os.path.join(ROOT, "python", "pins", "Cargo.toml")
 # Workspace crates differ by design (the SQL feature); memchr differs only on the host side of the
 # test build, which no crate of the demo build shares; syn is pinned on the host side.
-SKIP = {"rtvtk", "rtvtk-viz", "rtvtk-python", "rtvtk-workspace-hack", "memchr"}
+SKIP = {"rtvtk", "rtvtk-viz", "rtvtk-python", "rtvtk-workspace-hack", "rtvtk-python-pins", "memchr"}
 HOST = {"syn"}
 
 
@@ -97,27 +98,29 @@ def write(pins):
     open(HACK, "w").write("\n".join(lines) + "\n")
 
 
-def diff():
+def diff(part):
+    """The packages whose features differ between the build `part` (cargo tree arguments) and
+    the whole workspace's test build: the features the test build gives them."""
     full = tree(["--workspace", "-e", "normal,build,dev"])
     out = {}
-    # The demo's build, and the Python package's native module as maturin builds it alone.
-    for part in (["-p", "rtvtk", "--no-default-features"], ["-p", "rtvtk-python"]):
-        for (name, ver), variants in tree([*part, "-e", "normal,build"]).items():
-            if name in SKIP or (name, ver) not in full:
-                continue
-            if sorted(map(sorted, variants)) != sorted(map(sorted, full[(name, ver)])):
-                section = "[build-dependencies]" if name in HOST else "[dependencies]"
-                out[(section, name, ver)] = max(full[(name, ver)], key=len)
+    for (name, ver), variants in tree([*part, "-e", "normal,build"]).items():
+        if name in SKIP or (name, ver) not in full:
+            continue
+        if sorted(map(sorted, variants)) != sorted(map(sorted, full[(name, ver)])):
+            section = "[build-dependencies]" if name in HOST else "[dependencies]"
+            out[(section, name, ver)] = max(full[(name, ver)], key=len)
     return out
 
 
-def main():
-    check = "--check" in sys.argv
+def settle(path, part, check):
+    """Pins in `path` until the build `part` gives every shared package the test build's features."""
+    global HACK
+    HACK = path
     pins = read_pins()
     for _ in range(10):
-        d = {k: v for k, v in diff().items() if pins.get(k) != v}
+        d = {k: v for k, v in diff(part).items() if pins.get(k) != v}
         if not d:
-            print(f"feature pins current: {len(pins)} crates pinned")
+            print(f"feature pins current: {len(pins)} crates pinned in {os.path.relpath(path, ROOT)}")
             return 0
         if check:
             for (sec, name, ver), feats in sorted(d.items()):
@@ -128,6 +131,16 @@ def main():
         write(pins)
     print("the pins did not settle in 10 rounds", file=sys.stderr)
     return 1
+
+
+def main():
+    check = "--check" in sys.argv
+    # The demo's build: pins every crate of the workspace shares (workspace-hack, under the root).
+    # The Python package's native module, which maturin builds alone: its own pins crate
+    # (python/pins), so the SQL engine it pins never enters the demo's build.
+    return settle(os.path.join(ROOT, "workspace-hack", "Cargo.toml"), ["-p", "rtvtk", "--no-default-features"], check) or settle(
+        PYHACK, ["-p", "rtvtk-python"], check
+    )
 
 
 if __name__ == "__main__":

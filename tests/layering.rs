@@ -143,6 +143,9 @@ fn dependency_direction_holds() {
     for needed in ["rtvtk-query", "rl", "rtvtk-viz", "pyo3"] {
         assert!(g.closure("rtvtk-python").contains(needed), "rtvtk-python goes through {needed}");
     }
+    // The Python package's pins: third-party crates only, and never under the demo's build.
+    forbid(&g, "rtvtk-python-pins", &["rtvtk-store", "rl", "rtvtk-query", "rtvtk-renderers", "rtvtk-viz"]);
+    assert!(!g.closure("rtvtk").contains("rtvtk-python-pins"));
     // The feature pins (scripts/feature-pins.py) pin third-party crates, none of ours.
     forbid(&g, "rtvtk-workspace-hack", &["rtvtk-store", "rl", "rtvtk-query", "rtvtk-renderers", "rtvtk-viz"]);
 }
