@@ -137,6 +137,7 @@ class Tree:
         self._rays: List[Tuple[int, Tuple[float, float, float], Tuple[float, float, float], float, str, int, Dict[str, Any]]] = []
         self._stack: List[int] = []
         self._last: Optional[int] = None
+        self._ended = False
 
     def add_ray(
         self,
@@ -150,6 +151,8 @@ class Tree:
     ) -> int:
         """Adds a ray (``t`` None: a miss); returns its index in the tree. Its parent is
         ``parent`` when given, else the ray the last ``descend`` went into (a root before)."""
+        if self._ended:
+            raise Error("this tree was already recorded: begin another with recorder.tree(...)")
         if parent is None:
             parent = self._stack[-1] if self._stack else -1
         elif not 0 <= parent < len(self._rays):
@@ -175,8 +178,14 @@ class Tree:
         self._stack.pop()
 
     def end(self) -> int:
-        """Records the tree; returns its id in the dataset."""
+        """Records the tree now (a ``with`` block does so when it ends); returns its id in the
+        dataset. Nothing can be added to it afterwards."""
+        if self._ended:
+            raise Error("this tree was already recorded")
+        if not self._rays:
+            raise Error("end: the tree has no rays")
         ids = self._recorder._add_trees([self])
+        self._ended = True
         return ids[0]
 
 
@@ -205,7 +214,7 @@ class Recorder:
         """A tree of pixel (x, y), recorded when the ``with`` block ends without an error."""
         t = Tree(self, x, y, sample)
         yield t
-        if t._rays:
+        if t._rays and not t._ended:
             self._add_trees([t])
 
     def _add_trees(self, trees: List[Tree]) -> List[int]:

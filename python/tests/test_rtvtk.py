@@ -132,6 +132,13 @@ def test_trees_recorded_one_by_one_and_immediate_mode(tmp_path):
     with mem.tree(0, 0) as t:
         t.add_ray((0, 0, 0), (0, 0, 1), 1.0, "camera")
     assert mem.rays_recorded() == 1
+    # A tree ended inside its block is recorded once, and takes no more rays.
+    with mem.tree(1, 0) as t:
+        t.add_ray((0, 0, 0), (0, 0, 1), 1.0, "camera")
+        t.end()
+        with pytest.raises(rtvtk.Error, match="already recorded"):
+            t.add_ray((0, 0, 0), (0, 0, 1), 1.0, "camera")
+    assert mem.rays_recorded() == 2
 
 
 def test_bad_input_raises_rtvtk_error(tmp_path, traced):
