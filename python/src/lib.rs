@@ -526,30 +526,8 @@ impl NativeRecorder {
         let mats: Vec<u32> = elements(materials, "materials (uint32)", n)?;
         let c: Vec<f32> = elements(colors, "colors (float32, m x 3)", m * 3)?;
         let e: Vec<f32> = elements(emission, "emission (float32, m x 3)", m * 3)?;
-        if v.iter().chain(&c).chain(&e).any(|x| !x.is_finite()) {
-            return Err(err("set_triangles: vertices, colors and emission must be finite"));
-        }
-        let mut rows = Vec::with_capacity(n);
-        for (i, &k) in mats.iter().enumerate() {
-            let k = k as usize;
-            if k >= m {
-                return Err(err(format!("triangle {i} uses material {k}, but {m} materials were named")));
-            }
-            let p = |j: usize| [v[i * 9 + j * 3], v[i * 9 + j * 3 + 1], v[i * 9 + j * 3 + 2]];
-            let rgb = |a: &[f32]| [a[k * 3], a[k * 3 + 1], a[k * 3 + 2]];
-            rows.push(store::scene::TriangleRow {
-                vertices: [p(0), p(1), p(2)],
-                material: k as u32,
-                material_name: &names[k],
-                material_kind: "diffuse",
-                diffuse: rgb(&c),
-                specular: [0.0; 3],
-                exponent: 0.0,
-                ior: 1.0,
-                emission: rgb(&e),
-            });
-        }
-        let batch = store::scene::triangles_batch(&rows).map_err(err)?;
+        let batch = store::scene::triangles_from_arrays(&v, &mats, &c, &e, &names)
+            .map_err(|e| err(format!("set_triangles: {e}")))?;
         // The emitters as the renderers list them (the paper's wrong-shadow query reads them).
         let camera =
             renderers::Camera { position: glam::Vec3A::ZERO, target: glam::Vec3A::Z, up: glam::Vec3A::Y, fov_y: 40.0 };

@@ -259,30 +259,8 @@ pub unsafe extern "C" fn rlSetTriangles(
             };
             mat_names.push(name);
         }
-        if v.iter().chain(c).chain(e).any(|x| !x.is_finite()) {
-            return Err("rlSetTriangles: vertices, colors and emission must be finite".into());
-        }
-        let mut rows = Vec::with_capacity(count);
-        for (t, &mi) in m.iter().enumerate() {
-            let k = mi as usize;
-            if k >= material_count {
-                return Err(format!("triangle {t} uses material {mi}, but only {material_count} materials were given"));
-            }
-            let tri = |j: usize| [v[t * 9 + j * 3], v[t * 9 + j * 3 + 1], v[t * 9 + j * 3 + 2]];
-            let rgb = |a: &[f32]| [a[k * 3], a[k * 3 + 1], a[k * 3 + 2]];
-            rows.push(store::scene::TriangleRow {
-                vertices: [tri(0), tri(1), tri(2)],
-                material: mi,
-                material_name: &mat_names[k],
-                material_kind: "diffuse",
-                diffuse: rgb(c),
-                specular: [0.0; 3],
-                exponent: 0.0,
-                ior: 1.0,
-                emission: rgb(e),
-            });
-        }
-        let batch = store::scene::triangles_batch(&rows).map_err(|e| e.to_string())?;
+        let batch =
+            store::scene::triangles_from_arrays(v, m, c, e, &mat_names).map_err(|e| format!("rlSetTriangles: {e}"))?;
         rec.rec.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(|e| e.to_string())?;
         Ok(0)
     })

@@ -91,6 +91,54 @@ pub fn triangles_batch(rows: &[TriangleRow]) -> Result<arrow::array::RecordBatch
     arrow::array::RecordBatch::try_new(triangles_schema(), cols)
 }
 
+/// The `triangles` table from flat arrays, as `rlSetTriangles` and the Python package take them:
+/// `vertices` 9 floats per triangle, one material index per triangle, per material 3 floats of
+/// diffuse colour and 3 of emission and a name (diffuse materials). Refuses non-finite values
+/// and a material index without a material, naming the triangle.
+pub fn triangles_from_arrays(
+    vertices: &[f32],
+    materials: &[u32],
+    colors: &[f32],
+    emission: &[f32],
+    names: &[String],
+) -> Result<arrow::array::RecordBatch, String> {
+    let (n, m) = (materials.len(), names.len());
+    if vertices.len() != n * 9 || colors.len() != m * 3 || emission.len() != m * 3 {
+        return Err(format!(
+            "{n} triangles and {m} materials need {} vertex floats, {} colour and emission floats: got {}, {} and {}",
+            n * 9,
+            m * 3,
+            vertices.len(),
+            colors.len(),
+            emission.len()
+        ));
+    }
+    if vertices.iter().chain(colors).chain(emission).any(|x| !x.is_finite()) {
+        return Err("vertices, colors and emission must be finite".into());
+    }
+    let mut rows = Vec::with_capacity(n);
+    for (t, &mi) in materials.iter().enumerate() {
+        let k = mi as usize;
+        if k >= m {
+            return Err(format!("triangle {t} uses material {mi}, but only {m} materials were given"));
+        }
+        let tri = |j: usize| [vertices[t * 9 + j * 3], vertices[t * 9 + j * 3 + 1], vertices[t * 9 + j * 3 + 2]];
+        let rgb = |a: &[f32]| [a[k * 3], a[k * 3 + 1], a[k * 3 + 2]];
+        rows.push(TriangleRow {
+            vertices: [tri(0), tri(1), tri(2)],
+            material: mi,
+            material_name: &names[k],
+            material_kind: "diffuse",
+            diffuse: rgb(colors),
+            specular: [0.0; 3],
+            exponent: 0.0,
+            ior: 1.0,
+            emission: rgb(emission),
+        });
+    }
+    triangles_batch(&rows).map_err(|e| e.to_string())
+}
+
 /// Schema of the `lights` table: every emissive triangle with its vertices, emission and area.
 pub fn lights_schema() -> SchemaRef {
     let mut fields =

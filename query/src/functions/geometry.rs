@@ -44,15 +44,7 @@ pub(super) fn ray_point() -> RayScalar {
         doc(
             "The point o + t*d as a struct {x, y, z} of Float64 (`ray_point(..)['x']`); NULL for a miss (NULL t).",
             "ray_point(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t)['x']",
-            &[
-                ("ox", "x of the origin"),
-                ("oy", "y of the origin"),
-                ("oz", "z of the origin"),
-                ("dx", "x of the direction"),
-                ("dy", "y of the direction"),
-                ("dz", "z of the direction"),
-                ("t", "the distance along it"),
-            ],
+            &ray_args(&[("t", "the distance along it")]),
         ),
     )
 }
@@ -80,20 +72,14 @@ pub(super) fn ray_aabb_hit() -> RayScalar {
         doc(
             "Whether the ray (t >= 0) enters the axis-aligned box (Boolean, slab test).",
             "ray_aabb_hit(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, min_x, min_y, min_z, max_x, max_y, max_z)",
-            &[
-                ("ox", "x of the origin"),
-                ("oy", "y of the origin"),
-                ("oz", "z of the origin"),
-                ("dx", "x of the direction"),
-                ("dy", "y of the direction"),
-                ("dz", "z of the direction"),
+            &ray_args(&[
                 ("min_x", "the box's low x"),
                 ("min_y", "the box's low y"),
                 ("min_z", "the box's low z"),
                 ("max_x", "the box's high x"),
                 ("max_y", "the box's high y"),
                 ("max_z", "the box's high z"),
-            ],
+            ]),
         ),
     )
 }
@@ -108,10 +94,23 @@ pub(super) fn aims_at_light(scene: &Arc<SceneContext>) -> RayScalar {
     RayScalar::new("aims_at_light", float_signature(6, false), DataType::Boolean, kernel, doc(
         "Whether the ray's line hits an emitter triangle of the scene (its `lights` table) in front of its origin (Boolean, watertight test): false for a shadow ray that points at no light, the paper's bug.",
         "aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)",
-        &[("ox", "x of the origin"), ("oy", "y of the origin"), ("oz", "z of the origin"),
-          ("dx", "x of the direction"), ("dy", "y of the direction"), ("dz", "z of the direction")],
+        &ray_args(&[]),
     ))
     .for_scene(scene)
+}
+
+/// A ray's arguments, origin then direction, followed by `more`.
+fn ray_args<'a>(more: &[(&'a str, &'a str)]) -> Vec<(&'a str, &'a str)> {
+    let mut v = vec![
+        ("ox", "x of the origin"),
+        ("oy", "y of the origin"),
+        ("oz", "z of the origin"),
+        ("dx", "x of the direction"),
+        ("dy", "y of the direction"),
+        ("dz", "z of the direction"),
+    ];
+    v.extend_from_slice(more);
+    v
 }
 
 /// Whether the ray from `o` along `d` hits the triangle at t > 0: the watertight test of
