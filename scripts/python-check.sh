@@ -1,21 +1,24 @@
 #!/usr/bin/env bash
-# The Python package (python/, issue 42), as a user gets it: its abi3 wheel built by maturin on
-# this target directory (dev profile: the dependencies the Rust tests just built), installed into a
-# fresh venv with its dependencies from PyPI, then its pytest suite (which runs the CLI built
-# beside it to compare pictures and `rtvtk check`). Called by scripts/check.sh.
+# The Python package (python/, issue 42), as a user gets it: `pip install ./python` (pip's own
+# PEP 517 build: maturin fetched into an isolated build environment) into a fresh venv, then its
+# pytest suite, which runs the CLI built beside it to compare pictures, reports and `rtvtk check`.
+# The wheel is built with the dev profile on this target directory (MATURIN_PEP517_ARGS), so it
+# reuses the dependencies the Rust tests just built; a user's plain `pip install ./python` builds
+# the release profile the same way. Called by scripts/check.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 target="${CARGO_TARGET_DIR:-$PWD/target}"
 venv="$target/python-venv"
-rm -rf "$venv" "$target/wheels"
+rm -rf "$venv"
 if ! python3 -m venv "$venv"; then
   echo "python3 cannot make a venv: install python3-venv (scripts/system-deps.sh names it)" >&2
   exit 1
 fi
 pip=("$venv/bin/pip" install --quiet --disable-pip-version-check)
-"${pip[@]}" "maturin>=1.5,<2" pytest pyarrow numpy pandas duckdb
-"$venv/bin/maturin" build --quiet --manifest-path python/Cargo.toml --profile dev --compatibility linux \
-  --interpreter "$venv/bin/python" --out "$target/wheels"
-"${pip[@]}" "$target"/wheels/rtvtk-*.whl
+"${pip[@]}" --upgrade pip
+"${pip[@]}" pytest pandas duckdb pillow
+CARGO_TARGET_DIR="$target" MATURIN_PEP517_ARGS="--profile dev --compatibility linux" "${pip[@]}" ./python
+"$venv/bin/python" -c "import rtvtk, sys; print('rtvtk', rtvtk.__version__, 'installed in', sys.prefix)"
+# `import rtvtk` is the installed package: python/ itself is not on sys.path.
 RTVTK_BIN="$target/debug/rtvtk" "$venv/bin/python" -m pytest -q python/tests

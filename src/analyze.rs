@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use query::analyze::{self, CoherenceOptions, Grid, Report};
 
@@ -84,12 +84,10 @@ pub fn run(a: &AnalyzeArgs) -> Result<()> {
     })?;
     match &a.out {
         Some(dir) => {
-            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-            let md = dir.join("report.md");
-            std::fs::write(&md, &report.markdown).with_context(|| format!("writing {}", md.display()))?;
-            for g in &report.grids {
-                write_heatmap(g, &dir.join(format!("{}.png", g.name)))?;
-            }
+            let maps: Vec<(&str, renderers::plot::Heatmap)> =
+                report.grids.iter().map(|g| (g.name.as_str(), heatmap(g))).collect();
+            let md = renderers::plot::write_report(dir, &report.markdown, &maps)
+                .with_context(|| format!("writing the report into {}", dir.display()))?;
             eprintln!("report: {} ({} plots)", md.display(), report.grids.len());
         }
         None => print!("{}", report.markdown),
@@ -101,19 +99,7 @@ fn source(name: &str, path: &Path) -> query::TraceSource {
     query::TraceSource { name: name.into(), path: path.to_path_buf() }
 }
 
-/// Writes a grid as a heatmap with axes in pixels, its title and a colour bar (plotters).
-fn write_heatmap(g: &Grid, path: &Path) -> Result<()> {
-    if g.width == 0 || g.height == 0 {
-        bail!("{}: empty grid", g.name);
-    }
-    let map = renderers::plot::Heatmap {
-        title: &g.title,
-        width: g.width,
-        height: g.height,
-        values: &g.values,
-        x_desc: "pixel x",
-        y_desc: "pixel y",
-        cell: g.cell as f64,
-    };
-    renderers::plot::write_heatmap(&map, path).with_context(|| format!("the heatmap {}", g.name))
+/// A grid as a heatmap with axes in pixels, its title and a colour bar (plotters).
+fn heatmap(g: &Grid) -> renderers::plot::Heatmap<'_> {
+    renderers::plot::Heatmap::pixels(&g.title, g.width, g.height, &g.values, g.cell)
 }

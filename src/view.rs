@@ -69,6 +69,7 @@ pub fn run(args: &ViewArgs) -> Result<()> {
         reset_layout: args.reset_layout,
         screenshot: args.screenshot.clone(),
         tracer: args.tracer,
+        engine: None,
     };
     rtvtk_viewer::run(options).context("the viewer failed")
 }

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Dict, Tuple
+from typing import Dict, Tuple, Union
 
 import numpy as np
 
@@ -90,8 +90,10 @@ def normals(tris: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
-def trace(out: str, width: int = 32, height: int = 32, spp: int = 2, seed: int = 0) -> Dict[str, float]:
-    """Renders and records; returns ray counts and the seconds spent tracing and recording."""
+def trace(out: Union[str, rtvtk.Recorder], width: int = 32, height: int = 32, spp: int = 2, seed: int = 0) -> Dict[str, float]:
+    """Renders and records into the dataset directory ``out`` (or into a recorder, such as an
+    immediate-mode one, which is left open); returns ray counts and the seconds spent tracing
+    and recording."""
     rng = np.random.default_rng(seed)
     tris, mats, colors, emission, names = box_scene()
     tn = normals(tris)
@@ -147,24 +149,25 @@ def trace(out: str, width: int = 32, height: int = 32, spp: int = 2, seed: int =
     traced = time.perf_counter() - t_trace
     # One wavefront call: every path is a tree.
     t_rec = time.perf_counter()
-    with rtvtk.Recorder(out, payload={"throughput": "f32x3"}) as rec:
-        rec.set_scene(tris, mats, colors, emission, names)
-        pos, target, up, fov = cam
-        rec.set_camera(pos, target, up, fov, width, height)
-        flat = [(i, r) for i, rays in enumerate(paths) for r in rays]
-        rec.add_rays(
-            tree=np.array([i for i, _ in flat]),
-            parent=np.array([r[0] for _, r in flat]),
-            origin=np.array([r[1] for _, r in flat]),
-            direction=np.array([r[2] for _, r in flat]),
-            t=np.array([r[3] for _, r in flat]),
-            kind=[r[4] for _, r in flat],
-            pixel=pixel[[i for i, _ in flat]],
-            sample=sample[[i for i, _ in flat]],
-            prim=np.array([r[5] for _, r in flat]),
-            throughput=np.array([r[6] for _, r in flat], np.float32),
-        )
-        summary = rec.finish()
+    own = not isinstance(out, rtvtk.Recorder)
+    rec = rtvtk.Recorder(out, payload={"throughput": "f32x3"}) if own else out
+    rec.set_scene(tris, mats, colors, emission, names)
+    pos, target, up, fov = cam
+    rec.set_camera(pos, target, up, fov, width, height)
+    flat = [(i, r) for i, rays in enumerate(paths) for r in rays]
+    ids = rec.add_rays(
+        tree=np.array([i for i, _ in flat]),
+        parent=np.array([r[0] for _, r in flat]),
+        origin=np.array([r[1] for _, r in flat]),
+        direction=np.array([r[2] for _, r in flat]),
+        t=np.array([r[3] for _, r in flat]),
+        kind=[r[4] for _, r in flat],
+        pixel=pixel[[i for i, _ in flat]],
+        sample=sample[[i for i, _ in flat]],
+        prim=np.array([r[5] for _, r in flat]),
+        throughput=np.array([r[6] for _, r in flat], np.float32),
+    )
+    summary = rec.finish() if own else {"rays": len(flat), "trees": len(ids)}
     recorded = time.perf_counter() - t_rec
     kinds = [r[4] for rays in paths for r in rays]
     return {

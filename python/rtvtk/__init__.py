@@ -2,8 +2,14 @@
 
 The same engine as the ``rtvtk`` command line: ``open`` and ``connect`` give a ``Session`` whose
 SQL answers arrive as ``pyarrow`` tables (through the Arrow C stream interface, no copy);
-``Recorder`` writes a dataset from a Python renderer; ``Session.render`` draws the layered
-pictures ``rtvtk render`` draws.
+``Recorder`` writes a dataset from a Python renderer (or keeps it in memory, queryable while
+recording); ``Session.render`` draws the layered pictures ``rtvtk render`` draws,
+``Session.analyze`` runs ``rtvtk analyze``'s analyses and ``Session.view`` opens the viewer.
+
+Errors are ``rtvtk.Error`` subclasses: ``DatasetError`` (opening, reading), ``QueryError`` (SQL,
+analyses), ``RecordError`` (recording input), ``RenderError`` (pictures, the window) and
+``InternalError`` (a failure inside rtvtk itself). Long calls release the GIL, Ctrl-C cancels
+them (``KeyboardInterrupt``), and ``progress=True`` shows a bar (tqdm's when installed).
 """
 
 from __future__ import annotations
@@ -17,9 +23,24 @@ import numpy as np
 import pyarrow as pa
 
 from . import _rtvtk
-from ._rtvtk import Error
+from ._rtvtk import DatasetError, Error, InternalError, QueryError, RecordError, RenderError
 
-__all__ = ["Error", "Session", "Picture", "Recorder", "Tree", "open", "connect", "KINDS"]
+__all__ = [
+    "Error",
+    "DatasetError",
+    "QueryError",
+    "RecordError",
+    "RenderError",
+    "InternalError",
+    "Session",
+    "Picture",
+    "Report",
+    "Recorder",
+    "Tree",
+    "open",
+    "connect",
+    "KINDS",
+]
 __version__ = _rtvtk.__version__
 
 #: The built-in ray kinds, in the order of their codes.
@@ -76,19 +97,146 @@ class Picture:
         return (w, h)
 
 
+class _TextBar:
+    """A one-line progress bar on stderr, for when tqdm is not installed."""
+
+    def __init__(self, desc: str, unit: str):
+        import sys
+        import time
+
+        self._out = sys.stderr
+        self._time = time.monotonic
+        self._start = self._time()
+        self._last = 0.0
+        self.desc, self.unit, self.n, self.total = desc, unit, 0, None
+
+    def refresh(self) -> None:
+        now = self._time()
+        if now - self._last < 0.1:
+            return
+        self._last = now
+        took = now - self._start
+        if self.total:
+            frac = min(1.0, self.n / self.total)
+            bar = "#" * int(frac * 24)
+            line = f"{self.desc}: {frac * 100:3.0f}% [{bar:<24}] {self.n}/{self.total} {self.unit} {took:.1f}s"
+        else:
+            line = f"{self.desc}: {self.n} {self.unit} {took:.1f}s"
+        self._out.write("\r" + line[:120])
+        self._out.flush()
+
+    def close(self) -> None:
+        self._last = 0.0
+        self.refresh()
+        self._out.write("\n")
+        self._out.flush()
+
+
+class _Progress:
+    """``progress=True``: a bar fed by the native side's ``(what, done, total)`` reports (total
+    0: not known) or by rows as they arrive."""
+
+    def __init__(self, desc: str, unit: str):
+        try:
+            from tqdm.auto import tqdm
+
+            self._bar: Any = tqdm(desc=desc, unit=unit, total=None, unit_scale=True)
+        except ImportError:
+            self._bar = _TextBar(desc, unit)
+
+    def __call__(self, what: str, done: int, total: int) -> None:
+        bar = self._bar
+        if what and getattr(bar, "desc", None) != what:
+            if hasattr(bar, "set_description_str"):
+                bar.set_description_str(what, refresh=False)
+            else:
+                bar.desc = what
+        bar.total = total or None
+        bar.n = done
+        bar.refresh()
+
+    def add(self, n: int) -> None:
+        self._bar.n += n
+        self._bar.refresh()
+
+    def close(self) -> None:
+        self._bar.close()
+
+
+@contextlib.contextmanager
+def _progress(enabled: bool, desc: str, unit: str) -> Iterator[Optional[_Progress]]:
+    if not enabled:
+        yield None
+        return
+    bar = _Progress(desc, unit)
+    try:
+        yield bar
+    finally:
+        bar.close()
+
+
+def _batches(native_stream: Any, reader: pa.RecordBatchReader, bar: Optional[_Progress]) -> Iterator[pa.RecordBatch]:
+    """A query's batches as they arrive; the stream's own failure (Ctrl-C, the engine's error)
+    raised as itself rather than as pyarrow's wrapping of it."""
+    try:
+        for batch in reader:
+            if bar is not None:
+                bar.add(batch.num_rows)
+            yield batch
+    except Exception as e:
+        failure = native_stream.failure()
+        if failure is not None:
+            raise failure from None
+        raise QueryError(str(e)) from e
+
+
+class Report:
+    """An analysis's report (``Session.analyze``): markdown, and the grids it shows as numpy
+    arrays (NaN where there is no data). Shows as markdown in Jupyter; ``save`` writes it as
+    ``rtvtk analyze --out`` does."""
+
+    def __init__(self, native: Any):
+        self._native = native
+        #: The report's text (markdown); its pictures are the grids, by name.
+        self.markdown: str = native.markdown
+        #: Grid name -> (title, values of shape (height, width), pixels per cell).
+        self.grids: Dict[str, Tuple[str, np.ndarray, int]] = {
+            name: (title, np.asarray(values, dtype=np.float64).reshape(h, w), cell)
+            for name, title, w, h, cell, values in native.grids()
+        }
+
+    def save(self, directory: PathLike) -> str:
+        """Writes ``report.md`` and a heatmap PNG per grid into ``directory``; returns the path
+        of ``report.md``."""
+        return str(self._native.save(os.fspath(directory)))
+
+    def _repr_markdown_(self) -> str:
+        return self.markdown
+
+    def __str__(self) -> str:
+        return self.markdown
+
+
 class Session:
     """SQL over traces and the pictures drawn from them (see ``open`` and ``connect``)."""
 
     def __init__(self, native: Any):
         self._native = native
 
-    def sql(self, query: str) -> pa.Table:
-        """Runs a read-only query; the whole result as a ``pyarrow.Table``."""
-        return pa.table(self._native.stream(query))
+    def sql(self, query: str, progress: bool = False) -> pa.Table:
+        """Runs a read-only query; the whole result as a ``pyarrow.Table`` (Arrow's C stream,
+        no copy). ``progress=True`` counts the rows as they arrive; Ctrl-C stops the query."""
+        native = self._native.stream(query)
+        reader = pa.RecordBatchReader.from_stream(native)
+        with _progress(progress, "sql", "rows") as bar:
+            batches = list(_batches(native, reader, bar))
+        return pa.Table.from_batches(batches, schema=reader.schema)
 
     def sql_batches(self, query: str) -> pa.RecordBatchReader:
         """Runs a read-only query; its batches as they come (results larger than memory)."""
-        return pa.RecordBatchReader.from_stream(self._native.stream(query))
+        native = self._native.stream(query)
+        reader = pa.RecordBatchReader.from_stream(native)
+        return pa.RecordBatchReader.from_batches(reader.schema, _batches(native, reader, None))
 
     def tables(self) -> List[str]:
         """The tables queries can name."""
@@ -113,14 +261,40 @@ class Session:
         """``rtvtk check``: the errors found (an empty list: the dataset is consistent)."""
         return list(self._native.check(name))
 
-    def render(self, **options: Any) -> Picture:
+    def render(self, progress: bool = False, **options: Any) -> Picture:
         """``rtvtk render`` with the same options: ``layers=["geometry", "rays"]``,
         ``pixel=(x, y)``, ``tree=``, ``sample=``, ``kinds=[...]``, ``depth=(a, b)``,
         ``max_rays=``, ``sql=``, ``colour_by=``, ``bvh_levels=(a, b)``, ``bvh_visited=``,
         ``geometry="wireframe"``, ``camera=((x, y, z), (x, y, z), fov)``, ``size=(w, h)``,
-        ``line_width=``, ``image_source=``, ``image_spp=``, ``legend=``."""
-        png, report = self._native.render(options)
+        ``line_width=``, ``image_source=``, ``image_spp=``, ``legend=``. ``progress=True``
+        shows the rays loading; Ctrl-C stops the render."""
+        with _progress(progress, "render", "rays") as bar:
+            png, report = self._native.render(options, bar)
         return Picture(bytes(png), list(report))
+
+    def analyze(self, analysis: str, progress: bool = False, **options: Any) -> Report:
+        """One of ``rtvtk analyze``'s analyses on this session's engine: ``"coherence"``
+        (``width=8``, ``orders=["trace", "morton", "octant", "material"]``, ``kind=None``),
+        ``"bvh"`` (``level=3``), ``"bugs"``, or ``"diff"`` (``a=``, ``b=`` dataset names, by
+        default the first two opened; ``tile=16``). ``progress=True`` counts its queries;
+        Ctrl-C stops it."""
+        with _progress(progress, f"analyze {analysis}", "queries") as bar:
+            return Report(self._native.analyze(analysis, options, bar))
+
+    def view(self, dataset: Optional[str] = None, screenshot: Optional[PathLike] = None, tracer: Optional[str] = None) -> None:
+        """Opens the interactive viewer on this session's engine (its first dataset, or
+        ``dataset``) and returns when its window is closed. With ``screenshot``, the window is
+        written there once everything is drawn, and closes. One window per process, from the
+        main thread (winit's rule); it needs a display (``DISPLAY`` or ``WAYLAND_DISPLAY``)."""
+        import sys
+
+        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise RenderError("view needs a display: neither DISPLAY nor WAYLAND_DISPLAY is set (use render() for pictures without one)")
+        self._native.view(dataset, None if screenshot is None else os.fspath(screenshot), tracer)
+
+    def queries_run(self) -> int:
+        """How many queries this session has run (an analysis runs many)."""
+        return int(self._native.queries_run())
 
     def __repr__(self) -> str:
         return f"rtvtk.Session({self._native.describe()})"
@@ -152,15 +326,15 @@ class Tree:
         """Adds a ray (``t`` None: a miss); returns its index in the tree. Its parent is
         ``parent`` when given, else the ray the last ``descend`` went into (a root before)."""
         if self._ended:
-            raise Error("this tree was already recorded: begin another with recorder.tree(...)")
+            raise RecordError("this tree was already recorded: begin another with recorder.tree(...)")
         if parent is None:
             parent = self._stack[-1] if self._stack else -1
         elif not 0 <= parent < len(self._rays):
-            raise Error(f"parent {parent} is not a ray of this tree (it has {len(self._rays)})")
+            raise RecordError(f"parent {parent} is not a ray of this tree (it has {len(self._rays)})")
         o = tuple(float(v) for v in origin)
         d = tuple(float(v) for v in direction)
         if len(o) != 3 or len(d) != 3:
-            raise Error("origin and direction are three numbers each")
+            raise RecordError("origin and direction are three numbers each")
         self._rays.append((parent, o, d, float("nan") if t is None else float(t), kind, -1 if prim is None else int(prim), payload))  # type: ignore[arg-type]
         self._last = len(self._rays) - 1
         return self._last
@@ -168,22 +342,22 @@ class Tree:
     def descend(self) -> None:
         """The next rays are children of the last one added."""
         if self._last is None:
-            raise Error("descend: no ray was added yet")
+            raise RecordError("descend: no ray was added yet")
         self._stack.append(self._last)
 
     def ascend(self) -> None:
         """Back to the parent level."""
         if not self._stack:
-            raise Error("ascend: already at the root level")
+            raise RecordError("ascend: already at the root level")
         self._stack.pop()
 
     def end(self) -> int:
         """Records the tree now (a ``with`` block does so when it ends); returns its id in the
         dataset. Nothing can be added to it afterwards."""
         if self._ended:
-            raise Error("this tree was already recorded")
+            raise RecordError("this tree was already recorded")
         if not self._rays:
-            raise Error("end: the tree has no rays")
+            raise RecordError("end: the tree has no rays")
         ids = self._recorder._add_trees([self])
         self._ended = True
         return ids[0]
@@ -199,7 +373,7 @@ class Recorder:
             self._native = _native
         else:
             if path is None:
-                raise Error("Recorder(path): the dataset directory to write (or Recorder.immediate())")
+                raise RecordError("Recorder(path): the dataset directory to write (or Recorder.immediate())")
             self._native = _rtvtk.NativeRecorder.create(os.fspath(path), list((payload or {}).items()))
         self._payload = dict(self._native.payload())
         self._closed = False
@@ -226,7 +400,7 @@ class Recorder:
         code = {k: i for i, k in enumerate(kinds)}
         extra = {k for _, r in rays for k in r[6]} - set(self._payload)
         if extra:
-            raise Error(f"payload {sorted(extra)[0]!r} was not declared when the recorder was made")
+            raise RecordError(f"payload {sorted(extra)[0]!r} was not declared when the recorder was made")
         payload = {}
         for name, spec in self._payload.items():
             dtype, width = _dtype(spec)
@@ -235,9 +409,9 @@ class Recorder:
             try:
                 values = np.asarray([r[6].get(name, default) for _, r in rays], dtype=dtype)
             except (TypeError, ValueError) as e:
-                raise Error(f"payload {name!r} is declared {spec}: {e}") from None
+                raise RecordError(f"payload {name!r} is declared {spec}: {e}") from None
             if values.shape != ((n, width) if width > 1 else (n,)):
-                raise Error(f"payload {name!r} is declared {spec}: each ray needs {width} value(s)")
+                raise RecordError(f"payload {name!r} is declared {spec}: each ray needs {width} value(s)")
             payload[name] = values
         return self.add_rays(
             tree=np.asarray([i for i, _ in rays], dtype=np.int64),
@@ -285,11 +459,11 @@ class Recorder:
         for name, value in payload.items():
             spec = self._payload.get(name)
             if spec is None:
-                raise Error(f"payload {name!r} was not declared when the recorder was made")
+                raise RecordError(f"payload {name!r} was not declared when the recorder was made")
             dtype, _ = _dtype(spec)
             arr = np.asarray(value)
             if arr.dtype != dtype:
-                raise Error(f"payload {name!r} is declared {spec}: expected {dtype.name} values, got {arr.dtype.name}")
+                raise RecordError(f"payload {name!r} is declared {spec}: expected {dtype.name} values, got {arr.dtype.name}")
             arrays.append((name, np.ascontiguousarray(arr)))
         return list(
             self._native.add_rays(
@@ -346,13 +520,19 @@ class Recorder:
         self._closed = True
         return {"trees": trees, "rays": rays, "segments": segments, "bytes": nbytes}
 
+    def session(self) -> "Session":
+        """Immediate mode: SQL (and ``render``) over the trace in memory. Each query sees every
+        ray recorded before it; tables written (``set_scene``) after the session was made
+        appear in a new one."""
+        return Session(self._native.session())
+
     def rays_recorded(self) -> int:
         """Immediate mode: rays recorded so far."""
         return int(self._native.immediate_rays())
 
     def _check_open(self) -> None:
         if self._closed:
-            raise Error("the recorder is finished: nothing more can be recorded")
+            raise RecordError("the recorder is finished: nothing more can be recorded")
 
     def __enter__(self) -> "Recorder":
         return self

@@ -1,11 +1,16 @@
 //! `rtvtk._rtvtk`: the native half of the Python package (`python/rtvtk/__init__.py` is the
 //! other). It adds no road of its own: SQL goes through `query::Engine` (results cross to pyarrow
 //! through the Arrow C stream interface, `__arrow_c_stream__`, with no copy), recording through
-//! `rl::Recorder`, pictures through `rtvtk_viz::headless::render` — what the CLI calls. The GIL is
-//! released while a call works; every error is an `rtvtk.Error` carrying the library's message.
+//! `rl::Recorder`, pictures through `rtvtk_viz::headless::render` and the window through
+//! `rtvtk_viewer::run` — what the CLI calls. Long calls run with the GIL released, Ctrl-C
+//! cancels them, and every error is an `rtvtk.Error` subclass carrying the library's message
+//! (`work`).
+
+mod work;
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use arrow::array::{RecordBatch, RecordBatchReader};
 use arrow::datatypes::{DataType, SchemaRef};
@@ -13,31 +18,73 @@ use arrow::error::ArrowError;
 use arrow::ffi_stream::FFI_ArrowArrayStream;
 use futures::StreamExt;
 use pyo3::buffer::PyBuffer;
-use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
 use pyo3::types::{PyBytes, PyCapsule, PyDict};
 use query::Engine;
 use rl::{Kind, ListValue, Payload, PayloadField, PayloadSchema, RayFields, RayId, Recorder, RecorderOptions, Value};
 
-pyo3::create_exception!(_rtvtk, Error, PyException, "An rtvtk call failed; the message says what and where.");
+use work::{
+    DatasetError, Error, InternalError, QueryError, RecordError, RenderError, err, guarded, on_engine, on_thread,
+    record_err,
+};
 
-fn err(e: impl std::fmt::Display) -> PyErr {
-    Error::new_err(e.to_string())
-}
+/// Why a query's stream stopped early: Ctrl-C (the `KeyboardInterrupt` to raise) or the engine's
+/// error (raised as `rtvtk.QueryError`). pyarrow sees only an Arrow error; the Python side asks
+/// the stream for this to raise the right exception.
+type Failure = Arc<Mutex<Option<PyErr>>>;
 
 /// A query's batches as an Arrow `RecordBatchReader`, pulled from the engine's stream on demand.
 struct EngineReader {
     engine: Arc<Engine>,
     stream: datafusion::execution::SendableRecordBatchStream,
     schema: SchemaRef,
+    failure: Failure,
 }
 
 impl Iterator for EngineReader {
     type Item = Result<RecordBatch, ArrowError>;
 
+    /// The next batch; every 50 ms of waiting, a look for Ctrl-C (which stops the query). It is
+    /// called through the C stream interface, where a panic must not unwind: one becomes the
+    /// stream's `rtvtk.InternalError`.
     fn next(&mut self) -> Option<Self::Item> {
-        let next = self.engine.block_on(self.stream.next())?;
-        Some(next.map_err(|e| ArrowError::ExternalError(Box::new(e))))
+        match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.pull())) {
+            Ok(item) => item,
+            Err(p) => {
+                let message = work::panic_text(p);
+                self.fail(InternalError::new_err(message.clone()), &message)
+            }
+        }
+    }
+}
+
+impl EngineReader {
+    fn fail(&self, e: PyErr, what: &str) -> Option<Result<RecordBatch, ArrowError>> {
+        if let Ok(mut f) = self.failure.lock() {
+            f.get_or_insert(e);
+        }
+        Some(Err(ArrowError::ExternalError(what.into())))
+    }
+
+    fn pull(&mut self) -> Option<Result<RecordBatch, ArrowError>> {
+        let engine = self.engine.clone();
+        loop {
+            // `Stream::next` is cancel-safe: a timed-out wait loses no batch.
+            let next = self.stream.next();
+            match engine.block_on(async { tokio::time::timeout(Duration::from_millis(50), next).await }) {
+                Ok(None) => return None,
+                Ok(Some(Ok(b))) => return Some(Ok(b)),
+                Ok(Some(Err(e))) => {
+                    let message = e.to_string();
+                    return self.fail(QueryError::new_err(message.clone()), &message);
+                }
+                Err(_) => {
+                    if let Some(interrupt) = Python::attach(|py| py.check_signals().err()) {
+                        return self.fail(interrupt, "the query was interrupted (Ctrl-C)");
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -52,6 +99,7 @@ impl RecordBatchReader for EngineReader {
 #[pyclass(module = "rtvtk._rtvtk")]
 struct ArrowStream {
     reader: Mutex<Option<Box<dyn RecordBatchReader + Send>>>,
+    failure: Failure,
 }
 
 #[pymethods]
@@ -68,10 +116,55 @@ impl ArrowStream {
             .lock()
             .map_err(err)?
             .take()
-            .ok_or_else(|| err("this result was already read (a query's stream is read once)"))?;
+            .ok_or_else(|| QueryError::new_err("this result was already read (a query's stream is read once)"))?;
         // The capsule points at the stream struct; the consumer moves it out (leaving `release`
         // null), and whatever is left is released when the capsule goes.
         PyCapsule::new_with_value(py, FFI_ArrowArrayStream::new(reader), c"arrow_array_stream")
+    }
+
+    /// Why the stream stopped early, if it did (a `KeyboardInterrupt` or `rtvtk.QueryError`),
+    /// handed over once.
+    fn failure(&self) -> PyResult<Option<PyErr>> {
+        Ok(self.failure.lock().map_err(err)?.take())
+    }
+}
+
+/// An analysis's report (`query::analyze::Report`): markdown and the grids it shows.
+#[pyclass(module = "rtvtk._rtvtk", frozen)]
+struct NativeReport {
+    report: query::analyze::Report,
+}
+
+#[pymethods]
+impl NativeReport {
+    #[getter]
+    fn markdown(&self) -> &str {
+        &self.report.markdown
+    }
+
+    /// `[(name, title, width, height, cell, values)]`, values row-major from the top-left cell.
+    #[allow(clippy::type_complexity)]
+    fn grids(&self) -> Vec<(String, String, usize, usize, usize, Vec<f64>)> {
+        let g = &self.report.grids;
+        g.iter().map(|g| (g.name.clone(), g.title.clone(), g.width, g.height, g.cell, g.values.clone())).collect()
+    }
+
+    /// Writes `report.md` and a heatmap PNG per grid into `dir`, as `rtvtk analyze --out` does;
+    /// returns the path of `report.md`.
+    fn save(&self, py: Python<'_>, dir: std::path::PathBuf) -> PyResult<String> {
+        let r = &self.report;
+        py.detach(|| {
+            let maps: Vec<(&str, renderers::plot::Heatmap)> = r
+                .grids
+                .iter()
+                .map(|g| {
+                    (g.name.as_str(), renderers::plot::Heatmap::pixels(&g.title, g.width, g.height, &g.values, g.cell))
+                })
+                .collect();
+            renderers::plot::write_report(&dir, &r.markdown, &maps)
+        })
+        .map(|p| p.display().to_string())
+        .map_err(|e| Error::new_err(e.to_string()))
     }
 }
 
@@ -89,39 +182,54 @@ impl Session {
         let sources: Vec<query::TraceSource> =
             datasets.into_iter().map(|(name, path)| query::TraceSource { name, path: path.into() }).collect();
         if sources.is_empty() {
-            return Err(err("no dataset given"));
+            return Err(DatasetError::new_err("no dataset given"));
         }
-        let engine =
-            py.detach(|| Engine::blocking(Engine::open(&sources, &query::SessionOptions::default()))).map_err(err)?;
-        Ok(Session { engine: Arc::new(engine) })
+        guarded(|| {
+            let engine = py
+                .detach(|| Engine::blocking(Engine::open(&sources, &query::SessionOptions::default())))
+                .map_err(|e| DatasetError::new_err(e.to_string()))?;
+            Ok(Session { engine: Arc::new(engine) })
+        })
     }
 
     /// Connects to `rtvtk serve` at `url` (`grpc://HOST:PORT`).
     #[staticmethod]
     #[pyo3(signature = (url, token=None))]
     fn connect(py: Python<'_>, url: String, token: Option<String>) -> PyResult<Session> {
-        let engine = py.detach(|| Engine::blocking(Engine::connect(&url, token))).map_err(err)?;
-        Ok(Session { engine: Arc::new(engine) })
+        guarded(|| {
+            let engine = py
+                .detach(|| Engine::blocking(Engine::connect(&url, token)))
+                .map_err(|e| QueryError::new_err(e.to_string()))?;
+            Ok(Session { engine: Arc::new(engine) })
+        })
     }
 
-    /// A read-only query's result as a stream (see `ArrowStream`).
+    /// A read-only query's result as a stream (see `ArrowStream`); planning can be interrupted.
     fn stream(&self, py: Python<'_>, sql: String) -> PyResult<ArrowStream> {
         let engine = self.engine.clone();
-        let stream = py.detach(|| engine.block_on(engine.stream(&sql))).map_err(err)?;
+        let job = on_engine(&self.engine, async move { engine.stream(&sql).await.map_err(|e| e.to_string()) });
+        let stream = job.wait(py, None)?.map_err(QueryError::new_err)?;
         let schema = stream.schema();
-        let reader = EngineReader { engine: self.engine.clone(), stream, schema };
-        Ok(ArrowStream { reader: Mutex::new(Some(Box::new(reader))) })
+        let failure = Failure::default();
+        let reader = EngineReader { engine: self.engine.clone(), stream, schema, failure: failure.clone() };
+        Ok(ArrowStream { reader: Mutex::new(Some(Box::new(reader))), failure })
     }
 
     /// The tables queries can name (schema-qualified outside `public`).
     fn tables(&self, py: Python<'_>) -> PyResult<Vec<String>> {
         let engine = self.engine.clone();
-        Ok(py.detach(|| engine.block_on(engine.catalog())).map_err(err)?.tables)
+        let job = on_engine(&self.engine, async move { engine.catalog().await.map_err(|e| e.to_string()) });
+        Ok(job.wait(py, None)?.map_err(QueryError::new_err)?.tables)
     }
 
     /// Where queries run, in words.
     fn describe(&self) -> String {
         self.engine.describe()
+    }
+
+    /// Queries this session has run (analyses run many).
+    fn queries_run(&self) -> u64 {
+        self.engine.queries_run()
     }
 
     /// Counts, segments, payload and attributes of a dataset open here (`None`: the first).
@@ -147,37 +255,179 @@ impl Session {
     #[pyo3(signature = (name=None))]
     fn check(&self, py: Python<'_>, name: Option<&str>) -> PyResult<Vec<String>> {
         let ds = self.dataset(name)?;
-        Ok(py.detach(|| ds.check()).errors)
+        let job = on_thread(|| {}, move || Ok(ds.check().errors));
+        job.wait(py, None)?.map_err(DatasetError::new_err)
     }
 
     /// `rtvtk render` over this session's first dataset: the picture as PNG bytes, and what the
-    /// layers reported. `options` holds `rtvtk_viz::headless::RenderRequest`'s fields by name.
+    /// layers reported. `options` holds `rtvtk_viz::headless::RenderRequest`'s fields by name;
+    /// `progress(what, done, total)` hears the ray loads; Ctrl-C cancels them.
+    #[pyo3(signature = (options, progress=None))]
     fn render<'py>(
         &self,
         py: Python<'py>,
         options: &Bound<'py, PyDict>,
+        progress: Option<Bound<'py, PyAny>>,
     ) -> PyResult<(Bound<'py, PyBytes>, Vec<String>)> {
         let request = render_request(options)?;
         let engine = self.engine.clone();
-        let png = py
-            .detach(|| -> Result<(Vec<u8>, Vec<String>), String> {
+        let shared: Arc<rtvtk_viz::component::Progress> = Arc::default();
+        let (p, c) = (shared.clone(), shared.clone());
+        let job = on_thread(
+            move || c.cancel(),
+            move || -> Result<(Vec<u8>, Vec<String>), String> {
                 let sources = rtvtk_viz::Sources::with_engine(engine, None).map_err(|e| e.to_string())?;
-                let (img, report) = rtvtk_viz::headless::render(sources, &request).map_err(|e| e.to_string())?;
+                let (img, report) =
+                    rtvtk_viz::headless::render_with(sources, &request, p).map_err(|e| e.to_string())?;
                 let mut png = Vec::new();
                 img.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
                     .map_err(|e| e.to_string())?;
                 Ok((png, report))
-            })
-            .map_err(err)?;
-        Ok((PyBytes::new(py, &png.0), png.1))
+            },
+        );
+        let poll = || shared.get();
+        let (png, report) =
+            job.wait(py, progress.as_ref().map(|cb| (cb, &poll as work::Poll)))?.map_err(RenderError::new_err)?;
+        Ok((PyBytes::new(py, &png), report))
+    }
+
+    /// One of `rtvtk analyze`'s analyses (`coherence`, `bvh`, `bugs`, `diff`) with its options by
+    /// name; `progress(what, done, total)` hears the queries run; Ctrl-C stops it.
+    #[pyo3(signature = (name, options, progress=None))]
+    fn analyze(
+        &self,
+        py: Python<'_>,
+        name: &str,
+        options: &Bound<'_, PyDict>,
+        progress: Option<Bound<'_, PyAny>>,
+    ) -> PyResult<NativeReport> {
+        let analysis = Analysis::parse(name, options, &self.engine)?;
+        let engine = self.engine.clone();
+        let job = on_engine(&self.engine, async move { analysis.run(&engine).await.map_err(|e| e.to_string()) });
+        let start = self.engine.queries_run();
+        let e = self.engine.clone();
+        let what = format!("analyze {name}");
+        let poll = move || Some((what.clone(), e.queries_run() - start, 0u64));
+        let report =
+            job.wait(py, progress.as_ref().map(|cb| (cb, &poll as work::Poll)))?.map_err(QueryError::new_err)?;
+        Ok(NativeReport { report })
+    }
+
+    /// Opens the interactive viewer on this session's engine (its first dataset, or `dataset`),
+    /// and returns when the window is closed; with `screenshot`, writes the window once drawn
+    /// and closes. One window per process (winit's event loop is made once), on the main thread.
+    #[pyo3(signature = (dataset=None, screenshot=None, tracer=None))]
+    fn view(
+        &self,
+        py: Python<'_>,
+        dataset: Option<String>,
+        screenshot: Option<std::path::PathBuf>,
+        tracer: Option<&str>,
+    ) -> PyResult<()> {
+        let tracer = match tracer {
+            Some(t) => t.parse::<renderers::TracerChoice>().map_err(|e| RenderError::new_err(e.to_string()))?,
+            None => renderers::TracerChoice::default(),
+        };
+        let options = rtvtk_viewer::ViewerOptions {
+            // By name, so the window's source menu names it (the first dataset when not given).
+            sources: vec![rtvtk_viewer::Source::Served(
+                dataset.or_else(|| self.engine.datasets().first().map(|d| d.name.clone())).unwrap_or_default(),
+            )],
+            screenshot,
+            tracer,
+            engine: Some(self.engine.clone()),
+            ..Default::default()
+        };
+        guarded(|| py.detach(|| rtvtk_viewer::run(options)).map_err(|e| RenderError::new_err(e.to_string())))
+    }
+}
+
+/// An analysis and its options, checked before it runs.
+enum Analysis {
+    Coherence(query::analyze::CoherenceOptions),
+    Bvh(u16),
+    Bugs,
+    Diff { a: String, b: String, tile: usize },
+}
+
+impl Analysis {
+    fn parse(name: &str, o: &Bound<'_, PyDict>, engine: &Engine) -> PyResult<Analysis> {
+        let get = |key: &str| o.get_item(key).ok().flatten().filter(|v| !v.is_none());
+        let a = match name {
+            "coherence" => {
+                let mut c = query::analyze::CoherenceOptions::default();
+                if let Some(w) = get("width") {
+                    c.width = w.extract()?;
+                    if !(1..=1024).contains(&c.width) {
+                        return Err(QueryError::new_err(format!("coherence: width {} is not in 1..=1024", c.width)));
+                    }
+                }
+                if let Some(v) = get("orders") {
+                    c.orders = v.extract()?;
+                }
+                if let Some(v) = get("kind") {
+                    c.kind = Some(v.extract()?);
+                }
+                Analysis::Coherence(c)
+            }
+            "bvh" => Analysis::Bvh(get("level").map(|v| v.extract()).transpose()?.unwrap_or(3)),
+            "bugs" => Analysis::Bugs,
+            "diff" => {
+                let names: Vec<String> = engine.datasets().iter().map(|d| d.name.clone()).collect();
+                let pick = |v: Option<Bound<'_, PyAny>>, i: usize| -> PyResult<String> {
+                    match v {
+                        Some(v) => v.extract(),
+                        None => names.get(i).cloned().ok_or_else(|| {
+                            QueryError::new_err(
+                                "diff compares two datasets: open two (rtvtk.open([a, b])) or name them with a=, b=",
+                            )
+                        }),
+                    }
+                };
+                let a = pick(get("a"), 0)?;
+                let b = pick(get("b"), 1)?;
+                let tile = get("tile").map(|v| v.extract()).transpose()?.unwrap_or(16usize).max(1);
+                Analysis::Diff { a, b, tile }
+            }
+            other => {
+                return Err(QueryError::new_err(format!(
+                    "unknown analysis {other:?}: expected coherence, bvh, bugs or diff"
+                )));
+            }
+        };
+        let known: &[&str] = match name {
+            "coherence" => &["width", "orders", "kind"],
+            "bvh" => &["level"],
+            "diff" => &["a", "b", "tile"],
+            _ => &[],
+        };
+        for k in o.keys() {
+            let k: String = k.extract()?;
+            if !known.contains(&k.as_str()) {
+                return Err(QueryError::new_err(format!("analyze {name}: unknown option {k:?} (it takes {known:?})")));
+            }
+        }
+        Ok(a)
+    }
+
+    async fn run(&self, engine: &Engine) -> query::Result<query::analyze::Report> {
+        use query::analyze;
+        match self {
+            Analysis::Coherence(o) => analyze::coherence(engine, o).await,
+            Analysis::Bvh(level) => analyze::bvh(engine, *level).await,
+            Analysis::Bugs => analyze::bugs(engine).await,
+            Analysis::Diff { a, b, tile } => analyze::diff(engine, a, b, *tile).await,
+        }
     }
 }
 
 impl Session {
     fn dataset(&self, name: Option<&str>) -> PyResult<Arc<store::Dataset>> {
         self.engine.dataset(name).ok_or_else(|| match name {
-            Some(n) => err(format!("no dataset {n:?} is open in this session")),
-            None => err("the session's datasets are at a service: info and check need a dataset opened here"),
+            Some(n) => DatasetError::new_err(format!("no dataset {n:?} is open in this session")),
+            None => DatasetError::new_err(
+                "this session's traces are not datasets opened here (a service's, or a recording in memory): info and check need rtvtk.open",
+            ),
         })
     }
 }
@@ -218,13 +468,13 @@ fn render_request(o: &Bound<'_, PyDict>) -> PyResult<rtvtk_viz::headless::Render
                             up: [0.0, 1.0, 0.0],
                             fov_y: fov,
                         };
-                        c.validate().map_err(err)?;
+                        c.validate().map_err(|e| RenderError::new_err(e.to_string()))?;
                         Some(c)
                     }
                     None => None,
                 };
             }
-            other => return Err(err(format!("render: unknown option {other:?}"))),
+            other => return Err(RenderError::new_err(format!("render: unknown option {other:?}"))),
         }
     }
     Ok(r)
@@ -257,7 +507,7 @@ fn parse_field(name: &str, spec: &str) -> PyResult<PayloadField> {
     let (t, n) = match spec.split_once('x') {
         Some((t, n)) => {
             let n: usize = n.parse().ok().filter(|n| *n >= 1).ok_or_else(|| {
-                err(format!("payload {name:?}: {spec:?}: expected TYPE or TYPExN with N >= 1 (f32x3)"))
+                record_err(format!("payload {name:?}: {spec:?}: expected TYPE or TYPExN with N >= 1 (f32x3)"))
             })?;
             (t, Some(n))
         }
@@ -273,7 +523,7 @@ fn parse_field(name: &str, spec: &str) -> PyResult<PayloadField> {
         "u32" => DataType::UInt32,
         "u64" => DataType::UInt64,
         _ => {
-            return Err(err(format!(
+            return Err(record_err(format!(
                 "payload {name:?}: type {t:?} is not one of f32, f64, i32, i64, u8, u16, u32, u64 (with xN for N per ray)"
             )));
         }
@@ -321,14 +571,14 @@ impl Column {
 /// many as `want` (naming `what` when the type or the count is wrong).
 fn elements<T: pyo3::buffer::Element + Copy>(obj: &Bound<'_, PyAny>, what: &str, want: usize) -> PyResult<Vec<T>> {
     let buf = PyBuffer::<T>::get(obj).map_err(|e| {
-        err(format!(
+        record_err(format!(
             "{what}: expected a contiguous buffer of {} (a numpy array of that dtype): {e}",
             std::any::type_name::<T>()
         ))
     })?;
     let v = buf.to_vec(obj.py())?;
     if v.len() != want {
-        return Err(err(format!("{what}: {} values, expected {want}", v.len())));
+        return Err(record_err(format!("{what}: {} values, expected {want}", v.len())));
     }
     Ok(v)
 }
@@ -345,7 +595,7 @@ fn column(obj: &Bound<'_, PyAny>, f: &PayloadField, rays: usize) -> PyResult<Col
         DataType::UInt16 => Column::U16(elements(obj, &what, want)?),
         DataType::UInt32 => Column::U32(elements(obj, &what, want)?),
         DataType::UInt64 => Column::U64(elements(obj, &what, want)?),
-        _ => return Err(err(format!("{what}: unsupported type"))),
+        _ => return Err(record_err(format!("{what}: unsupported type"))),
     })
 }
 
@@ -360,25 +610,52 @@ struct NativeRecorder {
 
 fn options(payload: Vec<(String, String)>) -> PyResult<RecorderOptions> {
     let fields = payload.iter().map(|(n, s)| parse_field(n, s)).collect::<PyResult<Vec<_>>>()?;
-    let schema = PayloadSchema::new(fields, None).map_err(err)?;
+    let schema = PayloadSchema::new(fields, None).map_err(record_err)?;
     Ok(RecorderOptions { payload: schema, ..Default::default() })
 }
 
 impl NativeRecorder {
     fn with<T>(&self, f: impl FnOnce(&Recorder) -> PyResult<T>) -> PyResult<T> {
-        let g = self.rec.lock().map_err(err)?;
-        let rec = g.as_ref().ok_or_else(|| err("the recorder is finished: nothing more can be recorded"))?;
-        f(rec)
+        let g = self.rec.lock().map_err(record_err)?;
+        let rec = g.as_ref().ok_or_else(|| record_err("the recorder is finished: nothing more can be recorded"))?;
+        guarded(|| f(rec))
     }
 
     fn kind(&self, rec: &Recorder, name: &str) -> PyResult<Kind> {
-        let mut kinds = self.kinds.lock().map_err(err)?;
+        let mut kinds = self.kinds.lock().map_err(record_err)?;
         if let Some(k) = kinds.get(name) {
             return Ok(*k);
         }
-        let k = rec.register_kind(name).map_err(err)?;
+        let k = rec.register_kind(name).map_err(record_err)?;
         kinds.insert(name.to_string(), k);
         Ok(k)
+    }
+}
+
+/// An immediate-mode recording as SQL sees it (`query::LiveTrace`): read anew at every query.
+struct Memory(rl::MemoryTrace);
+
+impl query::LiveTrace for Memory {
+    fn ray_schema(&self) -> SchemaRef {
+        store::ray_table_schema(&store::ray_schema(self.0.payload_schema()))
+    }
+    fn rays(&self) -> store::Result<Vec<RecordBatch>> {
+        self.0.ray_batches()
+    }
+    fn trees(&self) -> store::Result<Vec<RecordBatch>> {
+        self.0.tree_batches()
+    }
+    fn table(&self, name: &str) -> Option<RecordBatch> {
+        self.0.table(name)
+    }
+    fn table_names(&self) -> Vec<String> {
+        self.0.table_names()
+    }
+    fn attributes(&self) -> Vec<(String, String)> {
+        self.0.attributes()
+    }
+    fn stats(&self) -> store::Stats {
+        self.0.stats()
     }
 }
 
@@ -388,14 +665,14 @@ impl NativeRecorder {
     #[staticmethod]
     fn create(py: Python<'_>, path: String, payload: Vec<(String, String)>) -> PyResult<NativeRecorder> {
         let options = options(payload)?;
-        let rec = py.detach(|| Recorder::create(&path, options)).map_err(err)?;
+        let rec = py.detach(|| Recorder::create(&path, options)).map_err(record_err)?;
         Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: None })
     }
 
     /// Immediate mode: the trace stays in memory.
     #[staticmethod]
     fn immediate(payload: Vec<(String, String)>) -> PyResult<NativeRecorder> {
-        let (rec, memory) = Recorder::immediate(options(payload)?).map_err(err)?;
+        let (rec, memory) = Recorder::immediate(options(payload)?).map_err(record_err)?;
         Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: Some(memory) })
     }
 
@@ -428,7 +705,7 @@ impl NativeRecorder {
     ) -> PyResult<Vec<u64>> {
         let n = PyBuffer::<i64>::get(tree)
             .map(|b| b.item_count())
-            .map_err(|e| err(format!("tree: expected int64 values: {e}")))?;
+            .map_err(|e| record_err(format!("tree: expected int64 values: {e}")))?;
         let tree: Vec<i64> = elements(tree, "tree (int64)", n)?;
         let parent: Vec<i32> = elements(parent, "parent (int32)", n)?;
         let origin: Vec<f32> = elements(origin, "origin (float32, n x 3)", n * 3)?;
@@ -446,14 +723,14 @@ impl NativeRecorder {
                 let obj = payload
                     .iter()
                     .find(|(name, _)| *name == f.name)
-                    .ok_or_else(|| err(format!("payload {:?} is declared but not given", f.name)))?;
+                    .ok_or_else(|| record_err(format!("payload {:?} is declared but not given", f.name)))?;
                 cols.push(column(&obj.1, f, n)?);
             }
             if let Some((name, _)) = payload.iter().find(|(name, _)| !fields.iter().any(|f| f.name == *name)) {
-                return Err(err(format!("payload {name:?} was not declared when the recorder was made")));
+                return Err(record_err(format!("payload {name:?} was not declared when the recorder was made")));
             }
             if let Some(k) = kind.iter().find(|k| usize::from(**k) >= kinds.len()) {
-                return Err(err(format!("kind index {k} is outside kind_names ({} names)", kinds.len())));
+                return Err(record_err(format!("kind index {k} is outside kind_names ({} names)", kinds.len())));
             }
             // Checked before anything is recorded: a bad call records nothing.
             let mut start = 0;
@@ -464,7 +741,7 @@ impl NativeRecorder {
                 }
                 for (k, &p) in parent[start..end].iter().enumerate() {
                     if p >= 0 && p as usize >= k {
-                        return Err(err(format!(
+                        return Err(record_err(format!(
                             "ray {}: parent {p} is not an earlier ray of its tree (it has {k} before it)",
                             start + k
                         )));
@@ -521,23 +798,23 @@ impl NativeRecorder {
         let m = names.len();
         let n = PyBuffer::<u32>::get(materials)
             .map(|b| b.item_count())
-            .map_err(|e| err(format!("materials: expected uint32 values: {e}")))?;
+            .map_err(|e| record_err(format!("materials: expected uint32 values: {e}")))?;
         let v: Vec<f32> = elements(vertices, "vertices (float32, n x 3 x 3)", n * 9)?;
         let mats: Vec<u32> = elements(materials, "materials (uint32)", n)?;
         let c: Vec<f32> = elements(colors, "colors (float32, m x 3)", m * 3)?;
         let e: Vec<f32> = elements(emission, "emission (float32, m x 3)", m * 3)?;
         let batch = store::scene::triangles_from_arrays(&v, &mats, &c, &e, &names)
-            .map_err(|e| err(format!("set_triangles: {e}")))?;
+            .map_err(|e| record_err(format!("set_triangles: {e}")))?;
         // The emitters as the renderers list them (the paper's wrong-shadow query reads them).
         let camera =
             renderers::Camera { position: glam::Vec3A::ZERO, target: glam::Vec3A::Z, up: glam::Vec3A::Y, fov_y: 40.0 };
         let lights = renderers::Scene::from_triangles_table("python", &batch, camera)
-            .map_err(err)?
+            .map_err(record_err)?
             .lights_table()
-            .map_err(err)?;
+            .map_err(record_err)?;
         self.with(|r| {
-            r.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(err)?;
-            r.write_table(store::scene::LIGHTS_TABLE, lights).map_err(err)
+            r.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(record_err)?;
+            r.write_table(store::scene::LIGHTS_TABLE, lights).map_err(record_err)
         })
     }
 
@@ -553,40 +830,83 @@ impl NativeRecorder {
     ) -> PyResult<()> {
         let cam = store::scene::CameraAttrs { position, target, up, fov_y, width, height };
         let attrs: std::collections::BTreeMap<String, String> = cam.to_attributes().into_iter().collect();
-        store::scene::CameraAttrs::from_attributes(&attrs).map_err(err)?;
-        self.with(|r| r.set_attributes(cam.to_attributes()).map_err(err))
+        store::scene::CameraAttrs::from_attributes(&attrs).map_err(record_err)?;
+        self.with(|r| r.set_attributes(cam.to_attributes()).map_err(record_err))
     }
 
     /// Attributes of the recording (`image.png` names its picture, for example).
     fn set_attributes(&self, attributes: Vec<(String, String)>) -> PyResult<()> {
-        self.with(|r| r.set_attributes(attributes).map_err(err))
+        self.with(|r| r.set_attributes(attributes).map_err(record_err))
     }
 
     /// Seals what was recorded so far (write mode: readable, crash-safe).
     fn flush(&self, py: Python<'_>) -> PyResult<()> {
-        self.with(|r| py.detach(|| r.flush()).map_err(err))
+        self.with(|r| py.detach(|| r.flush()).map_err(record_err))
     }
 
     /// Ends the recording; `(trees, rays, segments, bytes)`. Recording after it raises.
     fn finish(&self, py: Python<'_>) -> PyResult<(u64, u64, u64, u64)> {
-        let rec = self.rec.lock().map_err(err)?.take().ok_or_else(|| err("the recorder is already finished"))?;
-        let s = py.detach(|| rec.finish()).map_err(err)?;
+        let rec = self
+            .rec
+            .lock()
+            .map_err(record_err)?
+            .take()
+            .ok_or_else(|| record_err("the recorder is already finished"))?;
+        let s = py.detach(|| rec.finish()).map_err(record_err)?;
         Ok((s.trees, s.rays, s.segments, s.bytes))
+    }
+
+    /// Immediate mode: SQL over the trace in memory, seeing every ray recorded before each query.
+    fn session(&self, py: Python<'_>) -> PyResult<Session> {
+        let m = self.memory.as_ref().ok_or_else(|| {
+            record_err(
+                "only an immediate-mode recorder is queried while recording (open a written dataset with rtvtk.open)",
+            )
+        })?;
+        let trace: Arc<dyn query::LiveTrace> = Arc::new(Memory(m.clone()));
+        let engine = py
+            .detach(|| Engine::blocking(Engine::live(trace, &query::SessionOptions::default())))
+            .map_err(|e| QueryError::new_err(e.to_string()))?;
+        Ok(Session { engine: Arc::new(engine) })
     }
 
     /// Immediate mode: rays recorded so far, readable while recording.
     fn immediate_rays(&self) -> PyResult<u64> {
-        let m = self.memory.as_ref().ok_or_else(|| err("only an immediate-mode recorder holds its trace in memory"))?;
+        let m = self
+            .memory
+            .as_ref()
+            .ok_or_else(|| record_err("only an immediate-mode recorder holds its trace in memory"))?;
         Ok(m.stats().rays)
+    }
+}
+
+/// For the package's tests: panics inside a native call (`"call"`) or inside work running off
+/// the calling thread (`"thread"`), which must reach Python as `rtvtk.InternalError`.
+#[pyfunction]
+fn _panic_for_tests(py: Python<'_>, place: &str) -> PyResult<()> {
+    match place {
+        "call" => guarded(|| -> PyResult<()> { panic!("a test asked for a panic in a call") }),
+        "thread" => on_thread(|| {}, || -> Result<(), String> { panic!("a test asked for a panic in a worker") })
+            .wait(py, None)?
+            .map_err(err),
+        other => Err(err(format!("unknown place {other:?}"))),
     }
 }
 
 #[pymodule]
 fn _rtvtk(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    m.add("Error", m.py().get_type::<Error>())?;
+    let py = m.py();
+    m.add("Error", py.get_type::<Error>())?;
+    m.add("DatasetError", py.get_type::<DatasetError>())?;
+    m.add("QueryError", py.get_type::<QueryError>())?;
+    m.add("RecordError", py.get_type::<RecordError>())?;
+    m.add("RenderError", py.get_type::<RenderError>())?;
+    m.add("InternalError", py.get_type::<InternalError>())?;
     m.add_class::<Session>()?;
     m.add_class::<ArrowStream>()?;
+    m.add_class::<NativeReport>()?;
     m.add_class::<NativeRecorder>()?;
+    m.add_function(wrap_pyfunction!(_panic_for_tests, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())
 }

@@ -1,14 +1,19 @@
 """The Python package end to end: a numpy path tracer records through it, `rtvtk check` accepts
-the dataset, SQL answers agree with DuckDB on the exported plain Parquet, pictures equal the
-CLI's, and bad input raises `rtvtk.Error`."""
+the dataset, SQL answers agree with DuckDB on the exported plain Parquet, pictures and analysis
+reports equal the CLI's, an immediate-mode recording answers SQL while it grows, the viewer
+opens on the session's engine, Ctrl-C stops a query, and bad input raises `rtvtk.Error`
+subclasses (a Rust panic too)."""
 
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import textwrap
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 
@@ -65,7 +70,7 @@ def test_the_camera_ray_of_a_pixel_lands_on_that_pixel(traced):
     out, _ = traced
     s = rtvtk.open(out)
     t = s.trees_at_pixel(5, 7, sample=0)
-    cam = t.filter(pa.compute.equal(t.column("kind"), "camera"))
+    cam = t.filter(pc.equal(t.column("kind"), "camera"))
     assert cam.num_rows == 1
     assert s.tree(cam.column("tree_id")[0].as_py()).num_rows >= 1
 
@@ -143,18 +148,27 @@ def test_trees_recorded_one_by_one_and_immediate_mode(tmp_path):
 
 def test_bad_input_raises_rtvtk_error(tmp_path, traced):
     out, _ = traced
-    with pytest.raises(rtvtk.Error, match="manifest"):
+    with pytest.raises(rtvtk.DatasetError, match="manifest"):
         rtvtk.open(tmp_path / "nowhere")
     s = rtvtk.open(out)
-    with pytest.raises(rtvtk.Error, match="nope"):
+    with pytest.raises(rtvtk.QueryError, match="nope"):
         s.sql("SELECT nope FROM rays")
-    with pytest.raises(rtvtk.Error, match="DDL|not supported|statement"):
+    with pytest.raises(rtvtk.QueryError, match="DDL|not supported|statement"):
         s.sql("CREATE TABLE x AS SELECT 1")
-    with pytest.raises(rtvtk.Error, match="unknown option"):
+    # An error while the query runs (not while it is planned) is a QueryError too, not pyarrow's.
+    with pytest.raises(rtvtk.QueryError, match="Cast error|cast|parse"):
+        s.sql("SELECT CAST(CAST(kind AS VARCHAR) AS INT) FROM rays")
+    with pytest.raises(rtvtk.RenderError, match="unknown option"):
         s.render(colour="red")
-    with pytest.raises(rtvtk.Error, match="unknown layer"):
+    with pytest.raises(rtvtk.RenderError, match="unknown layer"):
         s.render(layers=["raytrees"])
-    with pytest.raises(rtvtk.Error, match="f16"):
+    with pytest.raises(rtvtk.QueryError, match="unknown analysis"):
+        s.analyze("speed")
+    with pytest.raises(rtvtk.QueryError, match="unknown option"):
+        s.analyze("bvh", depth=3)
+    with pytest.raises(rtvtk.QueryError, match="two datasets"):
+        s.analyze("diff")
+    with pytest.raises(rtvtk.RecordError, match="f16"):
         rtvtk.Recorder(tmp_path / "p", payload={"w": "f16"})
     rec = rtvtk.Recorder(tmp_path / "q", payload={"w": "f32x3"})
     with pytest.raises(rtvtk.Error, match="float32"):
@@ -171,5 +185,137 @@ def test_bad_input_raises_rtvtk_error(tmp_path, traced):
     rec.finish()
     with pytest.raises(rtvtk.Error, match="finished"):
         rec.add_rays(tree=[0], parent=[-1], origin=[[0, 0, 0]], direction=[[0, 0, 1]], t=[1.0], kind=["camera"], pixel=[[0, 0]])
-    with pytest.raises(rtvtk.Error, match="connect"):
+    with pytest.raises(rtvtk.QueryError, match="connect"):
         rtvtk.connect("grpc://127.0.0.1:1")
+    with pytest.raises(rtvtk.RecordError, match="immediate"):
+        rec.session()
+    # Every class is an rtvtk.Error.
+    for e in (rtvtk.DatasetError, rtvtk.QueryError, rtvtk.RecordError, rtvtk.RenderError, rtvtk.InternalError):
+        assert issubclass(e, rtvtk.Error)
+
+
+def test_a_rust_panic_is_an_internal_error_and_the_interpreter_goes_on():
+    for place in ("call", "thread"):
+        with pytest.raises(rtvtk.InternalError, match="panicked"):
+            rtvtk._rtvtk._panic_for_tests(place)
+    assert rtvtk.Recorder.immediate().rays_recorded() == 0
+
+
+def test_sql_over_an_immediate_recording_sees_the_rays_recorded_before_each_query():
+    rec = rtvtk.Recorder.immediate(payload={"throughput": "f32x3"})
+    first = numpy_tracer.trace(rec, 8, 6, 1, seed=3)
+    s = rec.session()
+    assert "in memory" in repr(s)
+    n = s.sql("SELECT count(*) AS n FROM rays").column("n").to_pylist()
+    assert n == [first["rays"]]
+    assert s.sql("SELECT count(*) AS n FROM trees").column("n").to_pylist() == [first["trees"]]
+    # The scene and camera written before the session: tables, attributes and ray functions.
+    assert s.sql("SELECT count(*) AS n FROM triangles").column("n").to_pylist()[0] > 0
+    assert "camera.position" in s.sql("SELECT key FROM attributes").column("key").to_pylist()
+    wrong = s.sql(
+        "SELECT count(*) AS n FROM rays WHERE kind = 'shadow' AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)"
+    )
+    assert wrong.column("n").to_pylist() == [0]
+    # More rays: the same session's next query sees them.
+    second = numpy_tracer.trace(rec, 8, 6, 1, seed=4)
+    n = s.sql("SELECT count(*) AS n, count(DISTINCT tree_id) AS trees FROM rays").to_pylist()[0]
+    assert n["n"] == first["rays"] + second["rays"] == rec.rays_recorded()
+    assert n["trees"] == first["trees"] + second["trees"]
+    # And it draws, through the same engine.
+    pic = s.render(layers=["geometry", "composition", "rays"], pixel=(4, 3), size=(64, 48))
+    assert pic.size == (64, 48)
+
+
+def test_analyses_write_the_reports_rtvtk_analyze_writes(traced, tmp_path):
+    out, _ = traced
+    s = rtvtk.open(out)
+    for analysis, flags, options in [("bugs", [], {}), ("coherence", ["--width", "4"], {"width": 4})]:
+        before = s.queries_run()
+        report = s.analyze(analysis, **options)
+        assert s.queries_run() > before
+        ours = tmp_path / f"py-{analysis}"
+        md = report.save(ours)
+        assert md == str(ours / "report.md") and report._repr_markdown_() == report.markdown
+        cli = tmp_path / f"cli-{analysis}"
+        r = subprocess.run([rtvtk_cli(), "analyze", analysis, out, *flags, "--out", str(cli)], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        assert (ours / "report.md").read_text() == (cli / "report.md").read_text()
+        assert sorted(os.listdir(ours)) == sorted(os.listdir(cli))
+        for name, (title, values, cell) in report.grids.items():
+            assert (ours / f"{name}.png").read_bytes() == (cli / f"{name}.png").read_bytes(), name
+            assert values.ndim == 2 and cell >= 1 and title
+    # Two datasets: diff by name.
+    two = rtvtk.open({"a": out, "b": out})
+    same = two.analyze("diff", tile=8)
+    assert "a" in same.markdown and same.grids
+
+
+def test_progress_true_shows_a_bar(traced, capfd):
+    out, stats = traced
+    s = rtvtk.open(out)
+    t = s.sql("SELECT tree_id FROM rays", progress=True)
+    assert t.num_rows == stats["rays"]
+    s.analyze("bugs", progress=True)
+    s.render(layers=["rays"], size=(32, 24), progress=True)
+    err = capfd.readouterr().err
+    assert "sql" in err and "rows" in err, err
+    assert "analyze bugs" in err and "queries" in err, err
+
+
+def _run_python(code, timeout, env=None):
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=timeout, env=env)
+
+
+def test_ctrl_c_stops_a_running_query(traced):
+    out, _ = traced
+    # A three-way cross join of the trace's rays: billions of rows, minutes of work. SIGINT a
+    # second in: the query stops and KeyboardInterrupt reaches the script, which goes on.
+    code = f"""
+        import os, signal, threading, time
+        import rtvtk
+        s = rtvtk.open({out!r})
+        threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+        start = time.monotonic()
+        try:
+            s.sql("SELECT sum(a.t + b.t + c.t) AS x FROM rays a, rays b, rays c")
+            print("finished")
+        except KeyboardInterrupt:
+            print("interrupted after", round(time.monotonic() - start, 1))
+        print(s.sql("SELECT count(*) AS n FROM rays").column("n").to_pylist())
+    """
+    r = _run_python(code, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "interrupted after" in r.stdout, r.stdout + r.stderr
+    assert "[" in r.stdout.splitlines()[-1], r.stdout
+
+
+def test_view_without_a_display_says_so_at_once(traced):
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    r = _run_python(f"import rtvtk; rtvtk.open({traced[0]!r}).view()", timeout=60, env=env)
+    assert r.returncode != 0 and "RenderError" in r.stderr and "DISPLAY" in r.stderr, r.stderr
+
+
+def test_view_opens_the_viewer_on_the_sessions_engine(traced, tmp_path):
+    xvfb = shutil.which("Xvfb")
+    if not xvfb:
+        pytest.fail("this test needs Xvfb, the virtual X server (scripts/check.sh installs it)")
+    # Xvfb picks a free display and writes its number once it accepts connections.
+    x = subprocess.Popen([xvfb, "-displayfd", "1", "-screen", "0", "1400x900x24", "-nolisten", "tcp"], stdout=subprocess.PIPE, text=True)
+    try:
+        number = x.stdout.readline().strip()
+        assert number.isdigit(), f"Xvfb did not start (it said {number!r})"
+        env = dict(os.environ, DISPLAY=f":{number}", HOME=str(tmp_path), XDG_DATA_HOME=str(tmp_path))
+        env.pop("WAYLAND_DISPLAY", None)
+        shot = tmp_path / "window.png"
+        r = _run_python(f"import rtvtk; rtvtk.open({traced[0]!r}).view(screenshot={str(shot)!r})", timeout=300, env=env)
+        assert r.returncode == 0, r.stderr
+    finally:
+        x.kill()
+        x.wait()
+    from PIL import Image
+
+    img = Image.open(shot).convert("RGBA")
+    assert img.size == (1400, 860), "the window's size"
+    # The render pane shows the picture: many distinct colours on the window's left half.
+    colours = {img.getpixel((x, y)) for y in range(100, 760, 7) for x in range(20, 700, 7)}
+    assert len(colours) > 200, f"the render pane looks empty ({len(colours)} colours)"

@@ -141,6 +141,25 @@ async fn has_table(ctx: &Engine, name: &str) -> bool {
     ctx.catalog().await.is_ok_and(|c| c.tables.iter().any(|t| t == name))
 }
 
+/// Whether `table` has `column` (a payload column some traces record and others do not).
+async fn has_column(ctx: &Engine, table: &str, column: &str) -> Result<bool> {
+    let schema = ctx.stream(&format!("SELECT * FROM {table} LIMIT 0")).await?.schema();
+    Ok(schema.column_with_name(column).is_some())
+}
+
+/// The rays with a `material` column (the material of the surface each ray hit), as the
+/// analyses read them: rtvtk's tracers record it as a payload column; for other renderers'
+/// traces it is looked up in the `triangles` table by `prim`, and is null without one.
+async fn rays_with_material(ctx: &Engine) -> Result<String> {
+    Ok(if has_column(ctx, "rays", "material").await? {
+        "rays".into()
+    } else if has_table(ctx, store::scene::TRIANGLES_TABLE).await {
+        "(SELECT r.*, tri.material FROM rays r LEFT JOIN triangles tri ON r.prim = tri.prim)".into()
+    } else {
+        "(SELECT *, CAST(NULL AS INT UNSIGNED) AS material FROM rays)".into()
+    })
+}
+
 /// A number with 4 significant digits (integers as they are).
 fn num(v: f64) -> String {
     if !v.is_finite() {
@@ -292,8 +311,9 @@ pub async fn coherence(ctx: &Engine, opts: &CoherenceOptions) -> Result<Report> 
                 )));
             }
         };
+        let from = if order == "material" { rays_with_material(ctx).await? } else { "rays".into() };
         let sql = format!(
-            "SELECT kind, depth, tree_id, ray, dir_x, dir_y, dir_z, origin_x, origin_y, origin_z FROM rays \
+            "SELECT kind, depth, tree_id, ray, dir_x, dir_y, dir_z, origin_x, origin_y, origin_z FROM {from} AS rays \
              {kind_filter} ORDER BY kind, depth, {key}, tree_id, ray"
         );
         let stats = packet_stats(&run(ctx, &sql).await?, width, visits.as_ref(), diag)?;
@@ -615,12 +635,15 @@ pub async fn bugs(ctx: &Engine) -> Result<Report> {
         ));
         if n > 0.0 {
             rep.para("By depth, and by the ray they leave from (its kind and material):");
+            let parents = rays_with_material(ctx).await?;
             let t = run(
                 ctx,
-                                    "SELECT s.depth, p.kind AS parent_kind, p.material AS parent_material, count(*) AS wrong \
-                     FROM rays s JOIN rays p ON s.tree_id = p.tree_id AND s.parent = p.ray \
+                &format!(
+                    "SELECT s.depth, p.kind AS parent_kind, p.material AS parent_material, count(*) AS wrong \
+                     FROM rays s JOIN {parents} p ON s.tree_id = p.tree_id AND s.parent = p.ray \
                      WHERE s.kind = 'shadow' AND NOT aims_at_light(s.origin_x, s.origin_y, s.origin_z, s.dir_x, s.dir_y, s.dir_z) \
-                     GROUP BY s.depth, p.kind, p.material ORDER BY wrong DESC, s.depth LIMIT 20",
+                     GROUP BY s.depth, p.kind, p.material ORDER BY wrong DESC, s.depth LIMIT 20"
+                ),
             )
             .await?;
             rep.para(&markdown(&t)?);
@@ -679,15 +702,26 @@ pub async fn diff(ctx: &Engine, a: &str, b: &str, tile: usize) -> Result<Report>
     rep.para(&format!("# `{a}` against `{b}`"));
     let tile = tile.max(1);
     let lights = has_table(ctx, &format!("{a}.lights")).await && has_table(ctx, &format!("{b}.lights")).await;
-    // Rays of a trace, with `lit`: 1 when the ray hit an emitter.
+    // Rays of a trace, with `nodes_visited` (null where the trace has no traversal counts, as
+    // other renderers' traces) and `lit`: 1 when the ray hit an emitter.
+    let mut rays = std::collections::HashMap::new();
+    for s in [a, b] {
+        let r = if has_column(ctx, &format!("{s}.rays"), "nodes_visited").await? {
+            format!("{s}.rays")
+        } else {
+            format!("(SELECT *, CAST(NULL AS DOUBLE) AS nodes_visited FROM {s}.rays)")
+        };
+        rays.insert(s.to_string(), r);
+    }
     let from = |s: &str| {
+        let r = &rays[s];
         if lights {
             format!(
-                "(SELECT r.*, CASE WHEN l.prim IS NULL THEN 0.0 ELSE 1.0 END AS lit FROM {s}.rays r \
+                "(SELECT r.*, CASE WHEN l.prim IS NULL THEN 0.0 ELSE 1.0 END AS lit FROM {r} r \
                  LEFT JOIN (SELECT DISTINCT prim FROM {s}.lights) l ON r.prim = l.prim)"
             )
         } else {
-            format!("(SELECT *, CAST(NULL AS DOUBLE) AS lit FROM {s}.rays)")
+            format!("(SELECT *, CAST(NULL AS DOUBLE) AS lit FROM {r})")
         }
     };
     rep.para(

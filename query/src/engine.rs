@@ -57,6 +57,10 @@ pub struct Engine {
     backend: Backend,
     datasets: Vec<Registered>,
     handle: Handle,
+    /// Over a trace in memory (`Engine::live`).
+    live: bool,
+    /// Queries run so far (`queries_run`).
+    queries: std::sync::atomic::AtomicU64,
     _owned: Option<Arc<Owned>>,
 }
 
@@ -72,6 +76,10 @@ fn current() -> Result<Handle> {
 }
 
 impl Engine {
+    fn new(backend: Backend, datasets: Vec<Registered>, live: bool) -> Result<Engine> {
+        Ok(Engine { backend, datasets, handle: current()?, live, queries: Default::default(), _owned: None })
+    }
+
     /// Opens `sources` (each dataset once) in a session in this process: each dataset's tables
     /// in the schema named after it, the first one's also unqualified, and the ray functions over
     /// the first one's scene.
@@ -83,13 +91,25 @@ impl Engine {
     pub async fn with_datasets(datasets: Vec<Registered>, options: &SessionOptions) -> Result<Engine> {
         let ctx = SessionContext::new_with_state(session_state(options)?);
         register_datasets(&ctx, &datasets).await?;
-        Ok(Engine { backend: Backend::Session(ctx), datasets, handle: current()?, _owned: None })
+        Engine::new(Backend::Session(ctx), datasets, false)
+    }
+
+    /// A session in this process over a trace held in memory and growing while it is recorded
+    /// (see `live`): its tables unqualified, read anew at every query; the ray functions over
+    /// its scene as it is now (lights and bounds).
+    pub async fn live(trace: Arc<dyn crate::LiveTrace>, options: &SessionOptions) -> Result<Engine> {
+        let ctx = SessionContext::new_with_state(session_state(options)?);
+        for (name, table) in crate::live::tables(&trace)? {
+            ctx.register_table(name.as_str(), table)?;
+        }
+        crate::functions::register_functions(&ctx, Arc::new(crate::live::scene(&trace)?));
+        Engine::new(Backend::Session(ctx), Vec::new(), true)
     }
 
     /// An engine over a session made elsewhere (a Ballista session planned here and run on the
     /// cluster, see `cluster::connect`) whose tables are `datasets`'.
     pub fn from_session(ctx: SessionContext, datasets: Vec<Registered>) -> Result<Engine> {
-        Ok(Engine { backend: Backend::Session(ctx), datasets, handle: current()?, _owned: None })
+        Engine::new(Backend::Session(ctx), datasets, false)
     }
 
     /// An `rtvtk serve` service at `url` (`grpc://HOST:PORT`, `http://`, `https://`), with its
@@ -105,7 +125,7 @@ impl Engine {
             .await
             .map_err(|e| Error::Service(format!("cannot connect to {url}: {e}")))?;
         let backend = Backend::Flight { url: url.to_string(), channel, token };
-        Ok(Engine { backend, datasets: Vec::new(), handle: current()?, _owned: None })
+        Engine::new(backend, Vec::new(), false)
     }
 
     /// Makes an engine from synchronous code: `make` (one of the constructors above) runs on a
@@ -170,6 +190,7 @@ impl Engine {
     /// Where queries run, in words.
     pub fn describe(&self) -> String {
         match &self.backend {
+            Backend::Session(_) if self.live => "in-process session over a recording in memory".into(),
             Backend::Session(_) => {
                 let names: Vec<&str> = self.datasets.iter().map(|d| d.name.as_str()).collect();
                 format!(
@@ -181,8 +202,14 @@ impl Engine {
         }
     }
 
+    /// How many queries this engine has been asked (an analysis's progress, for example).
+    pub fn queries_run(&self) -> u64 {
+        self.queries.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
     /// Runs a read-only query (no DDL, DML or `SET`), its batches streamed as they come.
     pub async fn stream(&self, sql: &str) -> Result<SendableRecordBatchStream> {
+        self.queries.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         match &self.backend {
             Backend::Session(ctx) => {
                 let df = ctx.sql_with_options(sql, crate::service::read_only_sql_options()).await?;

@@ -6,6 +6,7 @@ mod count_by_key;
 mod engine;
 mod error;
 mod functions;
+mod live;
 mod plan_util;
 mod scan;
 pub mod service;
@@ -20,6 +21,7 @@ pub use functions::{
     RAY_SECTION, SceneContext, functions_markdown, ray_aggregates, ray_functions, ray_scalar_functions,
     register_functions,
 };
+pub use live::LiveTrace;
 pub use sliced::{SegmentFiles, SliceableScans};
 pub use small_groups::{SmallGroups, SmallGroupsExec};
 pub use tables::{

@@ -20,7 +20,7 @@ use std::sync::Arc;
 use store::scene::col;
 
 use arrow::array::{Array, AsArray, RecordBatch, RecordBatchOptions, UInt32Array};
-use arrow::datatypes::{DataType, Field, Schema, SchemaRef, UInt64Type};
+use arrow::datatypes::{SchemaRef, UInt64Type};
 use datafusion::catalog::Session;
 use datafusion::common::ScalarValue;
 use datafusion::common::tree_node::TreeNodeRecursion;
@@ -35,8 +35,7 @@ use datafusion::physical_plan::{
 };
 use store::{Dataset, TreeEntry};
 
-/// Columns the scan adds from the tree table.
-const TREE_COLUMNS: [&str; 3] = ["pixel_x", "pixel_y", "sample"];
+use store::TREE_COLUMNS;
 
 /// Integer columns whose filters prune trees or segments.
 const RANGE_COLUMNS: [&str; 5] = [col::TREE_ID, col::PIXEL_X, col::PIXEL_Y, col::SAMPLE, col::DEPTH];
@@ -57,15 +56,7 @@ impl std::fmt::Debug for RaysTable {
 
 impl RaysTable {
     pub(crate) fn new(ds: Arc<Dataset>) -> Self {
-        let base = ds.ray_schema();
-        let mut fields: Vec<Arc<Field>> = base.fields().iter().cloned().collect();
-        for name in TREE_COLUMNS {
-            if base.index_of(name).is_err() {
-                let meta = [("description".to_string(), "of the ray's tree, from the tree table".to_string())];
-                fields.push(Arc::new(Field::new(name, DataType::UInt32, false).with_metadata(meta.into())));
-            }
-        }
-        let schema = Arc::new(Schema::new_with_metadata(fields, base.metadata().clone()));
+        let schema = store::ray_table_schema(&ds.ray_schema());
         Self { ds, schema }
     }
 }

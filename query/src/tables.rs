@@ -217,20 +217,27 @@ pub const ATTRIBUTES_TABLE: &str = "attributes";
 /// `attributes(key, value)`: the manifest's attributes (camera, image size, scene, ...), so that
 /// a client of a service reads them as it reads any table.
 fn attributes_table(ds: &Dataset) -> Result<Arc<dyn TableProvider>> {
-    use arrow::datatypes::{DataType, Field, Schema};
-    let schema = Arc::new(Schema::new(vec![
-        Field::new("key", DataType::Utf8, false),
-        Field::new("value", DataType::Utf8, false),
-    ]));
     let attrs = &ds.manifest().attributes;
-    let keys: Vec<&str> = attrs.keys().map(String::as_str).collect();
-    let values: Vec<&str> = attrs.values().map(String::as_str).collect();
-    let batch = RecordBatch::try_new(
-        schema.clone(),
+    let batch = attributes_batch(attrs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
+        .map_err(|e| Error::DataFusion(e.into()))?;
+    Ok(Arc::new(datafusion::datasource::MemTable::try_new(attributes_schema(), vec![vec![batch]])?))
+}
+
+/// The schema of the `attributes` table.
+pub(crate) fn attributes_schema() -> SchemaRef {
+    use arrow::datatypes::{DataType, Field, Schema};
+    Arc::new(Schema::new(vec![Field::new("key", DataType::Utf8, false), Field::new("value", DataType::Utf8, false)]))
+}
+
+/// The `attributes` table's rows.
+pub(crate) fn attributes_batch<'a>(
+    pairs: impl Iterator<Item = (&'a str, &'a str)>,
+) -> std::result::Result<RecordBatch, arrow::error::ArrowError> {
+    let (keys, values): (Vec<&str>, Vec<&str>) = pairs.unzip();
+    RecordBatch::try_new(
+        attributes_schema(),
         vec![Arc::new(arrow::array::StringArray::from(keys)), Arc::new(arrow::array::StringArray::from(values))],
     )
-    .map_err(|e| Error::DataFusion(e.into()))?;
-    Ok(Arc::new(datafusion::datasource::MemTable::try_new(schema, vec![vec![batch]])?))
 }
 
 /// A table of the dataset that cannot be read (a known table whose file has a missing or

@@ -21,6 +21,14 @@ pub struct Heatmap<'a> {
     pub cell: f64,
 }
 
+impl<'a> Heatmap<'a> {
+    /// A grid over an image (`rtvtk analyze`'s per-pixel and per-tile grids): axes in pixels,
+    /// each cell `cell` pixels across.
+    pub fn pixels(title: &'a str, width: usize, height: usize, values: &'a [f64], cell: usize) -> Heatmap<'a> {
+        Heatmap { title, width, height, values, x_desc: "pixel x", y_desc: "pixel y", cell: cell as f64 }
+    }
+}
+
 /// A tick value in at most 3 significant digits (`0.25`, `1200`, `3e-5`).
 pub fn tick(v: f64) -> String {
     if v == 0.0 || !v.is_finite() {
@@ -167,6 +175,24 @@ pub fn write_heatmap(map: &Heatmap, path: &Path) -> Result<()> {
         .map_err(|e| bad(e.to_string()))?;
         Ok(())
     })
+}
+
+/// Writes an analysis report into `dir` (made if missing): its markdown as `report.md` and each
+/// named heatmap as `NAME.png` beside it (the report's pictures refer to them by those names).
+/// Returns the path of `report.md`. `rtvtk analyze --out` and the Python package's
+/// `Report.save` write reports this way.
+pub fn write_report(dir: &Path, markdown: &str, maps: &[(&str, Heatmap)]) -> Result<std::path::PathBuf> {
+    let io = |what, path: &Path| {
+        let path = path.to_path_buf();
+        move |source| Error::Io { what, path, source }
+    };
+    std::fs::create_dir_all(dir).map_err(io("the report's directory", dir))?;
+    let md = dir.join("report.md");
+    std::fs::write(&md, markdown).map_err(io("report.md", &md))?;
+    for (name, map) in maps {
+        write_heatmap(map, &dir.join(format!("{name}.png")))?;
+    }
+    Ok(md)
 }
 
 #[cfg(test)]

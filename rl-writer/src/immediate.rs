@@ -226,6 +226,70 @@ impl MemoryTrace {
         found.map(|(c, p)| Self::extract(&c, p)).transpose()
     }
 
+    /// The payload columns the recording declared.
+    pub fn payload_schema(&self) -> &PayloadSchema {
+        &self.shared.payload
+    }
+
+    /// The rays held now, one batch per recorded chunk, as SQL's `rays` table shows them
+    /// (`store::ray_table_schema`: with each ray's tree's pixel and sample): what SQL over an
+    /// immediate-mode recording reads at each query.
+    pub fn ray_batches(&self) -> store::Result<Vec<RecordBatch>> {
+        let chunks: Vec<Arc<MemChunk>> =
+            self.shared.state.read().unwrap_or_else(|p| p.into_inner()).chunks.iter().cloned().collect();
+        let mut out = Vec::with_capacity(chunks.len());
+        for c in chunks {
+            let n = c.batch.num_rows();
+            let mut cols: [Vec<u32>; 3] = [vec![0; n], vec![0; n], vec![0; n]];
+            for t in &c.trees {
+                let rows = t.first_row as usize..(t.first_row as usize + t.ray_count as usize).min(n);
+                cols[0][rows.clone()].fill(t.pixel_x);
+                cols[1][rows.clone()].fill(t.pixel_y);
+                cols[2][rows].fill(t.sample);
+            }
+            let schema = store::ray_table_schema(&c.batch.schema());
+            let mut arrays = c.batch.columns().to_vec();
+            arrays.extend(cols.map(|v| Arc::new(arrow::array::UInt32Array::from(v)) as arrow::array::ArrayRef));
+            let b = RecordBatch::try_new(schema, arrays).map_err(|e| store::Error::Arrow {
+                context: "the rays of an immediate-mode recording".into(),
+                source: e,
+            })?;
+            out.push(b);
+        }
+        Ok(out)
+    }
+
+    /// The trees held now, in the `trees` table's schema (`store::tree_schema`; `segment` is
+    /// the chunk's number and `first_row` the tree's first row in it).
+    pub fn tree_batches(&self) -> store::Result<Vec<RecordBatch>> {
+        let chunks: Vec<Arc<MemChunk>> =
+            self.shared.state.read().unwrap_or_else(|p| p.into_inner()).chunks.iter().cloned().collect();
+        let mut out = Vec::with_capacity(chunks.len());
+        for c in chunks {
+            let segment = u32::try_from(c.seq).unwrap_or(u32::MAX);
+            for b in store::RayColumns::merged_tree_batches(std::slice::from_ref(&c.trees), segment, c.trees.len()) {
+                out.push(b?);
+            }
+        }
+        Ok(out)
+    }
+
+    /// The names of the whole-recording tables written so far (`triangles`, `lights`, ...).
+    pub fn table_names(&self) -> Vec<String> {
+        let st = self.shared.state.read().unwrap_or_else(|p| p.into_inner());
+        let mut names: Vec<String> = st.tables.keys().cloned().collect();
+        names.sort();
+        names
+    }
+
+    /// Every recording attribute, sorted by key.
+    pub fn attributes(&self) -> Vec<(String, String)> {
+        let st = self.shared.state.read().unwrap_or_else(|p| p.into_inner());
+        let mut a: Vec<(String, String)> = st.attributes.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        a.sort();
+        a
+    }
+
     /// The trees of a pixel (one sample or all), in recording order.
     pub fn trees_at_pixel(&self, x: u32, y: u32, sample: Option<u32>) -> Result<Vec<Tree>> {
         let found: Vec<_> = {

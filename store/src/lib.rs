@@ -26,7 +26,7 @@ pub use planes::{PLANES_KEY, Planes};
 pub use rows::{CoreRow, RayRows, RowLayout};
 pub use schema::{
     BUILTIN_KINDS, BytesPayload, CORE_COLUMN_COUNT, CORE_RAY_COLUMNS, Kind, KindTable, PayloadField, PayloadSchema,
-    Storage, kind_data_type, ray_schema, tree_schema,
+    Storage, TREE_COLUMNS, kind_data_type, ray_schema, ray_table_schema, tree_schema,
 };
 pub use stats::{Bounds, Stats};
 pub use tree::{Ray, Tree, TreeId, TreeInfo, rays_from_batch, validate_tree};

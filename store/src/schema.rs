@@ -455,6 +455,25 @@ pub fn ray_schema(payload: &PayloadSchema) -> SchemaRef {
     Arc::new(Schema::new(fields))
 }
 
+/// Columns of the `rays` table SQL shows that are stored with the ray's tree, not the ray.
+pub const TREE_COLUMNS: [&str; 3] = [col::PIXEL_X, col::PIXEL_Y, col::SAMPLE];
+
+/// The `rays` table as SQL shows it: the stored ray columns (`base`, a [`ray_schema`]) and,
+/// from each ray's tree, `pixel_x`, `pixel_y` and `sample` (all `UInt32`).
+pub fn ray_table_schema(base: &SchemaRef) -> SchemaRef {
+    let mut fields: Vec<Arc<Field>> = base.fields().iter().cloned().collect();
+    for name in TREE_COLUMNS {
+        if base.index_of(name).is_err() {
+            let f = meta(
+                Field::new(name, DataType::UInt32, false),
+                &[("description", "of the ray's tree, from the tree table")],
+            );
+            fields.push(Arc::new(f));
+        }
+    }
+    Arc::new(Schema::new_with_metadata(fields, base.metadata().clone()))
+}
+
 /// The Arrow schema of the tree table.
 pub fn tree_schema() -> SchemaRef {
     Arc::new(Schema::new(vec![

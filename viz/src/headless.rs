@@ -1,6 +1,8 @@
 //! One headless render of a dataset's layers into a picture: what `rtvtk render` and the Python
 //! package's `Session.render` both call, with the same options and defaults.
 
+use std::sync::Arc;
+
 use crate::component::Settings;
 use crate::components::bvh::BvhSettings;
 use crate::components::geometry::{GeometrySettings, SurfaceStyle};
@@ -146,6 +148,16 @@ impl RenderRequest {
 /// their sample count; the picture (with legends unless asked otherwise) and what the layers
 /// reported.
 pub fn render(sources: Sources, request: &RenderRequest) -> Result<(image::RgbaImage, Vec<String>)> {
+    render_with(sources, request, Arc::default())
+}
+
+/// [`render`], with the layers' long loads reported to (and cancellable through) `progress`:
+/// a cancelled load keeps what it loaded, and the picture shows that much.
+pub fn render_with(
+    sources: Sources,
+    request: &RenderRequest,
+    progress: Arc<crate::component::Progress>,
+) -> Result<(image::RgbaImage, Vec<String>)> {
     let layers = match &request.layers {
         Some(l) => l.clone(),
         None => {
@@ -163,6 +175,7 @@ pub fn render(sources: Sources, request: &RenderRequest) -> Result<(image::RgbaI
     }
     let has_query = layers.iter().any(|l| l == QuerySettings::KIND);
     let mut p = Pipeline::new(Gpu::shared()?, sources);
+    p.progress = progress;
     match request.size {
         Some([w, h]) => p.resize(w, h)?,
         None => {

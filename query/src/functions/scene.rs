@@ -1,6 +1,6 @@
 //! What the scene-dependent functions (`aims_at_light`, `morton3`) know of a dataset's scene.
 
-use arrow::array::AsArray;
+use arrow::array::{AsArray, RecordBatch};
 use arrow::datatypes::Float32Type;
 use store::Dataset;
 
@@ -16,10 +16,17 @@ pub struct SceneContext {
 }
 
 impl SceneContext {
-    /// The scene of a dataset: bounds from its statistics, emitters from its `lights` table.
+    /// The scene of a dataset: bounds from its statistics, emitters from its `lights` table
+    /// (`Dataset::table` has checked it against `store::scene::lights_schema`).
     pub fn of(ds: &Dataset) -> Result<Self> {
-        let st = ds.stats();
-        let (o, h) = (&st.origin_bounds, &st.hit_bounds);
+        let lights = ds.table(store::scene::LIGHTS_TABLE)?;
+        Self::from_parts(ds.stats(), lights.as_ref(), &ds.dir().display().to_string())
+    }
+
+    /// The scene from a trace's statistics and its `lights` table, if any (`place` names the
+    /// trace in errors).
+    pub fn from_parts(stats: &store::Stats, lights_table: Option<&RecordBatch>, place: &str) -> Result<Self> {
+        let (o, h) = (&stats.origin_bounds, &stats.hit_bounds);
         let mut lo = [f64::INFINITY; 3];
         let mut hi = [f64::NEG_INFINITY; 3];
         for b in [o, h] {
@@ -32,14 +39,13 @@ impl SceneContext {
         }
         let bounds = (lo[0] <= hi[0]).then_some((lo, hi));
         let mut lights = Vec::new();
-        // `Dataset::table` has checked the table against `store::scene::lights_schema`.
-        if let Some(batch) = ds.table(store::scene::LIGHTS_TABLE)? {
+        if let Some(batch) = lights_table {
             let mut cols = Vec::with_capacity(9);
             for name in store::scene::col::VERTEX.iter().flatten() {
                 let c = batch.column_by_name(name).and_then(|c| c.as_primitive_opt::<Float32Type>().cloned());
                 cols.push(c.ok_or_else(|| store::Error::Table {
                     name: store::scene::LIGHTS_TABLE.into(),
-                    path: ds.dir().to_path_buf(),
+                    path: place.into(),
                     message: format!("column `{name}` is missing or not Float32"),
                 })?);
             }

@@ -32,6 +32,9 @@ pub struct ViewerOptions {
     pub screenshot: Option<PathBuf>,
     /// The default layers trace with the GPU path tracer (image and Ctrl-click).
     pub tracer: renderers::TracerChoice,
+    /// Draw `Source::Served` datasets from this engine, already open in the process (the Python
+    /// package's `session.view()`), instead of connecting to `connect`.
+    pub engine: Option<Arc<query::Engine>>,
 }
 
 /// Wakes the UI from other threads (set once the UI's context is known).
@@ -120,7 +123,11 @@ impl Viewer {
         let waker = Waker::default();
         let w = waker.clone();
         let wake: Arc<dyn Fn() + Send + Sync> = Arc::new(move || w.wake());
-        let service = options.connect.clone().map(|url| Service { url, token: options.token.clone() });
+        let service = match (&options.engine, &options.connect) {
+            (Some(e), _) => Some(Service::Engine(e.clone())),
+            (None, Some(url)) => Some(Service::Remote { url: url.clone(), token: options.token.clone() }),
+            (None, None) => None,
+        };
         let worker = Worker::spawn(wake.clone(), options.tracer, display.is_some(), service);
         let queries = QueryService::new(wake)?;
         let saved = saved.unwrap_or_default();

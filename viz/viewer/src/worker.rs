@@ -18,8 +18,9 @@ use viz::{ComponentId, Gpu, Legend, Pipeline, Sources, ViewCamera};
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Source {
     Dataset(PathBuf),
-    /// A dataset of the service the viewer was started with (`view --connect`), by its name
-    /// there (empty: its first, the unqualified tables).
+    /// A dataset of the service the viewer was started with (`view --connect`) or of the engine
+    /// it was given (`ViewerOptions::engine`), by its name there (empty: its first, the
+    /// unqualified tables).
     Served(String),
     /// A built-in scene name (`cornell`, ...) or an OBJ file.
     Scene(String),
@@ -29,21 +30,25 @@ impl Source {
     pub fn label(&self) -> String {
         match self {
             Source::Dataset(p) => p.display().to_string(),
-            Source::Served(n) if n.is_empty() => "the service's dataset".into(),
-            Source::Served(n) => format!("the service's dataset {n}"),
+            Source::Served(n) if n.is_empty() => "the served dataset".into(),
+            Source::Served(n) => format!("{n} (served)"),
             Source::Scene(s) => format!("scene {s}"),
         }
     }
 }
 
-/// An `rtvtk serve` service the viewer draws from (`view --connect`): every layer and the
-/// console ask it.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Service {
-    /// `grpc://HOST:PORT`.
-    pub url: String,
-    /// Its bearer token, when it asks for one.
-    pub token: Option<String>,
+/// Where the `Source::Served` datasets come from: an `rtvtk serve` service (`view --connect`;
+/// every layer and the console ask it), or an engine the caller already holds (the Python
+/// package's `session.view()`: the window asks the script's own engine).
+#[derive(Clone, Debug)]
+pub enum Service {
+    Remote {
+        /// `grpc://HOST:PORT`.
+        url: String,
+        /// Its bearer token, when it asks for one.
+        token: Option<String>,
+    },
+    Engine(Arc<query::Engine>),
 }
 
 /// A component as it is saved and restored: kind, settings, shown or not.
@@ -287,11 +292,13 @@ impl Opener {
         others: &[PathBuf],
     ) -> viz::Result<(Sources, Result<Arc<query::Engine>, String>)> {
         if let Source::Served(name) = source {
-            let Some(service) = self.service.clone() else {
-                return Err(viz::Error::Settings("the viewer was not started with --connect".into()));
+            let engine = match self.service.clone() {
+                Some(Service::Engine(e)) => e,
+                Some(Service::Remote { url, token }) => {
+                    Arc::new(query::Engine::blocking(query::Engine::connect(&url, token))?)
+                }
+                None => return Err(viz::Error::Settings("the viewer was not started with --connect".into())),
             };
-            let engine = query::Engine::blocking(query::Engine::connect(&service.url, service.token))?;
-            let engine = Arc::new(engine);
             let sources = Sources::with_engine(engine.clone(), Some(name.as_str()).filter(|n| !n.is_empty()))?;
             return Ok((sources, Ok(engine)));
         }
