@@ -137,10 +137,18 @@ fn dependency_direction_holds() {
     // The benchmarks: everything headless, no GUI; the CLI's `bench` calls them.
     forbid(&g, "rtvtk-bench", &["egui", "eframe", "winit", "rtvtk-viewer", "rtvtk-cluster"]);
     assert!(g.closure("rtvtk").contains("rtvtk-bench"));
-    // The Python package's native module: the engine, the recorder and the headless pictures,
-    // no GUI and no Ballista (a user's notebook gets the same engine the CLI has).
-    forbid(&g, "rtvtk-python", &["egui", "eframe", "winit", "rtvtk-viewer", "rtvtk-cluster", "ballista"]);
-    for needed in ["rtvtk-query", "rl", "rtvtk-viz", "pyo3"] {
+    // The Python package's native module: the engine, the recorder, the headless pictures and
+    // the viewer (`session.view()`, through `rtvtk-viewer` only: no egui of its own), no
+    // Ballista (a user's notebook gets the same engine the CLI has).
+    forbid(&g, "rtvtk-python", &["rtvtk-cluster", "ballista"]);
+    let python = g.id("rtvtk-python");
+    for gui in ["egui", "eframe", "winit"] {
+        assert!(
+            !g.deps[&python].iter().any(|d| g.names[d] == gui),
+            "rtvtk-python reaches {gui} only through rtvtk-viewer"
+        );
+    }
+    for needed in ["rtvtk-query", "rl", "rtvtk-viz", "rtvtk-viewer", "pyo3"] {
         assert!(g.closure("rtvtk-python").contains(needed), "rtvtk-python goes through {needed}");
     }
     // The Python package's pins: third-party crates only, and never under the demo's build.

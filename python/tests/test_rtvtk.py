@@ -319,3 +319,13 @@ def test_view_opens_the_viewer_on_the_sessions_engine(traced, tmp_path):
     # The render pane shows the picture: many distinct colours on the window's left half.
     colours = {img.getpixel((x, y)) for y in range(100, 760, 7) for x in range(20, 700, 7)}
     assert len(colours) > 200, f"the render pane looks empty ({len(colours)} colours)"
+
+
+def test_the_walkthrough_runs_from_recording_to_pictures(tmp_path):
+    script = os.path.join(HERE, "..", "examples", "walkthrough.py")
+    r = subprocess.run([sys.executable, script, str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "shadow rays aiming at no light: 0" in r.stdout, r.stdout
+    for name in ("shadow_rays.png", "pixel_rays.png", "coherence/report.md"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    assert rtvtk.open(tmp_path / "trace").check() == []
