@@ -120,8 +120,10 @@ class _TextBar:
             frac = min(1.0, self.n / self.total)
             bar = "#" * int(frac * 24)
             line = f"{self.desc}: {frac * 100:3.0f}% [{bar:<24}] {self.n}/{self.total} {self.unit} {took:.1f}s"
-        else:
+        elif self.n:
             line = f"{self.desc}: {self.n} {self.unit} {took:.1f}s"
+        else:
+            line = f"{self.desc}: {took:.1f}s"
         self._out.write("\r" + line[:120])
         self._out.flush()
 
