@@ -806,12 +806,8 @@ impl NativeRecorder {
         let batch = store::scene::triangles_from_arrays(&v, &mats, &c, &e, &names)
             .map_err(|e| record_err(format!("set_triangles: {e}")))?;
         // The emitters as the renderers list them (the paper's wrong-shadow query reads them).
-        let camera =
-            renderers::Camera { position: glam::Vec3A::ZERO, target: glam::Vec3A::Z, up: glam::Vec3A::Y, fov_y: 40.0 };
-        let lights = renderers::Scene::from_triangles_table("python", &batch, camera)
-            .map_err(record_err)?
-            .lights_table()
-            .map_err(record_err)?;
+        let lights =
+            store::scene::lights_from_triangles(&batch).map_err(|e| record_err(format!("set_triangles: {e}")))?;
         self.with(|r| {
             r.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(record_err)?;
             r.write_table(store::scene::LIGHTS_TABLE, lights).map_err(record_err)

@@ -2,12 +2,11 @@
 //! `store::scene`), and back: a viewer can rebuild the scene a dataset was rendered from.
 
 use std::path::Path;
-use std::sync::Arc;
 
-use arrow::array::{Array, ArrayRef, AsArray, Float32Array, RecordBatch, StringArray, UInt32Array};
+use arrow::array::{Array, AsArray, Float32Array, RecordBatch, StringArray, UInt32Array};
 use arrow::datatypes::{Float32Type, UInt32Type};
 use glam::Vec3A;
-use store::scene::{CameraAttrs, TriangleRow, col, lights_schema, triangles_batch};
+use store::scene::{CameraAttrs, TriangleRow, col, triangles_batch};
 
 use crate::scene::{BuiltinScene, Camera, Material, MaterialKind, Scene, load_obj};
 use crate::{Error, Result};
@@ -55,23 +54,8 @@ impl Scene {
 
     /// The `lights` table: every emissive triangle with its vertices, emission and area.
     pub fn lights_table(&self) -> std::result::Result<RecordBatch, arrow::error::ArrowError> {
-        let col = |f: &dyn Fn(u32) -> f32| -> ArrayRef {
-            Arc::new(Float32Array::from_iter_values(self.lights.iter().map(|&l| f(l))))
-        };
-        let mut cols: Vec<ArrayRef> = vec![
-            Arc::new(UInt32Array::from_iter_values(0..self.lights.len() as u32)),
-            Arc::new(UInt32Array::from(self.lights.clone())),
-        ];
-        for v in 0..3 {
-            for a in 0..3 {
-                cols.push(col(&|l| self.tris[l as usize][v][a]));
-            }
-        }
-        for a in 0..3 {
-            cols.push(col(&|l| self.material_of(l).emission[a]));
-        }
-        cols.push(Arc::new(Float32Array::from_iter_values((0..self.lights.len()).map(|i| self.emitter_area(i)))));
-        RecordBatch::try_new(lights_schema(), cols)
+        // One derivation for every recorder (this crate's tracers, `rlSetTriangles`, Python).
+        store::scene::lights_from_triangles(&self.triangles_table()?)
     }
 
     /// The scene's camera as dataset attributes, for a `width` × `height` image.
@@ -207,6 +191,7 @@ pub fn load_scene(name: &str, camera: Option<Camera>, subdivide: u32) -> Result<
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::sync::Arc;
 
     #[test]
     fn triangles_table_round_trips_every_builtin_scene() {
@@ -220,7 +205,16 @@ mod tests {
             for p in 0..s.tris.len() as u32 {
                 assert_eq!(back.material_of(p), s.material_of(p));
             }
-            assert_eq!(store::scene::check_table("lights", &s.lights_table().unwrap().schema()), Ok(()));
+            let lights = s.lights_table().unwrap();
+            assert_eq!(store::scene::check_table("lights", &lights.schema()), Ok(()));
+            // The emitters the tracers sample, in order, with the areas they weigh them by.
+            assert_eq!(lights.num_rows(), s.lights.len());
+            let prim = lights.column_by_name(col::PRIM).unwrap().as_primitive::<arrow::datatypes::UInt32Type>();
+            let area = lights.column_by_name(col::AREA).unwrap().as_primitive::<arrow::datatypes::Float32Type>();
+            for (i, &l) in s.lights.iter().enumerate() {
+                assert_eq!(prim.value(i), l);
+                assert!((area.value(i) - s.emitter_area(i)).abs() <= 1e-6 * s.emitter_area(i).max(1.0));
+            }
         }
     }
 

@@ -74,7 +74,9 @@ int64_t rlEndTree(rl_recorder *rec);
 /* The scene, so a viewer can draw the dataset (the `triangles` table): `count` triangles of 9
  * floats each in `vertices` (v0, v1, v2), one material index per triangle in `materials`, and
  * `material_count` materials of 3 floats of diffuse colour (`colors`) and 3 of emission
- * (`emission`), named by `names` (`material_count` strings, or NULL). */
+ * (`emission`), named by `names` (`material_count` strings, or NULL). The triangles whose
+ * material emits (any channel > 0) are also written as the `lights` table, so the SQL function
+ * `aims_at_light` (the paper's wrong-shadow query) knows the renderer's emitters. */
 int rlSetTriangles(rl_recorder *rec, size_t count, const float *vertices, const uint32_t *materials,
                    size_t material_count, const float *colors, const float *emission, const char *const *names);
 /* The camera the image was rendered with: position, target, up (3 floats each), vertical field

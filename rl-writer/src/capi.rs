@@ -261,7 +261,10 @@ pub unsafe extern "C" fn rlSetTriangles(
         }
         let batch =
             store::scene::triangles_from_arrays(v, m, c, e, &mat_names).map_err(|e| format!("rlSetTriangles: {e}"))?;
+        // The emissive triangles as the emitters (`aims_at_light`, the paper's query, reads them).
+        let lights = store::scene::lights_from_triangles(&batch).map_err(|e| format!("rlSetTriangles: {e}"))?;
         rec.rec.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(|e| e.to_string())?;
+        rec.rec.write_table(store::scene::LIGHTS_TABLE, lights).map_err(|e| e.to_string())?;
         Ok(0)
     })
 }

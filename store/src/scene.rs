@@ -139,6 +139,58 @@ pub fn triangles_from_arrays(
     triangles_batch(&rows).map_err(|e| e.to_string())
 }
 
+/// The `lights` table of a `triangles` table (one built by [`triangles_batch`]): every triangle
+/// whose emission is positive in some channel, in triangle order, with its area, as rtvtk's
+/// tracers list their emitters. The recording APIs (`rlSetTriangles`, the Python package's
+/// `set_scene`) write it beside the triangles, so `aims_at_light` knows another renderer's
+/// emitters.
+pub fn lights_from_triangles(
+    triangles: &arrow::array::RecordBatch,
+) -> Result<arrow::array::RecordBatch, arrow::error::ArrowError> {
+    use arrow::array::{Array, ArrayRef, AsArray, Float32Array, UInt32Array};
+    use arrow::datatypes::{Float32Type, UInt32Type};
+    use arrow::error::ArrowError;
+    let f32s = |name: &str| -> Result<&Float32Array, ArrowError> {
+        triangles.column_by_name(name).and_then(|c| c.as_primitive_opt::<Float32Type>()).ok_or_else(|| {
+            ArrowError::SchemaError(format!("table `triangles`: column `{name}` missing or not Float32"))
+        })
+    };
+    let prim =
+        triangles.column_by_name(col::PRIM).and_then(|c| c.as_primitive_opt::<UInt32Type>()).ok_or_else(|| {
+            ArrowError::SchemaError(format!("table `triangles`: column `{}` missing or not UInt32", col::PRIM))
+        })?;
+    let (er, eg, eb) = (f32s(col::EMISSION[0])?, f32s(col::EMISSION[1])?, f32s(col::EMISSION[2])?);
+    let mut vertex = Vec::with_capacity(9);
+    for name in col::VERTEX.iter().flatten() {
+        vertex.push(f32s(name)?);
+    }
+    let rows: Vec<usize> =
+        (0..triangles.num_rows()).filter(|&r| er.value(r).max(eg.value(r)).max(eb.value(r)) > 0.0).collect();
+    let n = u32::try_from(rows.len()).map_err(|_| ArrowError::ComputeError("too many emissive triangles".into()))?;
+    let mut cols: Vec<ArrayRef> = vec![
+        Arc::new(UInt32Array::from_iter_values(0..n)),
+        Arc::new(UInt32Array::from_iter_values(rows.iter().map(|&r| prim.value(r)))),
+    ];
+    for v in &vertex {
+        cols.push(Arc::new(Float32Array::from_iter_values(rows.iter().map(|&r| v.value(r)))));
+    }
+    for e in [er, eg, eb] {
+        cols.push(Arc::new(Float32Array::from_iter_values(rows.iter().map(|&r| e.value(r)))));
+    }
+    let area = rows.iter().map(|&r| {
+        let p = |k: usize| [vertex[k * 3].value(r), vertex[k * 3 + 1].value(r), vertex[k * 3 + 2].value(r)];
+        let (a, b, c) = (p(0), p(1), p(2));
+        let (e1, e2) = ([b[0] - a[0], b[1] - a[1], b[2] - a[2]], [c[0] - a[0], c[1] - a[1], c[2] - a[2]]);
+        let x = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
+        0.5 * (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt()
+    });
+    cols.push(Arc::new(Float32Array::from_iter_values(area)));
+    if prim.null_count() > 0 {
+        return Err(ArrowError::InvalidArgumentError("table `triangles`: `prim` has nulls".into()));
+    }
+    arrow::array::RecordBatch::try_new(lights_schema(), cols)
+}
+
 /// Schema of the `lights` table: every emissive triangle with its vertices, emission and area.
 pub fn lights_schema() -> SchemaRef {
     let mut fields =
@@ -337,6 +389,33 @@ mod tests {
         m.insert(attr::CAMERA_UP.into(), "0,1,0".into());
         m.insert(attr::WIDTH.into(), "0".into());
         assert!(CameraAttrs::from_attributes(&m).unwrap_err().contains("width"));
+    }
+
+    #[test]
+    fn emissive_triangles_become_the_lights_table() {
+        use arrow::array::AsArray;
+        use arrow::datatypes::{Float32Type, UInt32Type};
+        // A floor triangle (grey), a light triangle of area 2 and a dark one.
+        let v = [
+            0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 5.0, 0.0, 2.0, 5.0, 0.0, 0.0, 5.0, 2.0, 0.0, 1.0, 0.0,
+            1.0, 1.0, 0.0, 0.0, 1.0, 1.0,
+        ];
+        let names = ["grey".to_string(), "lamp".to_string(), "black".to_string()];
+        let colors = [0.5; 9];
+        let emission = [0.0, 0.0, 0.0, 4.0, 3.0, 2.0, 0.0, 0.0, 0.0];
+        let tris = triangles_from_arrays(&v, &[0, 1, 2], &colors, &emission, &names).unwrap();
+        let lights = lights_from_triangles(&tris).unwrap();
+        assert_eq!(check_table(LIGHTS_TABLE, &lights.schema()), Ok(()));
+        assert_eq!(lights.num_rows(), 1);
+        let prim = lights.column_by_name(col::PRIM).unwrap().as_primitive::<UInt32Type>();
+        assert_eq!(prim.value(0), 1);
+        let f = |n: &str| lights.column_by_name(n).unwrap().as_primitive::<Float32Type>().value(0);
+        assert_eq!((f("emission_r"), f("emission_g"), f("emission_b")), (4.0, 3.0, 2.0));
+        assert!((f(col::AREA) - 2.0).abs() < 1e-6);
+        assert_eq!(f("v1_x"), 2.0);
+        // No emitter: an empty table, still of the lights schema.
+        let dark = triangles_from_arrays(&v[..9], &[0], &colors[..3], &[0.0; 3], &names[..1]).unwrap();
+        assert_eq!(lights_from_triangles(&dark).unwrap().num_rows(), 0);
     }
 
     #[test]
