@@ -18,7 +18,8 @@ fi
 pip=("$venv/bin/pip" install --quiet --disable-pip-version-check)
 "${pip[@]}" --upgrade pip
 "${pip[@]}" pytest pandas duckdb pillow
-CARGO_TARGET_DIR="$target" MATURIN_PEP517_ARGS="--profile dev --compatibility linux" "${pip[@]}" ./python
+# With the optional Mitsuba 3 dependency (rtvtk.mitsuba and its tests).
+CARGO_TARGET_DIR="$target" MATURIN_PEP517_ARGS="--profile dev --compatibility linux" "${pip[@]}" "./python[mitsuba]"
 "$venv/bin/python" -c "import rtvtk, sys; print('rtvtk', rtvtk.__version__, 'installed in', sys.prefix)"
 # `import rtvtk` is the installed package: python/ itself is not on sys.path.
 RTVTK_BIN="$target/debug/rtvtk" "$venv/bin/python" -m pytest -q python/tests

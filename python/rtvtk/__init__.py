@@ -21,6 +21,7 @@ from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute  # noqa: F401  (pa.compute)
 
 from . import _rtvtk
 from ._rtvtk import DatasetError, Error, InternalError, QueryError, RecordError, RenderError
@@ -177,6 +178,19 @@ def _progress(enabled: bool, desc: str, unit: str) -> Iterator[Optional[_Progres
         bar.close()
 
 
+def _unique_dictionaries(batch: pa.RecordBatch) -> pa.RecordBatch:
+    """The batch with every dictionary column's dictionary free of repeats. The engine may
+    hand a grouped or sorted `kind` column over with a dictionary that repeats values (valid
+    Arrow), which pandas refuses as categories; such a column is encoded again."""
+    columns = list(batch.columns)
+    changed = False
+    for i, c in enumerate(columns):
+        if pa.types.is_dictionary(c.type) and len(c.dictionary) > len(pa.compute.unique(c.dictionary)):
+            columns[i] = c.dictionary_decode().dictionary_encode().cast(c.type)
+            changed = True
+    return pa.RecordBatch.from_arrays(columns, schema=batch.schema) if changed else batch
+
+
 def _batches(native_stream: Any, reader: pa.RecordBatchReader, bar: Optional[_Progress]) -> Iterator[pa.RecordBatch]:
     """A query's batches as they arrive; the stream's own failure (Ctrl-C, the engine's error)
     raised as itself rather than as pyarrow's wrapping of it."""
@@ -184,7 +198,7 @@ def _batches(native_stream: Any, reader: pa.RecordBatchReader, bar: Optional[_Pr
         for batch in reader:
             if bar is not None:
                 bar.add(batch.num_rows)
-            yield batch
+            yield _unique_dictionaries(batch)
     except Exception as e:
         failure = native_stream.failure()
         if failure is not None:
@@ -504,6 +518,16 @@ class Recorder:
         the image size."""
         self._check_open()
         self._native.set_camera(list(map(float, position)), list(map(float, target)), list(map(float, up)), float(fov_y), int(width), int(height))
+
+    def set_image(self, rgb: Any) -> None:
+        """The renderer's own picture of the recording, (height, width, 3) linear RGB: written
+        beside the trace (``image.png`` tone mapped, ``image.exr`` linear) and shown by the
+        image layer."""
+        self._check_open()
+        img = np.ascontiguousarray(rgb, dtype=np.float32)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise RecordError(f"set_image: expected (height, width, 3) RGB, got shape {img.shape}")
+        self._native.set_image(int(img.shape[1]), int(img.shape[0]), img)
 
     def set_attributes(self, attributes: Mapping[str, str]) -> None:
         """Attributes of the recording (``{"image.png": "image.png"}`` names its picture)."""

@@ -606,6 +606,8 @@ struct NativeRecorder {
     kinds: Mutex<HashMap<String, Kind>>,
     /// Immediate mode: the trace in memory, queryable while recording.
     memory: Option<rl::MemoryTrace>,
+    /// Write mode: the dataset directory (pictures are written beside the trace).
+    dir: Option<std::path::PathBuf>,
 }
 
 fn options(payload: Vec<(String, String)>) -> PyResult<RecorderOptions> {
@@ -666,14 +668,14 @@ impl NativeRecorder {
     fn create(py: Python<'_>, path: String, payload: Vec<(String, String)>) -> PyResult<NativeRecorder> {
         let options = options(payload)?;
         let rec = py.detach(|| Recorder::create(&path, options)).map_err(record_err)?;
-        Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: None })
+        Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: None, dir: Some(path.into()) })
     }
 
     /// Immediate mode: the trace stays in memory.
     #[staticmethod]
     fn immediate(payload: Vec<(String, String)>) -> PyResult<NativeRecorder> {
         let (rec, memory) = Recorder::immediate(options(payload)?).map_err(record_err)?;
-        Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: Some(memory) })
+        Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: Some(memory), dir: None })
     }
 
     /// The payload columns as declared, `[(name, spec)]`.
@@ -828,6 +830,24 @@ impl NativeRecorder {
         let attrs: std::collections::BTreeMap<String, String> = cam.to_attributes().into_iter().collect();
         store::scene::CameraAttrs::from_attributes(&attrs).map_err(record_err)?;
         self.with(|r| r.set_attributes(cam.to_attributes()).map_err(record_err))
+    }
+
+    /// The renderer's picture of the recording: `width` × `height` linear RGB floats, written
+    /// beside the trace as `image.png` (sRGB, clamped) and `image.exr` (linear), and named by the
+    /// manifest, so the image layer shows the renderer's own picture.
+    fn set_image(&self, py: Python<'_>, width: u32, height: u32, rgb: &Bound<'_, PyAny>) -> PyResult<()> {
+        let dir =
+            self.dir.clone().ok_or_else(|| record_err("set_image: an immediate-mode recording has no directory"))?;
+        let want = width as usize * height as usize * 3;
+        let rgb: Vec<f32> = elements(rgb, "image (float32, height x width x 3)", want)?;
+        let film = renderers::film::Film::from_rgb(width, height, &rgb).map_err(record_err)?;
+        py.detach(|| -> renderers::Result<()> {
+            film.write_png(&dir.join("image.png"), 1.0)?;
+            film.write_exr(&dir.join("image.exr"))
+        })
+        .map_err(record_err)?;
+        let names = [store::scene::attr::IMAGE_PNG, store::scene::attr::IMAGE_EXR];
+        self.with(|r| r.set_attributes(names.map(|n| (n.to_string(), n.to_string()))).map_err(record_err))
     }
 
     /// Attributes of the recording (`image.png` names its picture, for example).

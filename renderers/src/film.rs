@@ -25,6 +25,20 @@ impl Film {
         Film { width, height, pixels: vec![Vec3A::ZERO; width as usize * height as usize] }
     }
 
+    /// A film from `width` × `height` linear RGB triples, row-major from the top-left pixel
+    /// (another renderer's image, handed over as flat floats).
+    pub fn from_rgb(width: u32, height: u32, rgb: &[f32]) -> Result<Film> {
+        let n = width as usize * height as usize;
+        if width == 0 || height == 0 || rgb.len() != n * 3 {
+            return Err(Error::Settings(format!(
+                "a {width}x{height} image needs {} floats (RGB per pixel), got {}",
+                n * 3,
+                rgb.len()
+            )));
+        }
+        Ok(Film { width, height, pixels: rgb.chunks_exact(3).map(|c| Vec3A::new(c[0], c[1], c[2])).collect() })
+    }
+
     pub fn get(&self, x: u32, y: u32) -> Vec3A {
         self.pixels[(y * self.width + x) as usize]
     }
