@@ -2,6 +2,7 @@
 # ones are installed when this runs as root (or with password-less sudo) and apt-get exists;
 # otherwise the script stops naming them. Nothing here is skipped: every test runs everywhere.
 #   gcc, libc6-dev                the C ABI test compiles a C tracer
+#   g++                           the C++ example renderer (rl-writer/examples) is built and run
 #   python3, python3-pip          DuckDB and the ADBC Flight SQL driver (installed from PyPI below)
 #   python3-venv                  the Python package's wheel is tested in a fresh venv
 #   mesa-vulkan-drivers           lavapipe: the visualizer's pictures on Vulkan
@@ -11,6 +12,7 @@
 rtvtk_missing_packages() {
   local need=()
   command -v cc >/dev/null || need+=(gcc libc6-dev)
+  command -v c++ >/dev/null || need+=(g++)
   { command -v python3 >/dev/null && python3 -m pip --version >/dev/null 2>&1; } || need+=(python3 python3-pip)
   python3 -c "import ensurepip, venv" >/dev/null 2>&1 || need+=(python3-venv)
   ls /usr/share/vulkan/icd.d/*.json >/dev/null 2>&1 || need+=(mesa-vulkan-drivers libvulkan1)

@@ -497,20 +497,35 @@ class Recorder:
             )
         )
 
-    def set_scene(self, vertices: Any, materials: Any, colors: Any, emission: Any, names: Optional[Sequence[str]] = None) -> None:
+    def set_scene(
+        self,
+        vertices: Any,
+        materials: Any,
+        colors: Any,
+        emission: Any,
+        names: Optional[Sequence[str]] = None,
+        point_lights: Optional[Tuple[Any, Any]] = None,
+    ) -> None:
         """The scene's triangles so the viewer can draw it: ``vertices`` (n, 3, 3), ``materials``
-        (n,) indices into the per-material ``colors`` and ``emission`` (m, 3); emissive
-        triangles become the ``lights`` table (the paper's wrong-shadow query reads it)."""
+        (n,) indices into the per-material ``colors`` and ``emission`` (m, 3). Emissive
+        triangles and ``point_lights`` (``(positions, intensities)``, (k, 3) each) become the
+        ``lights`` table (the paper's wrong-shadow query reads it)."""
         self._check_open()
         colors = np.ascontiguousarray(colors, dtype=np.float32)
         m = colors.shape[0] if colors.ndim > 1 else colors.size // 3
         names = list(names) if names is not None else [f"material{i}" for i in range(m)]
+        points: Tuple[Any, Any] = (None, None)
+        if point_lights is not None:
+            positions, intensities = point_lights
+            points = (np.ascontiguousarray(positions, dtype=np.float32).reshape(-1, 3), np.ascontiguousarray(intensities, dtype=np.float32).reshape(-1, 3))
         self._native.set_triangles(
             np.ascontiguousarray(vertices, dtype=np.float32),
             np.ascontiguousarray(materials, dtype=np.uint32),
             colors,
             np.ascontiguousarray(emission, dtype=np.float32),
             names,
+            points[0],
+            points[1],
         )
 
     def set_camera(self, position: Sequence[float], target: Sequence[float], up: Sequence[float], fov_y: float, width: int, height: int) -> None:

@@ -14,8 +14,9 @@ importance sampling by the power heuristic, Russian roulette from ``rr_depth``) 
   the ray adds to its pixel: emission it hits, weighted, or its emitter sample's contribution),
   so ``sum(radiance) / spp`` per pixel is the image;
 - Mitsuba's geometry (each mesh's triangles in world space, its BSDF's reflectance and its
-  area emitter's radiance), so the emissive triangles become the ``lights`` table, and its
-  camera (``to_world``, field of view, film size) as the dataset's camera.
+  area emitter's radiance), so the emissive triangles and the point emitters become the
+  ``lights`` table, its camera (``to_world``, field of view, film size) as the dataset's camera,
+  and its picture.
 
 Mitsuba is an optional dependency: ``pip install ./python[mitsuba]``. The scalar variant
 (``scalar_rgb``) is selected when no variant is set.
@@ -144,6 +145,19 @@ def _geometry(mi: Any, scene: Any) -> Tuple[np.ndarray, np.ndarray, np.ndarray, 
         offsets,
         skipped,
     )
+
+
+def _point_lights(mi: Any, scene: Any) -> Optional[Tuple[np.ndarray, np.ndarray]]:
+    """Mitsuba's point emitters: positions and intensities (k, 3), or None without any."""
+    positions, intensities = [], []
+    for e in scene.emitters():
+        params = mi.traverse(e)
+        if mi.has_flag(e.flags(), mi.EmitterFlags.DeltaPosition) and "position" in params:
+            positions.append(_rgb(params["position"]))
+            intensities.append(_rgb(params["intensity.value"]) if "intensity.value" in params else [1.0, 1.0, 1.0])
+    if not positions:
+        return None
+    return np.asarray(positions, np.float32), np.asarray(intensities, np.float32)
 
 
 def _camera(mi: Any, sensor: Any) -> Tuple[List[float], List[float], List[float], float, int, int]:
@@ -347,7 +361,7 @@ def record(
     code = {k: i for i, k in enumerate(kinds)}
     rec = Recorder(out, payload={"throughput": "f32x3", "radiance": "f32x3"})
     try:
-        rec.set_scene(tris, mats, colors, emission, names)
+        rec.set_scene(tris, mats, colors, emission, names, point_lights=_point_lights(mi, sc))
         rec.set_camera(pos, target, up, fov_y, w, h)
         rec.set_image(image)
         rec.set_attributes({"renderer": f"mitsuba {mi.__version__} ({mi.variant()}), path integrator in rtvtk.mitsuba", "spp": str(spp), "max_depth": str(max_depth), "inject_bug": bug or "none"})

@@ -788,7 +788,11 @@ impl NativeRecorder {
     }
 
     /// The scene's triangles: `vertices` (n × 3 × 3 float32), `materials` (n uint32 indices),
-    /// per material its RGB colour and emission (m × 3 float32) and name.
+    /// per material its RGB colour and emission (m × 3 float32) and name; and point lights,
+    /// positions and RGB intensities (k × 3 float32 each). The emissive triangles and the point
+    /// lights become the `lights` table.
+    #[allow(clippy::too_many_arguments)]
+    #[pyo3(signature = (vertices, materials, colors, emission, names, point_positions=None, point_intensities=None))]
     fn set_triangles(
         &self,
         vertices: &Bound<'_, PyAny>,
@@ -796,6 +800,8 @@ impl NativeRecorder {
         colors: &Bound<'_, PyAny>,
         emission: &Bound<'_, PyAny>,
         names: Vec<String>,
+        point_positions: Option<&Bound<'_, PyAny>>,
+        point_intensities: Option<&Bound<'_, PyAny>>,
     ) -> PyResult<()> {
         let m = names.len();
         let n = PyBuffer::<u32>::get(materials)
@@ -805,11 +811,28 @@ impl NativeRecorder {
         let mats: Vec<u32> = elements(materials, "materials (uint32)", n)?;
         let c: Vec<f32> = elements(colors, "colors (float32, m x 3)", m * 3)?;
         let e: Vec<f32> = elements(emission, "emission (float32, m x 3)", m * 3)?;
+        let points = match (point_positions, point_intensities) {
+            (None, None) => Vec::new(),
+            (Some(p), Some(i)) => {
+                let k = PyBuffer::<f32>::get(p)
+                    .map(|b| b.item_count() / 3)
+                    .map_err(|e| record_err(format!("point light positions: expected float32 values: {e}")))?;
+                let p: Vec<f32> = elements(p, "point light positions (float32, k x 3)", k * 3)?;
+                let i: Vec<f32> = elements(i, "point light intensities (float32, k x 3)", k * 3)?;
+                (0..k)
+                    .map(|j| store::scene::PointLight {
+                        position: [p[j * 3], p[j * 3 + 1], p[j * 3 + 2]],
+                        intensity: [i[j * 3], i[j * 3 + 1], i[j * 3 + 2]],
+                    })
+                    .collect()
+            }
+            _ => return Err(record_err("point lights need both positions and intensities")),
+        };
         let batch = store::scene::triangles_from_arrays(&v, &mats, &c, &e, &names)
             .map_err(|e| record_err(format!("set_triangles: {e}")))?;
-        // The emitters as the renderers list them (the paper's wrong-shadow query reads them).
+        // The emitters (the paper's wrong-shadow query reads them).
         let lights =
-            store::scene::lights_from_triangles(&batch).map_err(|e| record_err(format!("set_triangles: {e}")))?;
+            store::scene::lights_table(Some(&batch), &points).map_err(|e| record_err(format!("set_scene: {e}")))?;
         self.with(|r| {
             r.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(record_err)?;
             r.write_table(store::scene::LIGHTS_TABLE, lights).map_err(record_err)

@@ -40,6 +40,29 @@ enum {
 /* Pass as `prim` to rlAddRay for a ray that missed (its t is then ignored). */
 #define RL_MISS (-1)
 
+/* Element types of typed payload columns (rl_column.type). */
+enum {
+    RL_F32 = 1,
+    RL_F64 = 2,
+    RL_I32 = 3,
+    RL_U32 = 4,
+    RL_I64 = 5,
+    RL_U64 = 6,
+    RL_U8 = 7,
+    RL_U16 = 8
+};
+
+/* A typed payload column: `count` values of `type` per ray (3 x RL_F32 is a vec3). The name is
+ * copied; it becomes a column of the `rays` table (SQL: `SELECT throughput FROM rays`). */
+typedef struct {
+    const char *name;
+    int32_t type;
+    uint32_t count;
+} rl_column;
+
+/* rlSetCameraMatrix's field-of-view axis. */
+enum { RL_FOV_X = 0, RL_FOV_Y = 1 };
+
 typedef struct {
     uint64_t id;
     uint32_t x, y, sample;
@@ -62,9 +85,23 @@ typedef struct {
 /* Write mode: a new dataset directory at `path` (must not exist or be empty).
  * `payload_size` > 0 declares a fixed-size opaque payload of that many bytes per ray. */
 rl_recorder *rlInit(const char *path, size_t payload_size);
+/* Write mode with typed payload: `column_count` columns (names distinct; copied), then
+ * `bytes_size` opaque bytes per ray (0: none). rlAddRay's payload is then one packed row: each
+ * column's values in order, native byte order, no padding between them (a
+ * `#pragma pack(1)` struct, or memcpy into a buffer), then the opaque bytes;
+ * rlPayloadRowSize gives its size. NULL (rlLastError says why) for a bad type, a zero count or
+ * a duplicate name. */
+rl_recorder *rlInitColumns(const char *path, const rl_column *columns, size_t column_count, size_t bytes_size);
+/* Bytes of one packed payload row of this recorder (typed columns, then opaque bytes). */
+int64_t rlPayloadRowSize(rl_recorder *rec);
 /* Registers a ray kind by name; returns its code (>= 16) or -1. */
 int32_t rlRegisterKind(rl_recorder *rec, const char *name);
 int rlBeginTree(rl_recorder *rec, uint32_t x, uint32_t y, uint32_t sample);
+/* Adds a ray to the current tree of this thread, as a child of the ray the last rlDescendTree
+ * went into (a root before). `t` is the hit distance in multiples of `direction` (world units
+ * for a unit direction), used when `prim` >= 0; `prim` RL_MISS for a miss. `payload` is one
+ * packed row of rlPayloadRowSize bytes (or NULL with 0: no payload, the columns null); a row
+ * of another size is refused. Copies everything; safe from many threads at once. */
 int rlAddRay(rl_recorder *rec, const float origin[3], const float direction[3], float t, int32_t kind,
              int64_t prim, const void *payload, size_t payload_size);
 int rlDescendTree(rl_recorder *rec);
@@ -75,8 +112,9 @@ int64_t rlEndTree(rl_recorder *rec);
  * floats each in `vertices` (v0, v1, v2), one material index per triangle in `materials`, and
  * `material_count` materials of 3 floats of diffuse colour (`colors`) and 3 of emission
  * (`emission`), named by `names` (`material_count` strings, or NULL). The triangles whose
- * material emits (any channel > 0) are also written as the `lights` table, so the SQL function
- * `aims_at_light` (the paper's wrong-shadow query) knows the renderer's emitters. */
+ * material emits (any channel > 0) are also the `lights` table (written at the next rlFlush or
+ * rlFinish, with rlSetPointLights' lights), so the SQL function `aims_at_light` (the paper's
+ * wrong-shadow query) knows the renderer's emitters. Copies everything. */
 int rlSetTriangles(rl_recorder *rec, size_t count, const float *vertices, const uint32_t *materials,
                    size_t material_count, const float *colors, const float *emission, const char *const *names);
 /* The camera the image was rendered with: position, target, up (3 floats each), vertical field
@@ -85,7 +123,21 @@ int rlSetTriangles(rl_recorder *rec, size_t count, const float *vertices, const 
  * sx = (2 px / width - 1) tan(fov_y / 2) width / height, sy = (1 - 2 py / height) tan(fov_y / 2). */
 int rlSetCamera(rl_recorder *rec, const float position[3], const float target[3], const float up[3], float fov_y,
                 uint32_t width, uint32_t height);
-/* Seals every ended tree to disk. */
+/* Point lights (beside the emissive triangles of rlSetTriangles, which are lights already):
+ * `count` positions and RGB intensities, 3 floats each, finite, intensities >= 0. They replace
+ * the point lights set before. A point light is a row of the `lights` table whose three
+ * vertices are its position; `aims_at_light` accepts a ray within 1e-5 rad of it. The `lights`
+ * table is written at the next rlFlush or rlFinish. */
+int rlSetPointLights(rl_recorder *rec, size_t count, const float *positions, const float *intensities);
+/* The camera as a 4x4 camera-to-world matrix (16 floats, row-major; its last column the
+ * position, its columns 0-2 the camera's x, y, z axes in world space), with +y up and the view
+ * along +z (`forward_z` = 1, pbrt and Mitsuba) or -z (-1, OpenGL); `fov` in degrees across the
+ * RL_FOV_X or RL_FOV_Y axis; the image size. Stored as rlSetCamera's look-at camera, whose
+ * right is forward x up: a camera whose x axis points the other way (pbrt's left-handed
+ * camera space) negates its x column first. */
+int rlSetCameraMatrix(rl_recorder *rec, const float camera_to_world[16], float forward_z, float fov, int32_t fov_axis,
+                      uint32_t width, uint32_t height);
+/* Seals every ended tree to disk (and the lights table, if it changed). */
 int rlFlush(rl_recorder *rec);
 /* Seals everything, frees the recorder, and reports any error of the recording. */
 int rlFinish(rl_recorder *rec);

@@ -15,6 +15,145 @@ use crate::{BytesPayload, Kind, Payload, PayloadSchema, RayFields, Reader, Recor
 pub struct RlRecorder {
     rec: Recorder,
     id: usize,
+    /// The typed payload columns as `rlAddRay` reads them from a packed row.
+    columns: Vec<Column>,
+    /// Bytes of one packed payload row: the typed columns, then the opaque bytes.
+    row_size: usize,
+    /// The scene's triangles and point lights, from which the `lights` table is written (at
+    /// `rlFlush` and `rlFinish`, when they changed).
+    scene: std::sync::Mutex<SceneLights>,
+}
+
+#[derive(Default)]
+struct SceneLights {
+    triangles: Option<arrow::array::RecordBatch>,
+    points: Vec<store::scene::PointLight>,
+    changed: bool,
+}
+
+/// A typed payload column of `rlInitColumns`: its element type and how many per ray.
+#[derive(Clone, Copy, Debug)]
+struct Column {
+    element: Element,
+    count: usize,
+}
+
+/// Element types of `rl_column.type` (`RL_F32` ...).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Element {
+    F32,
+    F64,
+    I32,
+    U32,
+    I64,
+    U64,
+    U8,
+    U16,
+}
+
+impl Element {
+    fn of(code: i32) -> Option<(Element, crate::DataType)> {
+        use crate::DataType as D;
+        Some(match code {
+            1 => (Element::F32, D::Float32),
+            2 => (Element::F64, D::Float64),
+            3 => (Element::I32, D::Int32),
+            4 => (Element::U32, D::UInt32),
+            5 => (Element::I64, D::Int64),
+            6 => (Element::U64, D::UInt64),
+            7 => (Element::U8, D::UInt8),
+            8 => (Element::U16, D::UInt16),
+            _ => return None,
+        })
+    }
+
+    fn size(self) -> usize {
+        match self {
+            Element::U8 => 1,
+            Element::U16 => 2,
+            Element::F32 | Element::I32 | Element::U32 => 4,
+            Element::F64 | Element::I64 | Element::U64 => 8,
+        }
+    }
+}
+
+/// A typed payload column as `rl.h` declares it.
+#[repr(C)]
+pub struct RlColumn {
+    pub name: *const c_char,
+    pub element: i32,
+    pub count: u32,
+}
+
+/// The typed values of one packed payload row, in owned buffers the `Value`s borrow.
+#[derive(Default)]
+struct Decoded {
+    f32s: Vec<f32>,
+    f64s: Vec<f64>,
+    i32s: Vec<i32>,
+    u32s: Vec<u32>,
+    i64s: Vec<i64>,
+    u64s: Vec<u64>,
+    u8s: Vec<u8>,
+    u16s: Vec<u16>,
+}
+
+impl Decoded {
+    /// Reads every column of `row` (packed, native byte order, no padding) into the buffers.
+    fn read(&mut self, columns: &[Column], row: &[u8]) {
+        macro_rules! take {
+            ($buf:expr, $t:ty, $at:expr, $n:expr) => {
+                $buf.extend(
+                    row[$at..$at + $n * std::mem::size_of::<$t>()]
+                        .chunks_exact(std::mem::size_of::<$t>())
+                        .map(|c| <$t>::from_ne_bytes(c.try_into().unwrap_or_default())),
+                )
+            };
+        }
+        *self = Decoded::default();
+        let mut at = 0;
+        for c in columns {
+            match c.element {
+                Element::F32 => take!(self.f32s, f32, at, c.count),
+                Element::F64 => take!(self.f64s, f64, at, c.count),
+                Element::I32 => take!(self.i32s, i32, at, c.count),
+                Element::U32 => take!(self.u32s, u32, at, c.count),
+                Element::I64 => take!(self.i64s, i64, at, c.count),
+                Element::U64 => take!(self.u64s, u64, at, c.count),
+                Element::U8 => take!(self.u8s, u8, at, c.count),
+                Element::U16 => take!(self.u16s, u16, at, c.count),
+            }
+            at += c.element.size() * c.count;
+        }
+    }
+
+    /// The values, one per column (a list for a column of more than one element).
+    fn values(&self, columns: &[Column]) -> Vec<crate::Value<'_>> {
+        use crate::{ListValue, Value};
+        let mut next = [0usize; 8];
+        let mut out = Vec::with_capacity(columns.len());
+        for c in columns {
+            let n = c.count;
+            macro_rules! pick {
+                ($k:expr, $buf:expr, $scalar:ident) => {{
+                    let s = &$buf[next[$k]..next[$k] + n];
+                    next[$k] += n;
+                    if n == 1 { Value::$scalar(s[0]) } else { Value::List(ListValue::$scalar(s)) }
+                }};
+            }
+            out.push(match c.element {
+                Element::F32 => pick!(0, self.f32s, F32),
+                Element::F64 => pick!(1, self.f64s, F64),
+                Element::I32 => pick!(2, self.i32s, I32),
+                Element::U32 => pick!(3, self.u32s, U32),
+                Element::I64 => pick!(4, self.i64s, I64),
+                Element::U64 => pick!(5, self.u64s, U64),
+                Element::U8 => pick!(6, self.u8s, U8),
+                Element::U16 => pick!(7, self.u16s, U16),
+            });
+        }
+        out
+    }
 }
 
 /// Opaque reader handle (`rl_reader`).
@@ -49,6 +188,8 @@ pub struct RlRay {
 
 thread_local! {
     static LAST_ERROR: RefCell<CString> = RefCell::new(CString::default());
+    /// The typed payload of the ray being added (reused, so `rlAddRay` allocates once per thread).
+    static DECODED: RefCell<Decoded> = RefCell::new(Decoded::default());
     /// Open trees of this thread, with the id of the recorder each belongs to.
     static OPEN: RefCell<Vec<(usize, TreeBuilder)>> = const { RefCell::new(Vec::new()) };
 }
@@ -96,20 +237,76 @@ fn with_tree<T>(id: usize, f: impl FnOnce(&mut TreeBuilder) -> T) -> Result<T, S
     })
 }
 
+/// A recorder at `path` with typed payload `columns` and `bytes_size` opaque bytes per ray.
+fn make_recorder(
+    path: &str,
+    columns: Vec<(String, Column, crate::DataType)>,
+    bytes_size: usize,
+) -> Result<*mut RlRecorder, String> {
+    let bytes = (bytes_size > 0).then_some(BytesPayload::Fixed(bytes_size));
+    let fields = columns
+        .iter()
+        .map(|(name, c, t)| crate::PayloadField {
+            name: name.clone(),
+            element: t.clone(),
+            list_len: (c.count > 1).then_some(c.count),
+        })
+        .collect();
+    let payload = PayloadSchema::new(fields, bytes).map_err(|e| e.to_string())?;
+    let options = RecorderOptions { payload, ..Default::default() };
+    let rec = Recorder::create(path, options).map_err(|e| e.to_string())?;
+    let row_size = columns.iter().map(|(_, c, _)| c.element.size() * c.count).sum::<usize>() + bytes_size;
+    let columns = columns.into_iter().map(|(_, c, _)| c).collect();
+    let boxed = Box::new(RlRecorder { rec, id: 0, columns, row_size, scene: Default::default() });
+    let ptr = Box::into_raw(boxed);
+    // SAFETY: just allocated.
+    unsafe { (*ptr).id = ptr as usize };
+    Ok(ptr)
+}
+
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn rlInit(path: *const c_char, payload_size: usize) -> *mut RlRecorder {
     guard(std::ptr::null_mut(), || {
         // SAFETY: forwarded caller contract.
         let path = unsafe { path_arg(path) }?;
-        let bytes = (payload_size > 0).then_some(BytesPayload::Fixed(payload_size));
-        let payload = PayloadSchema::new(Vec::new(), bytes).map_err(|e| e.to_string())?;
-        let options = RecorderOptions { payload, ..Default::default() };
-        let rec = Recorder::create(&path, options).map_err(|e| e.to_string())?;
-        let boxed = Box::new(RlRecorder { rec, id: 0 });
-        let ptr = Box::into_raw(boxed);
-        // SAFETY: just allocated.
-        unsafe { (*ptr).id = ptr as usize };
-        Ok(ptr)
+        make_recorder(&path, Vec::new(), payload_size)
+    })
+}
+
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlInitColumns(
+    path: *const c_char,
+    columns: *const RlColumn,
+    column_count: usize,
+    bytes_size: usize,
+) -> *mut RlRecorder {
+    guard(std::ptr::null_mut(), || {
+        // SAFETY: forwarded caller contract.
+        let path = unsafe { path_arg(path) }?;
+        // SAFETY: `column_count` columns at `columns`.
+        let cols = unsafe { slice_arg(columns, column_count, "columns") }?;
+        let mut out = Vec::with_capacity(cols.len());
+        for (i, c) in cols.iter().enumerate() {
+            // SAFETY: a NUL-terminated name per column.
+            let name = unsafe { path_arg(c.name) }.map_err(|e| format!("column {i}: name: {e}"))?;
+            let (element, t) = Element::of(c.element).ok_or_else(|| {
+                format!("column {i} ({name}): type {} is not one of RL_F32 .. RL_U16 (1 to 8)", c.element)
+            })?;
+            if c.count == 0 {
+                return Err(format!("column {i} ({name}): count 0 (at least one value per ray)"));
+            }
+            out.push((name, Column { element, count: c.count as usize }, t));
+        }
+        make_recorder(&path, out, bytes_size)
+    })
+}
+
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlPayloadRowSize(rec: *mut RlRecorder) -> i64 {
+    guard(-1, || {
+        // SAFETY: forwarded caller contract.
+        let rec = unsafe { rec_arg(rec) }?;
+        Ok(rec.row_size as i64)
     })
 }
 
@@ -156,12 +353,23 @@ pub unsafe extern "C" fn rlAddRay(
         let kind = u8::try_from(kind).map_err(|_| format!("kind {kind} out of range 0..=255"))?;
         // SAFETY: the caller passes 3 floats each.
         let (o, d) = unsafe { (*(origin as *const [f32; 3]), *(direction as *const [f32; 3])) };
-        let bytes = if payload.is_null() || payload_size == 0 {
+        let row = if payload.is_null() || payload_size == 0 {
             None
         } else {
             // SAFETY: the caller passes `payload_size` readable bytes.
             Some(unsafe { std::slice::from_raw_parts(payload as *const u8, payload_size) })
         };
+        let typed: usize = rec.columns.iter().map(|c| c.element.size() * c.count).sum();
+        if let Some(r) = row
+            && r.len() != rec.row_size
+        {
+            return Err(format!(
+                "payload of {} bytes: this recorder's row is {} bytes ({typed} of typed columns, then {} opaque)",
+                r.len(),
+                rec.row_size,
+                rec.row_size - typed
+            ));
+        }
         let fields = RayFields {
             origin: o,
             direction: d,
@@ -169,8 +377,18 @@ pub unsafe extern "C" fn rlAddRay(
             kind: Kind(kind),
             prim: u32::try_from(prim).ok(),
         };
-        with_tree(rec.id, |tree| {
-            tree.add_ray(&fields, Payload { values: &[], bytes });
+        DECODED.with(|decoded| {
+            let mut decoded = decoded.borrow_mut();
+            let (values, bytes) = match row {
+                Some(r) => {
+                    decoded.read(&rec.columns, &r[..typed]);
+                    (decoded.values(&rec.columns), (r.len() > typed).then(|| &r[typed..]))
+                }
+                None => (Vec::new(), None),
+            };
+            with_tree(rec.id, |tree| {
+                tree.add_ray(&fields, Payload { values: &values, bytes });
+            })
         })?;
         Ok(0)
     })
@@ -261,10 +479,92 @@ pub unsafe extern "C" fn rlSetTriangles(
         }
         let batch =
             store::scene::triangles_from_arrays(v, m, c, e, &mat_names).map_err(|e| format!("rlSetTriangles: {e}"))?;
-        // The emissive triangles as the emitters (`aims_at_light`, the paper's query, reads them).
-        let lights = store::scene::lights_from_triangles(&batch).map_err(|e| format!("rlSetTriangles: {e}"))?;
-        rec.rec.write_table(store::scene::TRIANGLES_TABLE, batch).map_err(|e| e.to_string())?;
-        rec.rec.write_table(store::scene::LIGHTS_TABLE, lights).map_err(|e| e.to_string())?;
+        // The emissive triangles become emitters (`aims_at_light`, the paper's query, reads the
+        // `lights` table): written with the point lights at the next flush or finish.
+        store::scene::lights_from_triangles(&batch).map_err(|e| format!("rlSetTriangles: {e}"))?;
+        rec.rec.write_table(store::scene::TRIANGLES_TABLE, batch.clone()).map_err(|e| e.to_string())?;
+        let mut scene = rec.scene.lock().unwrap_or_else(|p| p.into_inner());
+        scene.triangles = Some(batch);
+        scene.changed = true;
+        Ok(0)
+    })
+}
+
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlSetPointLights(
+    rec: *mut RlRecorder,
+    count: usize,
+    positions: *const f32,
+    intensities: *const f32,
+) -> i32 {
+    guard(-1, || {
+        // SAFETY: forwarded caller contract.
+        let rec = unsafe { rec_arg(rec) }?;
+        let n3 = count.checked_mul(3).ok_or("point light count overflows")?;
+        // SAFETY: 3 floats per light each, as rl.h documents.
+        let (p, i) = unsafe { (slice_arg(positions, n3, "positions")?, slice_arg(intensities, n3, "intensities")?) };
+        let points: Vec<store::scene::PointLight> = (0..count)
+            .map(|k| store::scene::PointLight {
+                position: [p[k * 3], p[k * 3 + 1], p[k * 3 + 2]],
+                intensity: [i[k * 3], i[k * 3 + 1], i[k * 3 + 2]],
+            })
+            .collect();
+        store::scene::lights_table(None, &points).map_err(|e| format!("rlSetPointLights: {e}"))?;
+        let mut scene = rec.scene.lock().unwrap_or_else(|p| p.into_inner());
+        scene.points = points;
+        scene.changed = true;
+        Ok(0)
+    })
+}
+
+/// Writes the `lights` table when the triangles or point lights changed since it was written.
+fn write_lights(rec: &RlRecorder) -> Result<(), String> {
+    let mut scene = rec.scene.lock().unwrap_or_else(|p| p.into_inner());
+    if !scene.changed {
+        return Ok(());
+    }
+    let lights = store::scene::lights_table(scene.triangles.as_ref(), &scene.points).map_err(|e| e.to_string())?;
+    rec.rec.write_table(store::scene::LIGHTS_TABLE, lights).map_err(|e| e.to_string())?;
+    scene.changed = false;
+    Ok(())
+}
+
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlSetCameraMatrix(
+    rec: *mut RlRecorder,
+    camera_to_world: *const f32,
+    forward_z: f32,
+    fov: f32,
+    fov_axis: i32,
+    width: u32,
+    height: u32,
+) -> i32 {
+    guard(-1, || {
+        // SAFETY: forwarded caller contract.
+        let rec = unsafe { rec_arg(rec) }?;
+        // SAFETY: 16 floats, row-major, as rl.h documents.
+        let m = unsafe { slice_arg(camera_to_world, 16, "camera_to_world") }?;
+        if forward_z != 1.0 && forward_z != -1.0 {
+            return Err(format!("forward_z {forward_z}: +1 (the camera looks along its +z) or -1 (along -z)"));
+        }
+        if width == 0 || height == 0 {
+            return Err(format!("image size {width}x{height}: both at least 1"));
+        }
+        let col = |k: usize| [m[k], m[4 + k], m[8 + k]];
+        let position = col(3);
+        let forward = col(2).map(|v| v * forward_z);
+        let up = col(1);
+        let target = [position[0] + forward[0], position[1] + forward[1], position[2] + forward[2]];
+        let aspect = width as f32 / height as f32;
+        let fov_y = match fov_axis {
+            1 => fov,
+            0 => 2.0 * ((fov.to_radians() / 2.0).tan() / aspect).atan().to_degrees(),
+            other => return Err(format!("fov_axis {other}: RL_FOV_X (0) or RL_FOV_Y (1)")),
+        };
+        let cam = store::scene::CameraAttrs { position, target, up, fov_y, width, height };
+        let attrs: std::collections::BTreeMap<String, String> = cam.to_attributes().into_iter().collect();
+        store::scene::CameraAttrs::from_attributes(&attrs).map_err(|e| format!("rlSetCameraMatrix: {e}"))?;
+        rec.rec.set_attributes(cam.to_attributes()).map_err(|e| e.to_string())?;
         Ok(0)
     })
 }
@@ -308,6 +608,7 @@ pub unsafe extern "C" fn rlFlush(rec: *mut RlRecorder) -> i32 {
     guard(-1, || {
         // SAFETY: forwarded caller contract.
         let rec = unsafe { rec_arg(rec) }?;
+        write_lights(rec)?;
         rec.rec.flush().map(|_| 0).map_err(|e| e.to_string())
     })
 }
@@ -322,7 +623,9 @@ pub unsafe extern "C" fn rlFinish(rec: *mut RlRecorder) -> i32 {
         let boxed = unsafe { Box::from_raw(rec) };
         // Trees this thread left open are not part of the trace (finish reports them).
         OPEN.with(|o| o.borrow_mut().retain(|(r, _)| *r != boxed.id));
-        boxed.rec.finish().map(|_| 0).map_err(|e| e.to_string())
+        let lights = write_lights(&boxed);
+        let finished = boxed.rec.finish().map(|_| 0).map_err(|e| e.to_string());
+        lights.and(finished)
     })
 }
 

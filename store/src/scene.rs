@@ -139,14 +139,51 @@ pub fn triangles_from_arrays(
     triangles_batch(&rows).map_err(|e| e.to_string())
 }
 
+/// The `prim` of a light that is no triangle of the scene: a point light, whose row's three
+/// vertices are its position (and whose area is 0).
+pub const POINT_LIGHT_PRIM: u32 = u32::MAX;
+
+/// A point light: its position and its intensity (RGB, the `emission` columns of its row).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PointLight {
+    pub position: [f32; 3],
+    pub intensity: [f32; 3],
+}
+
 /// The `lights` table of a `triangles` table (one built by [`triangles_batch`]): every triangle
 /// whose emission is positive in some channel, in triangle order, with its area, as rtvtk's
 /// tracers list their emitters. The recording APIs (`rlSetTriangles`, the Python package's
 /// `set_scene`) write it beside the triangles, so `aims_at_light` knows another renderer's
-/// emitters.
+/// emitters. [`lights_table`] adds point lights.
 pub fn lights_from_triangles(
     triangles: &arrow::array::RecordBatch,
 ) -> Result<arrow::array::RecordBatch, arrow::error::ArrowError> {
+    lights_table(Some(triangles), &[])
+}
+
+/// The `lights` table: the emissive triangles of `triangles` (as [`lights_from_triangles`]),
+/// then `points`, each a row whose three vertices are its position, with `prim`
+/// [`POINT_LIGHT_PRIM`], its intensity as emission and area 0. Positions and intensities must
+/// be finite, intensities not negative.
+pub fn lights_table(
+    triangles: Option<&arrow::array::RecordBatch>,
+    points: &[PointLight],
+) -> Result<arrow::array::RecordBatch, arrow::error::ArrowError> {
+    if let Some((i, _)) = points.iter().enumerate().find(|(_, p)| {
+        !p.position.iter().chain(&p.intensity).all(|v| v.is_finite()) || p.intensity.iter().any(|v| *v < 0.0)
+    }) {
+        return Err(arrow::error::ArrowError::InvalidArgumentError(format!(
+            "point light {i}: position and intensity must be finite, intensity not negative"
+        )));
+    }
+    let empty;
+    let triangles = match triangles {
+        Some(t) => t,
+        None => {
+            empty = arrow::array::RecordBatch::new_empty(triangles_schema());
+            &empty
+        }
+    };
     use arrow::array::{Array, ArrayRef, AsArray, Float32Array, UInt32Array};
     use arrow::datatypes::{Float32Type, UInt32Type};
     use arrow::error::ArrowError;
@@ -166,16 +203,20 @@ pub fn lights_from_triangles(
     }
     let rows: Vec<usize> =
         (0..triangles.num_rows()).filter(|&r| er.value(r).max(eg.value(r)).max(eb.value(r)) > 0.0).collect();
-    let n = u32::try_from(rows.len()).map_err(|_| ArrowError::ComputeError("too many emissive triangles".into()))?;
+    let n = u32::try_from(rows.len() + points.len()).map_err(|_| ArrowError::ComputeError("too many lights".into()))?;
     let mut cols: Vec<ArrayRef> = vec![
         Arc::new(UInt32Array::from_iter_values(0..n)),
-        Arc::new(UInt32Array::from_iter_values(rows.iter().map(|&r| prim.value(r)))),
+        Arc::new(UInt32Array::from_iter_values(
+            rows.iter().map(|&r| prim.value(r)).chain(points.iter().map(|_| POINT_LIGHT_PRIM)),
+        )),
     ];
-    for v in &vertex {
-        cols.push(Arc::new(Float32Array::from_iter_values(rows.iter().map(|&r| v.value(r)))));
+    for (k, v) in vertex.iter().enumerate() {
+        let point = points.iter().map(|p| p.position[k % 3]);
+        cols.push(Arc::new(Float32Array::from_iter_values(rows.iter().map(|&r| v.value(r)).chain(point))));
     }
-    for e in [er, eg, eb] {
-        cols.push(Arc::new(Float32Array::from_iter_values(rows.iter().map(|&r| e.value(r)))));
+    for (k, e) in [er, eg, eb].into_iter().enumerate() {
+        let point = points.iter().map(|p| p.intensity[k]);
+        cols.push(Arc::new(Float32Array::from_iter_values(rows.iter().map(|&r| e.value(r)).chain(point))));
     }
     let area = rows.iter().map(|&r| {
         let p = |k: usize| [vertex[k * 3].value(r), vertex[k * 3 + 1].value(r), vertex[k * 3 + 2].value(r)];
@@ -184,7 +225,7 @@ pub fn lights_from_triangles(
         let x = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
         0.5 * (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt()
     });
-    cols.push(Arc::new(Float32Array::from_iter_values(area)));
+    cols.push(Arc::new(Float32Array::from_iter_values(area.chain(points.iter().map(|_| 0.0)))));
     if prim.null_count() > 0 {
         return Err(ArrowError::InvalidArgumentError("table `triangles`: `prim` has nulls".into()));
     }
@@ -413,6 +454,17 @@ mod tests {
         assert_eq!((f("emission_r"), f("emission_g"), f("emission_b")), (4.0, 3.0, 2.0));
         assert!((f(col::AREA) - 2.0).abs() < 1e-6);
         assert_eq!(f("v1_x"), 2.0);
+        // Point lights follow the triangles: their position three times, no prim, no area.
+        let p = PointLight { position: [1.0, 2.0, 3.0], intensity: [5.0, 5.0, 5.0] };
+        let both = lights_table(Some(&tris), &[p]).unwrap();
+        assert_eq!(both.num_rows(), 2);
+        let prim = both.column_by_name(col::PRIM).unwrap().as_primitive::<UInt32Type>();
+        assert_eq!((prim.value(0), prim.value(1)), (1, POINT_LIGHT_PRIM));
+        let g = |n: &str| both.column_by_name(n).unwrap().as_primitive::<Float32Type>().value(1);
+        assert_eq!([g("v0_x"), g("v1_y"), g("v2_z"), g("emission_g"), g(col::AREA)], [1.0, 2.0, 3.0, 5.0, 0.0]);
+        let bad = PointLight { position: [f32::NAN, 0.0, 0.0], intensity: [1.0; 3] };
+        assert!(lights_table(None, &[bad]).unwrap_err().to_string().contains("point light 0"));
+        assert_eq!(lights_table(None, &[p]).unwrap().num_rows(), 1);
         // No emitter: an empty table, still of the lights schema.
         let dark = triangles_from_arrays(&v[..9], &[0], &colors[..3], &[0.0; 3], &names[..1]).unwrap();
         assert_eq!(lights_from_triangles(&dark).unwrap().num_rows(), 0);

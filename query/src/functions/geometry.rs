@@ -89,10 +89,10 @@ pub(super) fn aims_at_light(scene: &Arc<SceneContext>) -> RayScalar {
     let lights = scene.clone();
     let kernel = rowwise::<6, _, BooleanArray>("aims_at_light", false, move |v, _| {
         let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
-        Some(lights.lights.iter().any(|t| hits_triangle(o, d, t)))
+        Some(lights.lights.iter().any(|t| aims_at(o, d, t)))
     });
     RayScalar::new("aims_at_light", float_signature(6, false), DataType::Boolean, kernel, doc(
-        "Whether the ray's line hits an emitter triangle of the scene (its `lights` table) in front of its origin (Boolean, watertight test): false for a shadow ray that points at no light, the paper's bug.",
+        "Whether the ray's line hits an emitter triangle of the scene (its `lights` table) in front of its origin (Boolean, watertight test), or passes within 1e-5 rad (0.0006°) of a point light: false for a shadow ray that points at no light, the paper's bug.",
         "aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)",
         &ray_args(&[]),
     ))
@@ -117,6 +117,21 @@ fn ray_args<'a>(more: &[(&'a str, &'a str)]) -> Vec<(&'a str, &'a str)> {
 /// `store::geom`, so a ray through a light's edge is decided exactly, with no tolerance.
 pub(super) fn hits_triangle(o: [f64; 3], d: [f64; 3], tri: &[[f64; 3]; 3]) -> bool {
     store::geom::ray_triangle(o, d, tri).is_some()
+}
+
+/// The angle within which a ray aims at a point light: f32 directions from f32 positions round
+/// to ~1e-7 rad; a renderer's jitter or a wrong direction is far larger.
+pub(super) const POINT_LIGHT_ANGLE: f64 = 1e-5;
+
+/// Whether the ray from `o` along `d` aims at the light `l`: a triangle it hits, or a point
+/// light (a row whose three vertices coincide) within [`POINT_LIGHT_ANGLE`] of the ray's
+/// direction, in front of its origin.
+pub(super) fn aims_at(o: [f64; 3], d: [f64; 3], l: &[[f64; 3]; 3]) -> bool {
+    if l[0] == l[1] && l[1] == l[2] {
+        let to = [l[0][0] - o[0], l[0][1] - o[1], l[0][2] - o[2]];
+        return store::geom::angle_between(d, to).is_some_and(|a| a <= POINT_LIGHT_ANGLE);
+    }
+    hits_triangle(o, d, l)
 }
 
 /// Slab test: true when the ray (t ≥ 0) enters the box.
@@ -165,6 +180,23 @@ mod tests {
         assert!(!hits_triangle(o, aim(343.0 + 1e-3), &light));
         // Grazing: a ray in the light's plane does not hit it.
         assert!(!hits_triangle([300.0, 548.8, 0.0], [0.0, 0.0, 1.0], &light));
+    }
+
+    #[test]
+    fn point_lights_are_aimed_at_within_a_tiny_angle_and_in_front() {
+        let p = [[1e4, 2e4, -3e4]; 3];
+        let o = [1e4 + 0.25, 0.5, -3e4 - 0.125];
+        let d = [p[0][0] - o[0], p[0][1] - o[1], p[0][2] - o[2]];
+        assert!(aims_at(o, d, &p));
+        // From far away in f32, as a renderer records it: still aimed at.
+        let d32 = d.map(|v| f64::from(v as f32));
+        assert!(aims_at(o, d32, &p));
+        // 1e-4 rad off (2 units at 2e4): a wrong direction.
+        let off = [d[0] + 2.0, d[1], d[2]];
+        assert!(!aims_at(o, off, &p));
+        assert!(!aims_at(o, d.map(|v| -v), &p), "away from the light");
+        assert!(!aims_at(o, [0.0; 3], &p), "no direction");
+        assert!(!aims_at(p[0], d, &p), "from the light itself");
     }
 
     #[test]
