@@ -1,8 +1,8 @@
 // A small C++ path tracer that records everything a dataset can hold through rl.h, as a
 // third-party renderer would: typed payload columns (a vec3, a u32, a u8, an f64) and opaque
 // bytes, the scene's triangles with an emissive quad, a point light, the camera as a
-// camera-to-world matrix (OpenGL convention, looking along -z), several tracing threads, and
-// rlLastError for every refusal. `--bug` aims the point light's shadow rays from the floor at
+// camera-to-world matrix (OpenGL convention, looking along -z), several tracing threads, an
+// immediate-mode recording read while it records, and rlLastError for every refusal. `--bug` aims the point light's shadow rays from the floor at
 // its mirror image below the floor (the paper's wrong-shadow bug).
 //
 //   c++ -std=c++17 -O2 -I rl-writer/include rl-writer/examples/cpp_tracer.cpp
@@ -210,6 +210,33 @@ int main(int argc, char **argv) {
     }
     rlClose(reader);
     if (rays != counts[0] + counts[1] + counts[2]) die("ray count read back");
+
+    // Immediate mode: a recording in memory, read while it records (as a viewer of a live
+    // renderer would).
+    rl_recorder *live = rlInitImmediate(columns, 4, 8, 0);
+    if (!live) die("rlInitImmediate");
+    rl_reader *cursor = rlOpenRecording(live);
+    if (!cursor) die("rlOpenRecording");
+    for (int round = 1; round <= 2; ++round) {
+        for (int x = 0; x < 4; ++x) {
+            rlBeginTree(live, x, round, 0);
+            Vec o = {0.5f, 0.5f, 1.6f}, d = {0, 0, -1};
+            int64_t prim;
+            float t = intersect(tris, o, d, prim);
+            Row row{{1, 1, 1}, prim >= 0 ? tris[prim].material : 0u, 0, 1.0, 0};
+            if (rlAddRay(live, o.data(), d.data(), t, RL_CAMERA, prim, &row, sizeof row) != 0) die("rlAddRay (immediate)");
+            if (rlEndTree(live) < 0) die("rlEndTree (immediate)");
+        }
+        if (rlTreeCount(cursor) != (uint64_t)(4 * round)) die("trees seen while recording");
+    }
+    if (rlReadTree(cursor, &tree) != 1 || tree.ray_count != 1) die("a tree read while recording");
+    rlClose(cursor);
+    if (rlFinish(live) != 0) die("rlFinish (immediate)");
+    // rlOpenRecording refuses a write-mode recorder.
+    rl_recorder *disk = rlInit((std::string(argv[1]) + "-x").c_str(), 0);
+    if (rlOpenRecording(disk) != nullptr || std::strstr(rlLastError(), "immediate") == nullptr) die("expected a mode error");
+    rlFinish(disk);
+
     std::printf("camera %llu shadow %llu diffuse %llu\n", (unsigned long long)counts[0], (unsigned long long)counts[1],
                 (unsigned long long)counts[2]);
     return 0;

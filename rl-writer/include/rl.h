@@ -94,6 +94,14 @@ rl_recorder *rlInit(const char *path, size_t payload_size);
 rl_recorder *rlInitColumns(const char *path, const rl_column *columns, size_t column_count, size_t bytes_size);
 /* Bytes of one packed payload row of this recorder (typed columns, then opaque bytes). */
 int64_t rlPayloadRowSize(rl_recorder *rec);
+/* Immediate mode: the recording stays in memory (no directory), its oldest trees evicted past
+ * `memory_budget` bytes (0: 256 MiB). Columns and payload rows as for rlInitColumns. Read it
+ * while recording with rlOpenRecording; rlFinish frees it. */
+rl_recorder *rlInitImmediate(const rl_column *columns, size_t column_count, size_t bytes_size, size_t memory_budget);
+/* A read cursor over an immediate-mode recording while it records (from any thread): it sees
+ * every tree ended before each read; rlTreeCount and rlRayCount give the counts now. Close it
+ * with rlClose before rlFinish frees the recording. NULL for a write-mode recorder. */
+rl_reader *rlOpenRecording(rl_recorder *rec);
 /* Registers a ray kind by name; returns its code (>= 16) or -1. */
 int32_t rlRegisterKind(rl_recorder *rec, const char *name);
 int rlBeginTree(rl_recorder *rec, uint32_t x, uint32_t y, uint32_t sample);

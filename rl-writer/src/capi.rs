@@ -22,6 +22,8 @@ pub struct RlRecorder {
     /// The scene's triangles and point lights, from which the `lights` table is written (at
     /// `rlFlush` and `rlFinish`, when they changed).
     scene: std::sync::Mutex<SceneLights>,
+    /// Immediate mode: the recording in memory, readable while recording (`rlOpenRecording`).
+    memory: Option<crate::MemoryTrace>,
 }
 
 #[derive(Default)]
@@ -159,8 +161,29 @@ impl Decoded {
 /// Opaque reader handle (`rl_reader`).
 pub struct RlReader {
     reader: Reader,
-    trees: u64,
-    rays: u64,
+    counts: Counts,
+}
+
+/// A reader's tree and ray counts: a dataset's, fixed; an immediate-mode recording's, as they
+/// are now (trees evicted over the memory budget are no longer held).
+enum Counts {
+    Fixed { trees: u64, rays: u64 },
+    Live(crate::MemoryTrace),
+}
+
+impl Counts {
+    fn trees(&self) -> u64 {
+        match self {
+            Counts::Fixed { trees, .. } => *trees,
+            Counts::Live(m) => m.tree_count() as u64,
+        }
+    }
+    fn rays(&self) -> u64 {
+        match self {
+            Counts::Fixed { rays, .. } => *rays,
+            Counts::Live(m) => m.stats().rays,
+        }
+    }
 }
 
 #[repr(C)]
@@ -237,9 +260,16 @@ fn with_tree<T>(id: usize, f: impl FnOnce(&mut TreeBuilder) -> T) -> Result<T, S
     })
 }
 
-/// A recorder at `path` with typed payload `columns` and `bytes_size` opaque bytes per ray.
+/// Where `make_recorder` records: a dataset directory, or memory within a byte budget (0: the
+/// default).
+enum Target<'a> {
+    Dir(&'a str),
+    Memory(usize),
+}
+
+/// A recorder with typed payload `columns` and `bytes_size` opaque bytes per ray.
 fn make_recorder(
-    path: &str,
+    target: Target<'_>,
     columns: Vec<(String, Column, crate::DataType)>,
     bytes_size: usize,
 ) -> Result<*mut RlRecorder, String> {
@@ -253,15 +283,46 @@ fn make_recorder(
         })
         .collect();
     let payload = PayloadSchema::new(fields, bytes).map_err(|e| e.to_string())?;
-    let options = RecorderOptions { payload, ..Default::default() };
-    let rec = Recorder::create(path, options).map_err(|e| e.to_string())?;
+    let mut options = RecorderOptions { payload, ..Default::default() };
+    let (rec, memory) = match target {
+        Target::Dir(path) => (Recorder::create(path, options).map_err(|e| e.to_string())?, None),
+        Target::Memory(budget) => {
+            if budget > 0 {
+                options.memory_budget = budget;
+            }
+            let (rec, memory) = Recorder::immediate(options).map_err(|e| e.to_string())?;
+            (rec, Some(memory))
+        }
+    };
     let row_size = columns.iter().map(|(_, c, _)| c.element.size() * c.count).sum::<usize>() + bytes_size;
     let columns = columns.into_iter().map(|(_, c, _)| c).collect();
-    let boxed = Box::new(RlRecorder { rec, id: 0, columns, row_size, scene: Default::default() });
+    let boxed = Box::new(RlRecorder { rec, id: 0, columns, row_size, scene: Default::default(), memory });
     let ptr = Box::into_raw(boxed);
     // SAFETY: just allocated.
     unsafe { (*ptr).id = ptr as usize };
     Ok(ptr)
+}
+
+/// The typed payload columns of `rl_column`s, checked.
+unsafe fn columns_arg(
+    columns: *const RlColumn,
+    column_count: usize,
+) -> Result<Vec<(String, Column, crate::DataType)>, String> {
+    // SAFETY: `column_count` columns at `columns`.
+    let cols = unsafe { slice_arg(columns, column_count, "columns") }?;
+    let mut out = Vec::with_capacity(cols.len());
+    for (i, c) in cols.iter().enumerate() {
+        // SAFETY: a NUL-terminated name per column.
+        let name = unsafe { path_arg(c.name) }.map_err(|e| format!("column {i}: name: {e}"))?;
+        let (element, t) = Element::of(c.element).ok_or_else(|| {
+            format!("column {i} ({name}): type {} is not one of RL_F32 .. RL_U16 (1 to 8)", c.element)
+        })?;
+        if c.count == 0 {
+            return Err(format!("column {i} ({name}): count 0 (at least one value per ray)"));
+        }
+        out.push((name, Column { element, count: c.count as usize }, t));
+    }
+    Ok(out)
 }
 
 #[unsafe(no_mangle)]
@@ -269,7 +330,7 @@ pub unsafe extern "C" fn rlInit(path: *const c_char, payload_size: usize) -> *mu
     guard(std::ptr::null_mut(), || {
         // SAFETY: forwarded caller contract.
         let path = unsafe { path_arg(path) }?;
-        make_recorder(&path, Vec::new(), payload_size)
+        make_recorder(Target::Dir(&path), Vec::new(), payload_size)
     })
 }
 
@@ -283,21 +344,37 @@ pub unsafe extern "C" fn rlInitColumns(
     guard(std::ptr::null_mut(), || {
         // SAFETY: forwarded caller contract.
         let path = unsafe { path_arg(path) }?;
-        // SAFETY: `column_count` columns at `columns`.
-        let cols = unsafe { slice_arg(columns, column_count, "columns") }?;
-        let mut out = Vec::with_capacity(cols.len());
-        for (i, c) in cols.iter().enumerate() {
-            // SAFETY: a NUL-terminated name per column.
-            let name = unsafe { path_arg(c.name) }.map_err(|e| format!("column {i}: name: {e}"))?;
-            let (element, t) = Element::of(c.element).ok_or_else(|| {
-                format!("column {i} ({name}): type {} is not one of RL_F32 .. RL_U16 (1 to 8)", c.element)
-            })?;
-            if c.count == 0 {
-                return Err(format!("column {i} ({name}): count 0 (at least one value per ray)"));
-            }
-            out.push((name, Column { element, count: c.count as usize }, t));
-        }
-        make_recorder(&path, out, bytes_size)
+        // SAFETY: forwarded caller contract.
+        let columns = unsafe { columns_arg(columns, column_count) }?;
+        make_recorder(Target::Dir(&path), columns, bytes_size)
+    })
+}
+
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlInitImmediate(
+    columns: *const RlColumn,
+    column_count: usize,
+    bytes_size: usize,
+    memory_budget: usize,
+) -> *mut RlRecorder {
+    guard(std::ptr::null_mut(), || {
+        // SAFETY: forwarded caller contract.
+        let columns = unsafe { columns_arg(columns, column_count) }?;
+        make_recorder(Target::Memory(memory_budget), columns, bytes_size)
+    })
+}
+
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlOpenRecording(rec: *mut RlRecorder) -> *mut RlReader {
+    guard(std::ptr::null_mut(), || {
+        // SAFETY: forwarded caller contract.
+        let rec = unsafe { rec_arg(rec) }?;
+        let memory = rec.memory.clone().ok_or(
+            "rlOpenRecording: only an immediate-mode recorder (rlInitImmediate) is read while recording; \
+             open a dataset with rlOpen",
+        )?;
+        let reader = Reader::new(Box::new(memory.clone()));
+        Ok(Box::into_raw(Box::new(RlReader { reader, counts: Counts::Live(memory) })))
     })
 }
 
@@ -636,7 +713,10 @@ pub unsafe extern "C" fn rlOpen(path: *const c_char) -> *mut RlReader {
         let path = unsafe { path_arg(path) }?;
         let ds = crate::Dataset::open(&path).map_err(|e| e.to_string())?;
         let (trees, rays) = (ds.tree_count(), ds.ray_count());
-        Ok(Box::into_raw(Box::new(RlReader { reader: Reader::new(Box::new(ds)), trees, rays })))
+        Ok(Box::into_raw(Box::new(RlReader {
+            reader: Reader::new(Box::new(ds)),
+            counts: Counts::Fixed { trees, rays },
+        })))
     })
 }
 
@@ -656,13 +736,13 @@ pub unsafe extern "C" fn rlClose(reader: *mut RlReader) {
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn rlTreeCount(reader: *mut RlReader) -> u64 {
     // SAFETY: forwarded caller contract.
-    guard(0, || Ok(unsafe { reader_arg(reader) }?.trees))
+    guard(0, || Ok(unsafe { reader_arg(reader) }?.counts.trees()))
 }
 
 #[unsafe(no_mangle)]
 pub unsafe extern "C" fn rlRayCount(reader: *mut RlReader) -> u64 {
     // SAFETY: forwarded caller contract.
-    guard(0, || Ok(unsafe { reader_arg(reader) }?.rays))
+    guard(0, || Ok(unsafe { reader_arg(reader) }?.counts.rays()))
 }
 
 #[unsafe(no_mangle)]
