@@ -47,6 +47,10 @@ pub struct RecordArgs {
     /// Also record the BVH nodes every ray visits (the ray_nodes table; large).
     #[arg(long)]
     pub record_visits: bool,
+    /// Record each ray's site: the line of the tracer that traced it (the `site` column and the
+    /// `sites` table).
+    #[arg(long)]
+    pub sites: bool,
     /// Render without recording (for overhead figures).
     #[arg(long)]
     pub no_record: bool,
@@ -210,6 +214,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
             options.write.encoding = a.encoding;
             options.segment_rays = a.segment_rays;
             options.chunk_rays = a.chunk_rays as usize;
+            options.sites = a.sites;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
             renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
             if let Some(device) = tracer.device() {

@@ -3,7 +3,8 @@
 //! tracing threads) records typed payload columns and opaque bytes, an emissive quad and a point
 //! light, and its camera as a camera-to-world matrix. The dataset passes `rtvtk check`; SQL reads
 //! every column with its type; the paper's query finds no wrong shadow ray in the correct trace
-//! and finds the injected bug's; the camera ray of a pixel lands on that pixel.
+//! and finds the injected bug's, and its recording sites name the C++ line that adds them; the
+//! camera ray of a pixel lands on that pixel.
 
 mod common;
 
@@ -128,6 +129,30 @@ fn a_cpp_renderer_records_typed_payload_lights_and_a_matrix_camera() {
     // The injected bug: the point light's shadow rays from the floor aim below it.
     let bad = tmp.path().join("bad");
     let counts = run(&bin, &bad, &["--bug"]);
-    let wrong: u64 = scalar(&[bad.to_str().unwrap()], WRONG_SHADOWS).parse().unwrap();
+    let b = bad.to_str().unwrap();
+    let wrong: u64 = scalar(&[b], WRONG_SHADOWS).parse().unwrap();
     assert!(wrong > 0 && wrong < counts[1], "{wrong} of {}", counts[1]);
+    // Its recording sites (RL_ADD_RAY) name the line that adds the wrong rays: the point
+    // light's shadow ray, alone.
+    let source = std::fs::read_to_string(build_root().join("rl-writer/examples/cpp_tracer.cpp")).unwrap();
+    let line = source.lines().position(|l| l.contains("// point light")).unwrap() + 1;
+    let sites = ok(&[
+        "sql",
+        b,
+        &format!("{} GROUP BY site", WRONG_SHADOWS.replace("count(*)", "site, count(*)")),
+        "--format",
+        "csv",
+    ]);
+    let rows: Vec<&str> = sites.lines().skip(1).collect();
+    assert_eq!(rows.len(), 1, "{sites}");
+    assert!(rows[0].contains(&format!("cpp_tracer.cpp:{line} ")) && rows[0].ends_with(&format!(",{wrong}")), "{sites}");
+    assert_eq!(
+        scalar(&[b], "SELECT count(DISTINCT site) FROM rays"),
+        "3",
+        "camera/diffuse, area-light and point-light lines"
+    );
+}
+
+fn build_root() -> PathBuf {
+    std::env::var_os("CARGO_MANIFEST_DIR").map_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")), PathBuf::from)
 }

@@ -40,6 +40,35 @@ fn the_shadow_ray_bug_is_a_query() {
     assert_eq!(deep, wrong_bad);
 }
 
+/// Source-code orientation (the paper's future work): with `--sites` every ray records the line
+/// of the tracer that traced it, and grouping the wrong shadow rays by `site` names the line
+/// that spawns them.
+#[test]
+fn recording_sites_name_the_line_that_spawns_wrong_shadow_rays() {
+    let tmp = tempfile::tempdir().unwrap();
+    let bad = tmp.path().join("bad");
+    common::record(&bad, &[&SETTINGS[..], &["--inject-bug", "shadow-dir", "--sites"]].concat());
+    let b = bad.to_str().unwrap();
+    let root = std::env::var_os("CARGO_MANIFEST_DIR")
+        .map_or_else(|| env!("CARGO_MANIFEST_DIR").into(), std::path::PathBuf::from);
+    let source = std::fs::read_to_string(root.join("renderers/src/tracer.rs")).unwrap();
+    let line = source.lines().position(|l| l.contains("push(&mut rec, RecRay::shadow(")).unwrap() + 1;
+    let q = WRONG_SHADOWS.replace("count(*)", "site, count(*)") + " GROUP BY site";
+    let out = common::ok(&["sql", b, &q, "--format", "csv"]);
+    let rows: Vec<&str> = out.lines().skip(1).collect();
+    let wrong = scalar(&[b], WRONG_SHADOWS);
+    assert_eq!(rows, vec![format!("renderers/src/tracer.rs:{line},{wrong}")], "{out}");
+    // Every ray has a site, and the sites table lists each once.
+    assert_eq!(scalar(&[b], "SELECT count(*) FROM rays WHERE site IS NULL"), "0");
+    let sites: u64 = scalar(&[b], "SELECT count(DISTINCT site) FROM rays").parse().unwrap();
+    assert_eq!(scalar(&[b], "SELECT count(*) FROM sites").parse::<u64>().unwrap(), sites);
+    // Without --sites there is no site column.
+    let plain = tmp.path().join("plain");
+    common::record(&plain, &SETTINGS);
+    let e = common::rtvtk(&["sql", plain.to_str().unwrap(), "SELECT site FROM rays"]);
+    assert!(!e.status.success() && String::from_utf8_lossy(&e.stderr).contains("site"));
+}
+
 #[test]
 fn tables_match_the_store_for_encoded_and_plain_datasets() {
     let tmp = tempfile::tempdir().unwrap();

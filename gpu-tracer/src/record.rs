@@ -138,6 +138,8 @@ fn rec_ray(r: &GpuRay) -> RecRay {
         material: some(r.material),
         stats: TraversalStats { nodes: r.nodes, boxes: r.boxes, tris: r.tris },
         visits: (0, 0),
+        // Traced in WGSL: the site is where the GPU's rays are handed over.
+        site: std::panic::Location::caller(),
     }
 }
 

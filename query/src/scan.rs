@@ -56,7 +56,7 @@ impl std::fmt::Debug for RaysTable {
 
 impl RaysTable {
     pub(crate) fn new(ds: Arc<Dataset>) -> Self {
-        let schema = store::ray_table_schema(&ds.ray_schema());
+        let schema = with_site_text(&store::ray_table_schema(&ds.ray_schema()), has_sites(&ds));
         Self { ds, schema }
     }
 }
@@ -537,15 +537,60 @@ impl RaysScanExec {
         stream(&self.schema, self.batches(partition))
     }
 
-    /// The batches of one partition, with the tree columns added.
+    /// The batches of one partition, with the tree columns added and the `site` ids as text.
     fn batches(&self, partition: usize) -> store::Result<Box<dyn Iterator<Item = store::Result<RecordBatch>> + Send>> {
+        let stored = with_site_text(&self.schema, false);
+        let it = self.stored_batches(partition, stored)?;
+        let text =
+            self.schema.field_with_name(store::scene::SITE_COLUMN).is_ok_and(|f| f.data_type() == &site_text_type());
+        if !text {
+            return Ok(it);
+        }
+        let texts = site_texts(&self.ds)?;
+        let schema = self.schema.clone();
+        let path = self.ds.dir().join("tables/sites.parquet");
+        Ok(Box::new(it.map(move |b| {
+            let b = b?;
+            let cols = schema
+                .fields()
+                .iter()
+                .map(|f| {
+                    let c = b
+                        .column_by_name(f.name())
+                        .cloned()
+                        .ok_or_else(|| corrupt(&path, format!("no column {}", f.name())))?;
+                    if f.name() != store::scene::SITE_COLUMN {
+                        return Ok(c);
+                    }
+                    let keys = c
+                        .as_primitive_opt::<arrow::datatypes::UInt32Type>()
+                        .cloned()
+                        .ok_or_else(|| corrupt(&path, "`site` is not UInt32".into()))?;
+                    arrow::array::DictionaryArray::try_new(keys, texts.clone())
+                        .map(|d| Arc::new(d) as Arc<dyn Array>)
+                        .map_err(|e| corrupt(&path, format!("a site id is not in the sites table: {e}")))
+                })
+                .collect::<store::Result<Vec<_>>>()?;
+            let options = RecordBatchOptions::new().with_row_count(Some(b.num_rows()));
+            RecordBatch::try_new_with_options(schema.clone(), cols, &options)
+                .map_err(|e| store::Error::Arrow { context: "rays with their sites".into(), source: e })
+        })))
+    }
+
+    /// The batches of one partition as stored (`site` as its ids), with the tree columns added,
+    /// in `schema` (the scan's, `site` as stored).
+    fn stored_batches(
+        &self,
+        partition: usize,
+        schema: SchemaRef,
+    ) -> store::Result<Box<dyn Iterator<Item = store::Result<RecordBatch>> + Send>> {
         let Some(part) = self.parts.get(partition) else {
             return Ok(Box::new(std::iter::empty()));
         };
         if self.answered_by_counts(part) {
             return Ok(self.count_batches(part));
         }
-        let names: Vec<String> = self.schema.fields().iter().map(|f| f.name().clone()).collect();
+        let names: Vec<String> = schema.fields().iter().map(|f| f.name().clone()).collect();
         let base = self.ds.ray_schema();
         let virtual_cols: Vec<&str> =
             TREE_COLUMNS.into_iter().filter(|c| names.iter().any(|n| n == c) && base.index_of(c).is_err()).collect();
@@ -561,7 +606,6 @@ impl RaysScanExec {
             Some(e) => e.clone(),
             None => self.ds.segment_tree_entries(part.segment)?,
         };
-        let schema = self.schema.clone();
         let path = self.ds.dir().join(&self.ds.manifest().segments[part.segment].rays.path);
         Ok(Box::new(it.map(move |b| {
             let b = b?;
@@ -606,6 +650,66 @@ impl RaysScanExec {
                 .map_err(|e| store::Error::Arrow { context: "rays with tree columns".into(), source: e })
         })))
     }
+}
+
+/// The type SQL shows the `site` column in: each site's text, dictionary-encoded over its id.
+fn site_text_type() -> arrow::datatypes::DataType {
+    use arrow::datatypes::DataType;
+    DataType::Dictionary(Box::new(DataType::UInt32), Box::new(DataType::Utf8))
+}
+
+/// Whether `ds` recorded sites: a `site` payload column and the `sites` table.
+fn has_sites(ds: &Dataset) -> bool {
+    ds.ray_schema().field_with_name(store::scene::SITE_COLUMN).is_ok()
+        && ds.table_names().iter().any(|n| n == store::scene::SITES_TABLE)
+}
+
+/// `schema` with its `site` column as text (`text`) or as the stored ids.
+fn with_site_text(schema: &SchemaRef, text: bool) -> SchemaRef {
+    use arrow::datatypes::{DataType, Field, Schema};
+    let Ok(i) = schema.index_of(store::scene::SITE_COLUMN) else { return schema.clone() };
+    let t = if text { site_text_type() } else { DataType::UInt32 };
+    if schema.field(i).data_type() == &t {
+        return schema.clone();
+    }
+    let mut fields: Vec<Arc<Field>> = schema.fields().iter().cloned().collect();
+    let f = fields[i].as_ref().clone().with_data_type(t);
+    fields[i] = Arc::new(f);
+    Arc::new(Schema::new_with_metadata(fields, schema.metadata().clone()))
+}
+
+/// Each site's text (`file:line function`), by site id, from the `sites` table.
+fn site_texts(ds: &Dataset) -> store::Result<Arc<arrow::array::StringArray>> {
+    let Some(t) = ds.table(store::scene::SITES_TABLE)? else {
+        return Ok(Arc::new(arrow::array::StringArray::from(Vec::<String>::new())));
+    };
+    let bad = |m: &str| corrupt(&ds.dir().join("tables/sites.parquet"), m.to_string());
+    let ids = t
+        .column_by_name("site_id")
+        .and_then(|c| c.as_primitive_opt::<arrow::datatypes::UInt32Type>())
+        .ok_or_else(|| bad("no site_id"))?;
+    let files = t.column_by_name("file").and_then(|c| c.as_string_opt::<i32>()).ok_or_else(|| bad("no file"))?;
+    let lines = t
+        .column_by_name("line")
+        .and_then(|c| c.as_primitive_opt::<arrow::datatypes::UInt32Type>())
+        .ok_or_else(|| bad("no line"))?;
+    let funcs =
+        t.column_by_name("function").and_then(|c| c.as_string_opt::<i32>()).ok_or_else(|| bad("no function"))?;
+    let mut texts = vec![String::new(); t.num_rows()];
+    for r in 0..t.num_rows() {
+        let site = store::scene::Site {
+            file: files.value(r).to_string(),
+            line: lines.value(r),
+            column: 0,
+            function: funcs.is_valid(r).then(|| funcs.value(r).to_string()),
+        };
+        let id = ids.value(r) as usize;
+        if id >= texts.len() {
+            return Err(bad(&format!("site_id {id} out of range (the table has {} rows)", t.num_rows())));
+        }
+        texts[id] = site.text();
+    }
+    Ok(Arc::new(arrow::array::StringArray::from(texts)))
 }
 
 fn corrupt(path: &std::path::Path, message: String) -> store::Error {

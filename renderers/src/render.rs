@@ -180,9 +180,11 @@ pub fn emit(
             Value::U32(r.stats.boxes),
             Value::U32(r.stats.tris),
         ];
+        // The site where the tracer traced the ray, not this loop.
+        let site = rl::SiteRef::Location(r.site);
         let id = match parent {
-            Some(p) => tree.add_ray_under(p, &fields, Payload::values(&values)),
-            None => tree.add_ray(&fields, Payload::values(&values)),
+            Some(p) => tree.add_ray_under_at(site, p, &fields, Payload::values(&values)),
+            None => tree.add_ray_at(site, &fields, Payload::values(&values)),
         };
         if let Some(v) = visits.as_deref_mut() {
             for &node in &sr.visits[r.visits.0 as usize..r.visits.1 as usize] {

@@ -37,11 +37,14 @@ pub struct RecRay {
     pub stats: TraversalStats,
     /// Range in `SampleRecord::visits` of the nodes this ray visited (when recording visits).
     pub visits: (u32, u32),
+    /// Where in the tracer's source the ray was traced (the recording's `site`).
+    pub site: &'static std::panic::Location<'static>,
 }
 
 impl RecRay {
     /// A ray traced for its closest hit (radiance is filled in once known).
     #[allow(clippy::too_many_arguments)]
+    #[track_caller]
     fn traced(
         scene: &Scene,
         parent: Option<u32>,
@@ -64,12 +67,14 @@ impl RecRay {
             material: hit.map(|h| scene.tri_material[h.prim as usize]),
             stats,
             visits,
+            site: std::panic::Location::caller(),
         }
     }
 
     /// A shadow ray towards emitter `target` at distance `dist`, blocked by `occluder` if any:
     /// recorded up to the blocker, or up to the light it reached.
     #[allow(clippy::too_many_arguments)]
+    #[track_caller]
     fn shadow(
         scene: &Scene,
         parent: u32,
@@ -94,6 +99,7 @@ impl RecRay {
             material: Some(scene.tri_material[prim as usize]),
             stats,
             visits,
+            site: std::panic::Location::caller(),
         }
     }
 }

@@ -110,8 +110,9 @@ int main(int argc, char **argv) {
     const rl_column columns[] = {{"throughput", RL_F32, 3}, {"material", RL_U32, 1}, {"bounce", RL_U8, 1}, {"pdf", RL_F64, 1}};
     // Refusals name what is wrong (and record nothing).
     const rl_column bad[] = {{"x", 42, 1}};
-    if (rlInitColumns(argv[1], bad, 1, 0) != nullptr || std::strstr(rlLastError(), "type 42") == nullptr) die("expected a type error");
-    rl_recorder *rec = rlInitColumns(argv[1], columns, 4, 8);
+    if (rlInitColumns(argv[1], bad, 1, 0, 0) != nullptr || std::strstr(rlLastError(), "type 42") == nullptr) die("expected a type error");
+    // Every ray's call site is recorded (RL_ADD_RAY names it): SQL groups rays by source line.
+    rl_recorder *rec = rlInitColumns(argv[1], columns, 4, 8, RL_RECORD_SITES);
     if (!rec) die("rlInitColumns");
     if (rlPayloadRowSize(rec) != (int64_t)sizeof(Row)) die("row size");
 
@@ -153,7 +154,7 @@ int main(int argc, char **argv) {
                         int64_t prim;
                         float t = intersect(tris, o, d, prim);
                         Row row{{throughput[0], throughput[1], throughput[2]}, prim >= 0 ? tris[prim].material : 0u, bounce, 1.0, rng()};
-                        if (rlAddRay(rec, o.data(), d.data(), t, bounce == 0 ? RL_CAMERA : RL_DIFFUSE, prim, &row, sizeof row) != 0)
+                        if (RL_ADD_RAY(rec, o.data(), d.data(), t, bounce == 0 ? RL_CAMERA : RL_DIFFUSE, prim, &row, sizeof row) != 0)
                             die("rlAddRay");
                         counts[bounce == 0 ? 0 : 2]++;
                         if (prim < 0 || tris[prim].material == 3) break;
@@ -167,12 +168,14 @@ int main(int argc, char **argv) {
                         Vec lp = {0.4f + 0.2f * uni(rng), 0.999f, -0.4f - 0.2f * uni(rng)};
                         Vec targets[2] = {lp, kPointLight};
                         if (bug && n[1] > 0.9f) targets[1][1] = 2 * p[1] - kPointLight[1];
-                        for (Vec target : targets) {
-                            Vec sd = norm(target - so);
+                        for (int l = 0; l < 2; ++l) {
+                            Vec sd = norm(targets[l] - so);
                             int64_t sp;
                             float st = intersect(tris, so, sd, sp);
                             Row srow{{throughput[0], throughput[1], throughput[2]}, sp >= 0 ? tris[sp].material : 0u, bounce, 1.0, rng()};
-                            if (rlAddRay(rec, so.data(), sd.data(), st, RL_SHADOW, sp, &srow, sizeof srow) != 0) die("rlAddRay");
+                            int added = l == 0 ? RL_ADD_RAY(rec, so.data(), sd.data(), st, RL_SHADOW, sp, &srow, sizeof srow)   // area light
+                                               : RL_ADD_RAY(rec, so.data(), sd.data(), st, RL_SHADOW, sp, &srow, sizeof srow);  // point light
+                            if (added != 0) die("rlAddRay");
                             counts[1]++;
                         }
                         // A wrong payload size is refused, naming the row's size.
@@ -213,7 +216,7 @@ int main(int argc, char **argv) {
 
     // Immediate mode: a recording in memory, read while it records (as a viewer of a live
     // renderer would).
-    rl_recorder *live = rlInitImmediate(columns, 4, 8, 0);
+    rl_recorder *live = rlInitImmediate(columns, 4, 8, 0, 0);
     if (!live) die("rlInitImmediate");
     rl_reader *cursor = rlOpenRecording(live);
     if (!cursor) die("rlOpenRecording");

@@ -60,6 +60,10 @@ typedef struct {
     uint32_t count;
 } rl_column;
 
+/* rlInitColumns / rlInitImmediate flag: record where each ray was added (the `site` column, the
+ * `sites` table; SQL shows `file:line function`). */
+#define RL_RECORD_SITES 1u
+
 /* rlSetCameraMatrix's field-of-view axis. */
 enum { RL_FOV_X = 0, RL_FOV_Y = 1 };
 
@@ -89,15 +93,18 @@ rl_recorder *rlInit(const char *path, size_t payload_size);
  * `bytes_size` opaque bytes per ray (0: none). rlAddRay's payload is then one packed row: each
  * column's values in order, native byte order, no padding between them (a
  * `#pragma pack(1)` struct, or memcpy into a buffer), then the opaque bytes;
- * rlPayloadRowSize gives its size. NULL (rlLastError says why) for a bad type, a zero count or
- * a duplicate name. */
-rl_recorder *rlInitColumns(const char *path, const rl_column *columns, size_t column_count, size_t bytes_size);
+ * rlPayloadRowSize gives its size. `flags`: 0, or RL_RECORD_SITES to record each ray's site
+ * (see RL_ADD_RAY). NULL (rlLastError says why) for a bad type, a zero count, a duplicate name
+ * or an unknown flag. */
+rl_recorder *rlInitColumns(const char *path, const rl_column *columns, size_t column_count, size_t bytes_size,
+                           uint32_t flags);
 /* Bytes of one packed payload row of this recorder (typed columns, then opaque bytes). */
 int64_t rlPayloadRowSize(rl_recorder *rec);
 /* Immediate mode: the recording stays in memory (no directory), its oldest trees evicted past
  * `memory_budget` bytes (0: 256 MiB). Columns and payload rows as for rlInitColumns. Read it
  * while recording with rlOpenRecording; rlFinish frees it. */
-rl_recorder *rlInitImmediate(const rl_column *columns, size_t column_count, size_t bytes_size, size_t memory_budget);
+rl_recorder *rlInitImmediate(const rl_column *columns, size_t column_count, size_t bytes_size, size_t memory_budget,
+                             uint32_t flags);
 /* A read cursor over an immediate-mode recording while it records (from any thread): it sees
  * every tree ended before each read; rlTreeCount and rlRayCount give the counts now. Close it
  * with rlClose before rlFinish frees the recording. NULL for a write-mode recorder. */
@@ -112,6 +119,13 @@ int rlBeginTree(rl_recorder *rec, uint32_t x, uint32_t y, uint32_t sample);
  * of another size is refused. Copies everything; safe from many threads at once. */
 int rlAddRay(rl_recorder *rec, const float origin[3], const float direction[3], float t, int32_t kind,
              int64_t prim, const void *payload, size_t payload_size);
+/* rlAddRay, naming its call site (`file` and `function` NUL-terminated, copied; `function` may
+ * be NULL). Recorded when the recorder records sites (RL_RECORD_SITES); ignored otherwise.
+ * RL_ADD_RAY passes the caller's __FILE__, __LINE__ and __func__. */
+int rlAddRayAt(rl_recorder *rec, const float origin[3], const float direction[3], float t, int32_t kind, int64_t prim,
+               const void *payload, size_t payload_size, const char *file, uint32_t line, const char *function);
+#define RL_ADD_RAY(rec, origin, direction, t, kind, prim, payload, payload_size) \
+    rlAddRayAt(rec, origin, direction, t, kind, prim, payload, payload_size, __FILE__, __LINE__, __func__)
 int rlDescendTree(rl_recorder *rec);
 int rlAscendTree(rl_recorder *rec);
 /* Ends the current tree of this thread; returns its id, or -1. */

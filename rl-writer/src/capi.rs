@@ -11,6 +11,9 @@ use arrow::array::{Array, AsArray};
 
 use crate::{BytesPayload, Kind, Payload, PayloadSchema, RayFields, Reader, Recorder, RecorderOptions, TreeBuilder};
 
+/// `rlInitColumns` / `rlInitImmediate` flag: record each ray's site (`rlAddRayAt`).
+const RL_RECORD_SITES: u32 = 1;
+
 /// Opaque recorder handle (`rl_recorder`).
 pub struct RlRecorder {
     rec: Recorder,
@@ -272,7 +275,11 @@ fn make_recorder(
     target: Target<'_>,
     columns: Vec<(String, Column, crate::DataType)>,
     bytes_size: usize,
+    flags: u32,
 ) -> Result<*mut RlRecorder, String> {
+    if flags & !RL_RECORD_SITES != 0 {
+        return Err(format!("flags {flags:#x}: only RL_RECORD_SITES (1) is known"));
+    }
     let bytes = (bytes_size > 0).then_some(BytesPayload::Fixed(bytes_size));
     let fields = columns
         .iter()
@@ -283,7 +290,7 @@ fn make_recorder(
         })
         .collect();
     let payload = PayloadSchema::new(fields, bytes).map_err(|e| e.to_string())?;
-    let mut options = RecorderOptions { payload, ..Default::default() };
+    let mut options = RecorderOptions { payload, sites: flags & RL_RECORD_SITES != 0, ..Default::default() };
     let (rec, memory) = match target {
         Target::Dir(path) => (Recorder::create(path, options).map_err(|e| e.to_string())?, None),
         Target::Memory(budget) => {
@@ -330,7 +337,7 @@ pub unsafe extern "C" fn rlInit(path: *const c_char, payload_size: usize) -> *mu
     guard(std::ptr::null_mut(), || {
         // SAFETY: forwarded caller contract.
         let path = unsafe { path_arg(path) }?;
-        make_recorder(Target::Dir(&path), Vec::new(), payload_size)
+        make_recorder(Target::Dir(&path), Vec::new(), payload_size, 0)
     })
 }
 
@@ -340,13 +347,14 @@ pub unsafe extern "C" fn rlInitColumns(
     columns: *const RlColumn,
     column_count: usize,
     bytes_size: usize,
+    flags: u32,
 ) -> *mut RlRecorder {
     guard(std::ptr::null_mut(), || {
         // SAFETY: forwarded caller contract.
         let path = unsafe { path_arg(path) }?;
         // SAFETY: forwarded caller contract.
         let columns = unsafe { columns_arg(columns, column_count) }?;
-        make_recorder(Target::Dir(&path), columns, bytes_size)
+        make_recorder(Target::Dir(&path), columns, bytes_size, flags)
     })
 }
 
@@ -356,11 +364,12 @@ pub unsafe extern "C" fn rlInitImmediate(
     column_count: usize,
     bytes_size: usize,
     memory_budget: usize,
+    flags: u32,
 ) -> *mut RlRecorder {
     guard(std::ptr::null_mut(), || {
         // SAFETY: forwarded caller contract.
         let columns = unsafe { columns_arg(columns, column_count) }?;
-        make_recorder(Target::Memory(memory_budget), columns, bytes_size)
+        make_recorder(Target::Memory(memory_budget), columns, bytes_size, flags)
     })
 }
 
@@ -421,6 +430,48 @@ pub unsafe extern "C" fn rlAddRay(
     payload: *const c_void,
     payload_size: usize,
 ) -> i32 {
+    // SAFETY: forwarded caller contract.
+    unsafe { add_ray(rec, origin, direction, t, kind, prim, payload, payload_size, None) }
+}
+
+#[unsafe(no_mangle)]
+#[allow(clippy::too_many_arguments)]
+pub unsafe extern "C" fn rlAddRayAt(
+    rec: *mut RlRecorder,
+    origin: *const f32,
+    direction: *const f32,
+    t: f32,
+    kind: i32,
+    prim: i64,
+    payload: *const c_void,
+    payload_size: usize,
+    file: *const c_char,
+    line: u32,
+    function: *const c_char,
+) -> i32 {
+    let text = |p: *const c_char| -> Option<String> {
+        // SAFETY: a NUL-terminated string or NULL, as rl.h documents.
+        (!p.is_null()).then(|| unsafe { CStr::from_ptr(p) }.to_string_lossy().into_owned())
+    };
+    let (file, function) = (text(file), text(function));
+    let site = file.as_deref().map(|f| (f, line, function.as_deref()));
+    // SAFETY: forwarded caller contract.
+    unsafe { add_ray(rec, origin, direction, t, kind, prim, payload, payload_size, site) }
+}
+
+/// `rlAddRay`, with the call site when the caller names it.
+#[allow(clippy::too_many_arguments)]
+unsafe fn add_ray(
+    rec: *mut RlRecorder,
+    origin: *const f32,
+    direction: *const f32,
+    t: f32,
+    kind: i32,
+    prim: i64,
+    payload: *const c_void,
+    payload_size: usize,
+    site: Option<(&str, u32, Option<&str>)>,
+) -> i32 {
     guard(-1, || {
         // SAFETY: forwarded caller contract.
         let rec = unsafe { rec_arg(rec) }?;
@@ -464,7 +515,13 @@ pub unsafe extern "C" fn rlAddRay(
                 None => (Vec::new(), None),
             };
             with_tree(rec.id, |tree| {
-                tree.add_ray(&fields, Payload { values: &values, bytes });
+                let payload = Payload { values: &values, bytes };
+                match site {
+                    Some((file, line, function)) => {
+                        tree.add_ray_at(crate::SiteRef::Named { file, line, function }, &fields, payload)
+                    }
+                    None => tree.add_ray(&fields, payload),
+                };
             })
         })?;
         Ok(0)

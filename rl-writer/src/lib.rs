@@ -14,7 +14,7 @@ pub use arrow::datatypes::DataType;
 pub use error::{Error, Result};
 pub use immediate::MemoryTrace;
 pub use reader::{Reader, TraceSource};
-pub use recorder::{Mode, Payload, RayId, Recorder, TreeBuilder};
+pub use recorder::{Mode, Payload, RayId, Recorder, SiteRef, TreeBuilder};
 pub use sink::{RecorderOptions, Summary};
 pub use store::{
     BytesPayload, Dataset, Kind, ListValue, PayloadField, PayloadSchema, Ray, RayFields, Stats, Tree, TreeId, TreeInfo,

@@ -70,6 +70,57 @@ pub(crate) struct Inner {
     sink: Box<dyn Sink>,
     mistakes: Mutex<Mistakes>,
     mode: Mode,
+    /// With `RecorderOptions::sites`: the sites seen, and the `site` column's slot.
+    sites: Option<Sites>,
+}
+
+/// The recording sites seen so far, interned: a caller's `Location` (Rust) by its address, a
+/// site given as text (C, Python) by its value.
+struct Sites {
+    slot: usize,
+    by_location: RwLock<std::collections::HashMap<usize, u32>>,
+    by_site: Mutex<std::collections::HashMap<store::scene::Site, u32>>,
+    all: Mutex<Vec<store::scene::Site>>,
+    /// Sites written to the `sites` table so far (it is written again when more appear).
+    written: AtomicUsize,
+}
+
+impl Sites {
+    fn id_of(&self, site: store::scene::Site) -> u32 {
+        let mut by = self.by_site.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(id) = by.get(&site) {
+            return *id;
+        }
+        let mut all = self.all.lock().unwrap_or_else(|p| p.into_inner());
+        let id = all.len() as u32;
+        all.push(site.clone());
+        by.insert(site, id);
+        id
+    }
+
+    fn id_of_location(&self, loc: &'static std::panic::Location<'static>) -> u32 {
+        let key = loc as *const _ as usize;
+        if let Some(id) = self.by_location.read().unwrap_or_else(|p| p.into_inner()).get(&key) {
+            return *id;
+        }
+        let id = self.id_of(store::scene::Site {
+            file: loc.file().to_string(),
+            line: loc.line(),
+            column: loc.column(),
+            function: None,
+        });
+        self.by_location.write().unwrap_or_else(|p| p.into_inner()).insert(key, id);
+        id
+    }
+}
+
+/// Where a ray was added, for the `site` column.
+#[derive(Clone, Copy, Debug)]
+pub enum SiteRef<'a> {
+    /// A place in Rust source (`#[track_caller]`'s `Location::caller()`).
+    Location(&'static std::panic::Location<'static>),
+    /// A place named by the caller (C's `__FILE__`/`__LINE__`, a Python frame).
+    Named { file: &'a str, line: u32, function: Option<&'a str> },
 }
 
 impl Inner {
@@ -158,6 +209,7 @@ thread_local! {
 impl Recorder {
     /// Write mode: records into a new dataset directory `dir` (which must not exist or be empty).
     pub fn create(dir: impl AsRef<Path>, options: RecorderOptions) -> Result<Recorder> {
+        let options = with_site_column(options)?;
         let kinds = registry(&options.kinds)?;
         let sink = WriteSink::start(dir.as_ref(), &options)?;
         Ok(Self::with_sink(Box::new(sink), options, kinds, Mode::Write))
@@ -166,7 +218,8 @@ impl Recorder {
     /// Immediate mode: records into memory; the returned [`MemoryTrace`] reads it from any thread
     /// while recording goes on. Trees become visible as soon as they end. When the memory budget
     /// is exceeded, the oldest trees are evicted.
-    pub fn immediate(mut options: RecorderOptions) -> Result<(Recorder, MemoryTrace)> {
+    pub fn immediate(options: RecorderOptions) -> Result<(Recorder, MemoryTrace)> {
+        let mut options = with_site_column(options)?;
         let kinds = registry(&options.kinds)?;
         let (sink, trace) = ImmediateSink::new(options.payload.clone(), options.memory_budget);
         options.chunk_rays = 0;
@@ -178,6 +231,7 @@ impl Recorder {
         let shards = (0..8)
             .map(|_| Padded(Mutex::new(Shard { cols: RayRows::new(&options.payload), pool: Vec::new(), open: 0 })))
             .collect();
+        let site_slot = options.payload.fields.len().saturating_sub(1);
         Recorder {
             inner: Arc::new(Inner {
                 layout: RowLayout::new(&options.payload),
@@ -189,6 +243,13 @@ impl Recorder {
                 sink,
                 mistakes: Mutex::new(Mistakes::default()),
                 mode,
+                sites: options.sites.then(|| Sites {
+                    slot: site_slot,
+                    by_location: RwLock::default(),
+                    by_site: Mutex::default(),
+                    all: Mutex::default(),
+                    written: AtomicUsize::new(0),
+                }),
             }),
         }
     }
@@ -257,7 +318,27 @@ impl Recorder {
     /// on disk and listed in the manifest; immediate mode: visible).
     pub fn flush(&self) -> Result<()> {
         self.drain_shards();
+        self.write_sites()?;
         self.inner.sink.flush(&self.inner.kinds())
+    }
+
+    /// Whether rays carry their recording site (`RecorderOptions::sites`).
+    pub fn records_sites(&self) -> bool {
+        self.inner.sites.is_some()
+    }
+
+    /// Writes the `sites` table when sites appeared since it was last written.
+    fn write_sites(&self) -> Result<()> {
+        let Some(sites) = &self.inner.sites else { return Ok(()) };
+        let all = sites.all.lock().unwrap_or_else(|p| p.into_inner()).clone();
+        if all.len() == sites.written.load(Ordering::Relaxed) {
+            return Ok(());
+        }
+        let batch =
+            store::scene::sites_batch(&all).map_err(|e| Error::InvalidArgument(format!("the sites table: {e}")))?;
+        self.write_table(store::scene::SITES_TABLE, batch)?;
+        sites.written.store(all.len(), Ordering::Relaxed);
+        Ok(())
     }
 
     fn drain_shards(&self) {
@@ -278,6 +359,7 @@ impl Recorder {
     /// stay intact) and recording mistakes (nesting, payload types, trees never ended).
     pub fn finish(self) -> Result<Summary> {
         self.drain_shards();
+        let sites = self.write_sites();
         let summary = self.inner.sink.finish(&self.inner.kinds())?;
         let open: i64 = self.inner.shards.iter().map(|s| s.0.lock().unwrap_or_else(|p| p.into_inner()).open).sum();
         if open > 0 {
@@ -287,8 +369,30 @@ impl Recorder {
         if m.count > 0 {
             return Err(Error::Misuse { count: m.count, first: m.first.clone() });
         }
+        sites?;
         Ok(summary)
     }
+}
+
+/// `options` with the `site` payload column appended when sites are recorded (refused when the
+/// renderer declared a column of that name itself).
+fn with_site_column(mut options: RecorderOptions) -> Result<RecorderOptions> {
+    if options.sites {
+        let name = store::scene::SITE_COLUMN;
+        if options.payload.fields.iter().any(|f| f.name == name) {
+            return Err(Error::InvalidArgument(format!(
+                "payload column `{name}` is the recording site's when sites are recorded: rename yours"
+            )));
+        }
+        let mut fields = options.payload.fields.clone();
+        fields.push(store::PayloadField {
+            name: name.into(),
+            element: arrow::datatypes::DataType::UInt32,
+            list_len: None,
+        });
+        options.payload = PayloadSchema::new(fields, options.payload.bytes)?;
+    }
+    Ok(options)
 }
 
 fn registry(names: &[String]) -> Result<KindTable> {
@@ -326,13 +430,34 @@ impl TreeBuilder {
 
     /// Adds a ray under the current parent (the ray last descended into; none at the top).
     #[inline]
+    #[track_caller]
     pub fn add_ray(&mut self, ray: &RayFields, payload: Payload<'_>) -> RayId {
+        let site = SiteRef::Location(std::panic::Location::caller());
+        self.add_ray_at(site, ray, payload)
+    }
+
+    /// [`TreeBuilder::add_ray`] with its recording site given (a renderer that records rays
+    /// after tracing them keeps each ray's `Location` from where it was traced; C and Python
+    /// name the file and line).
+    pub fn add_ray_at(&mut self, site: SiteRef<'_>, ray: &RayFields, payload: Payload<'_>) -> RayId {
         let parent = self.stack.last().copied();
-        self.push(parent, ray, payload)
+        self.push(parent, ray, payload, site)
     }
 
     /// Adds a ray under an explicit parent ray of this tree (breadth-first recording).
+    #[track_caller]
     pub fn add_ray_under(&mut self, parent: RayId, ray: &RayFields, payload: Payload<'_>) -> RayId {
+        self.add_ray_under_at(SiteRef::Location(std::panic::Location::caller()), parent, ray, payload)
+    }
+
+    /// [`TreeBuilder::add_ray_under`] with its recording site given.
+    pub fn add_ray_under_at(
+        &mut self,
+        site: SiteRef<'_>,
+        parent: RayId,
+        ray: &RayFields,
+        payload: Payload<'_>,
+    ) -> RayId {
         if parent.0 as usize >= self.cols.len() {
             self.rec.mistake(format!(
                 "tree {}: parent ray {} does not exist yet (tree has {} rays); recorded as a root",
@@ -340,13 +465,13 @@ impl TreeBuilder {
                 parent.0,
                 self.cols.len()
             ));
-            return self.push(None, ray, payload);
+            return self.push(None, ray, payload, site);
         }
-        self.push(Some(parent.0), ray, payload)
+        self.push(Some(parent.0), ray, payload, site)
     }
 
     #[inline]
-    fn push(&mut self, parent: Option<u32>, ray: &RayFields, payload: Payload<'_>) -> RayId {
+    fn push(&mut self, parent: Option<u32>, ray: &RayFields, payload: Payload<'_>, site: SiteRef<'_>) -> RayId {
         let index = self.cols.len() as u32;
         let depth = parent.map_or(0, |p| self.cols.core.get(p as usize).map_or(0, |r| r.depth + 1));
         self.max_depth = self.max_depth.max(depth);
@@ -363,6 +488,18 @@ impl TreeBuilder {
                 payload.bytes,
                 &mut self.mismatches,
             );
+        }
+        if let Some(sites) = &self.rec.sites {
+            let id = match site {
+                SiteRef::Location(loc) => sites.id_of_location(loc),
+                SiteRef::Named { file, line, function } => sites.id_of(store::scene::Site {
+                    file: file.to_string(),
+                    line,
+                    column: 0,
+                    function: function.map(str::to_string),
+                }),
+            };
+            self.cols.set_last_value(&self.rec.layout, sites.slot, store::Value::U32(id));
         }
         self.last = Some(index);
         RayId(index)

@@ -29,6 +29,9 @@ pub struct RecorderOptions {
     pub workers: usize,
     /// Parquet settings of the segments.
     pub write: WriteOptions,
+    /// Record where in the renderer's source each ray was added (its site): a `site` payload
+    /// column and the `sites` table (see `Recorder`'s text).
+    pub sites: bool,
 }
 
 impl Default for RecorderOptions {
@@ -42,6 +45,7 @@ impl Default for RecorderOptions {
             seal_interval: Duration::from_secs(2),
             workers: 1,
             write: WriteOptions::default(),
+            sites: false,
         }
     }
 }

@@ -184,6 +184,20 @@ impl RayRows {
         crate::columns::push_bytes(&mut self.bytes, schema.bytes, bytes, mismatches);
     }
 
+    /// Sets typed column `slot` of the last ray's payload row to `value` (valid): the recorder
+    /// fills the `site` column this way, after the caller's values. False when there is no row
+    /// or the column cannot hold the value.
+    pub fn set_last_value(&mut self, layout: &RowLayout, slot: usize, value: Value<'_>) -> bool {
+        let Some(s) = layout.slots.get(slot) else { return false };
+        let Some(start) = self.payload.len().checked_sub(layout.stride) else { return false };
+        let row = &mut self.payload[start..];
+        if !write_fitting(value, s.storage, s.list_len, &mut row[s.offset..s.offset + s.width]) {
+            return false;
+        }
+        row[layout.valid_at + slot] = 1;
+        true
+    }
+
     /// Appends all rays of `other` (whose `trees` must describe them) after the rays held.
     pub fn append(&mut self, other: &RayRows) {
         let base = self.len() as u64;

@@ -232,6 +232,59 @@ pub fn lights_table(
     arrow::array::RecordBatch::try_new(lights_schema(), cols)
 }
 
+/// The table of recording sites: where in the renderer's source each ray was added.
+pub const SITES_TABLE: &str = "sites";
+/// The payload column holding each ray's site (an id of the `sites` table; SQL shows it as the
+/// site's text, `file:line function`).
+pub const SITE_COLUMN: &str = "site";
+
+/// Schema of the `sites` table: site_id (the `site` payload column's value), the source file,
+/// line, column (0 when unknown) and function (null when unknown).
+pub fn sites_schema() -> SchemaRef {
+    Arc::new(Schema::new(vec![
+        Field::new("site_id", DataType::UInt32, false),
+        Field::new("file", DataType::Utf8, false),
+        Field::new("line", DataType::UInt32, false),
+        Field::new("column", DataType::UInt32, false),
+        Field::new("function", DataType::Utf8, true),
+    ]))
+}
+
+/// One recording site.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct Site {
+    pub file: String,
+    pub line: u32,
+    pub column: u32,
+    pub function: Option<String>,
+}
+
+impl Site {
+    /// How SQL shows the site: `file:line` and the function where known.
+    pub fn text(&self) -> String {
+        match &self.function {
+            Some(f) => format!("{}:{} {f}", self.file, self.line),
+            None => format!("{}:{}", self.file, self.line),
+        }
+    }
+}
+
+/// The `sites` table of `sites`, whose ids are their positions.
+pub fn sites_batch(sites: &[Site]) -> Result<arrow::array::RecordBatch, arrow::error::ArrowError> {
+    use arrow::array::{StringArray, UInt32Array};
+    let n = u32::try_from(sites.len()).map_err(|_| arrow::error::ArrowError::ComputeError("too many sites".into()))?;
+    arrow::array::RecordBatch::try_new(
+        sites_schema(),
+        vec![
+            Arc::new(UInt32Array::from_iter_values(0..n)),
+            Arc::new(StringArray::from_iter_values(sites.iter().map(|s| s.file.as_str()))),
+            Arc::new(UInt32Array::from_iter_values(sites.iter().map(|s| s.line))),
+            Arc::new(UInt32Array::from_iter_values(sites.iter().map(|s| s.column))),
+            Arc::new(StringArray::from_iter(sites.iter().map(|s| s.function.as_deref()))),
+        ],
+    )
+}
+
 /// Schema of the `lights` table: every emissive triangle with its vertices, emission and area.
 pub fn lights_schema() -> SchemaRef {
     let mut fields =
@@ -275,6 +328,7 @@ pub fn known_table_schema(name: &str) -> Option<SchemaRef> {
     match name {
         TRIANGLES_TABLE => Some(triangles_schema()),
         LIGHTS_TABLE => Some(lights_schema()),
+        SITES_TABLE => Some(sites_schema()),
         BVH_NODES_TABLE => Some(bvh_nodes_schema()),
         RAY_NODES_TABLE => Some(ray_nodes_schema()),
         _ => None,
