@@ -17,6 +17,7 @@ from __future__ import annotations
 import builtins
 import contextlib
 import os
+import sys
 from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -328,6 +329,8 @@ class Tree:
         self._stack: List[int] = []
         self._last: Optional[int] = None
         self._ended = False
+        #: Each ray's recording site (file, line, function), when the recorder records sites.
+        self._sites: List[Tuple[str, int, str]] = []
 
     def add_ray(
         self,
@@ -352,6 +355,9 @@ class Tree:
         if len(o) != 3 or len(d) != 3:
             raise RecordError("origin and direction are three numbers each")
         self._rays.append((parent, o, d, float("nan") if t is None else float(t), kind, -1 if prim is None else int(prim), payload))  # type: ignore[arg-type]
+        if self._recorder._sites:
+            f = sys._getframe(1)
+            self._sites.append((f.f_code.co_filename, f.f_lineno, f.f_code.co_name))
         self._last = len(self._rays) - 1
         return self._last
 
@@ -384,20 +390,24 @@ class Recorder:
     memory (``Recorder.immediate(...)``). Payload columns are declared by type: ``"f32"``,
     ``"f32x3"`` (three per ray), ``"u32"``, ``"i64"``, ``"f64x4"``, ..."""
 
-    def __init__(self, path: Optional[PathLike] = None, payload: Optional[Mapping[str, str]] = None, _native: Any = None):
+    def __init__(self, path: Optional[PathLike] = None, payload: Optional[Mapping[str, str]] = None, sites: bool = False, _native: Any = None):
+        """``sites=True`` records each ray's site: the file, line and function of the Python
+        code that added it (``t.add_ray``'s caller, or ``add_rays``'s), as the ``site`` column
+        SQL shows as ``file:line function``. It costs a frame lookup per ray."""
         if _native is not None:
             self._native = _native
         else:
             if path is None:
                 raise RecordError("Recorder(path): the dataset directory to write (or Recorder.immediate())")
-            self._native = _rtvtk.NativeRecorder.create(os.fspath(path), list((payload or {}).items()))
+            self._native = _rtvtk.NativeRecorder.create(os.fspath(path), list((payload or {}).items()), sites)
         self._payload = dict(self._native.payload())
+        self._sites = bool(self._native.records_sites())
         self._closed = False
 
     @classmethod
-    def immediate(cls, payload: Optional[Mapping[str, str]] = None) -> "Recorder":
+    def immediate(cls, payload: Optional[Mapping[str, str]] = None, sites: bool = False) -> "Recorder":
         """An in-memory trace (queried while recording)."""
-        return cls(_native=_rtvtk.NativeRecorder.immediate(list((payload or {}).items())))
+        return cls(_native=_rtvtk.NativeRecorder.immediate(list((payload or {}).items()), sites))
 
     @contextlib.contextmanager
     def tree(self, x: int, y: int, sample: int = 0) -> Iterator[Tree]:
@@ -439,6 +449,7 @@ class Recorder:
             pixel=np.asarray([trees[i].pixel for i, _ in rays], dtype=np.uint32),
             sample=np.asarray([trees[i].sample for i, _ in rays], dtype=np.uint32),
             prim=np.asarray([r[5] for _, r in rays], dtype=np.int64),
+            _sites=[site for t in trees for site in t._sites] if self._sites else None,
             **payload,
         )
 
@@ -453,6 +464,8 @@ class Recorder:
         pixel: Any,
         sample: Any = None,
         prim: Any = None,
+        site: Optional[Tuple[str, int, str]] = None,
+        _sites: Optional[List[Tuple[str, int, str]]] = None,
         **payload: Any,
     ) -> List[int]:
         """Records whole trees from arrays (a wavefront renderer's batch). Rays of one tree are
@@ -460,7 +473,8 @@ class Recorder:
         (-1 for a root); ``origin``/``direction`` are (n, 3); ``t`` NaN is a miss; ``kind`` is
         a sequence of kind names, or a ``(codes, names)`` pair of uint8 codes into names;
         ``pixel`` (n, 2) and ``sample`` of a tree are its first ray's; ``prim`` -1 is none.
-        Returns the dataset's id of each tree, in order."""
+        With ``sites=True`` the rays' site is ``site`` (file, line, function) or else this
+        call's caller. Returns the dataset's id of each tree, in order."""
         self._check_open()
         tree = np.ascontiguousarray(tree, dtype=np.int64)
         n = tree.shape[0]
@@ -481,6 +495,17 @@ class Recorder:
             if arr.dtype != dtype:
                 raise RecordError(f"payload {name!r} is declared {spec}: expected {dtype.name} values, got {arr.dtype.name}")
             arrays.append((name, np.ascontiguousarray(arr)))
+        site_codes, site_names = None, []
+        if self._sites:
+            if _sites is not None:
+                index: Dict[Tuple[str, int, str], int] = {}
+                per_ray = [index.setdefault(x, len(index)) for x in _sites]
+                site_codes, site_names = np.asarray(per_ray, dtype=np.uint32), list(index)
+            else:
+                if site is None:
+                    f = sys._getframe(1)
+                    site = (f.f_code.co_filename, f.f_lineno, f.f_code.co_name)
+                site_codes, site_names = np.zeros(n, dtype=np.uint32), [(str(site[0]), int(site[1]), str(site[2]))]
         return list(
             self._native.add_rays(
                 tree,
@@ -494,6 +519,8 @@ class Recorder:
                 np.ascontiguousarray(sample, dtype=np.uint32),
                 np.ascontiguousarray(prim, dtype=np.int64),
                 arrays,
+                site_codes,
+                site_names,
             )
         )
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 from typing import Any, Dict, List, Optional, Tuple, Union
 
@@ -192,12 +193,14 @@ def record(
     seed: int = 0,
     bug: Optional[str] = None,
     progress: bool = False,
+    sites: bool = False,
 ) -> Dict[str, Any]:
     """Renders ``scene`` with Mitsuba's path tracer and records every ray into the dataset
     directory ``out`` (see the module's text). ``max_depth`` and ``rr_depth`` mean what they
     mean for Mitsuba's ``path`` integrator (``max_depth=-1``: no limit but Russian roulette).
     ``bug="shadow-dir"`` aims the shadow rays of floor-like surfaces (normal up) at the light's
     mirror image below the floor, on purpose, for the paper's wrong-shadow query to find.
+    ``sites=True`` records each ray's site: the line of this integrator that traced it.
 
     Returns the image (``"image"``, (height, width, 3) float32, the mean radiance per pixel,
     also written beside the trace as its picture), ray counts by kind and by (kind, depth) as
@@ -219,7 +222,7 @@ def record(
 
     # Per ray: tree (path index), parent index in the tree, origin, direction, t, kind, prim,
     # throughput, radiance; per path: pixel and sample.
-    rays: Dict[str, List[Any]] = {k: [] for k in ("tree", "parent", "o", "d", "t", "kind", "prim", "tp", "rad", "depth")}
+    rays: Dict[str, List[Any]] = {k: [] for k in ("tree", "parent", "o", "d", "t", "kind", "prim", "tp", "rad", "depth", "site")}
     pixels: List[Tuple[int, int]] = []
     samples: List[int] = []
     image = np.zeros((h, w, 3), np.float64)
@@ -231,6 +234,9 @@ def record(
         return -1 if i is None or not sc.shapes()[i].is_mesh() else offsets[i] + int(si.prim_index)
 
     def add(tree: int, parent: int, o: Any, d: Any, t: Optional[float], kind: str, prim: int, tp: Any, rad: Any) -> int:
+        if sites:
+            f = sys._getframe(1)
+            rays["site"].append((f.f_code.co_filename, f.f_lineno, f.f_code.co_name))
         rays["tree"].append(tree)
         rays["parent"].append(parent)
         rays["o"].append((float(o[0]), float(o[1]), float(o[2])))
@@ -359,7 +365,7 @@ def record(
     start = time.perf_counter()
     kinds = sorted(set(rays["kind"]))
     code = {k: i for i, k in enumerate(kinds)}
-    rec = Recorder(out, payload={"throughput": "f32x3", "radiance": "f32x3"})
+    rec = Recorder(out, payload={"throughput": "f32x3", "radiance": "f32x3"}, sites=sites)
     try:
         rec.set_scene(tris, mats, colors, emission, names, point_lights=_point_lights(mi, sc))
         rec.set_camera(pos, target, up, fov_y, w, h)
@@ -378,6 +384,7 @@ def record(
             prim=np.asarray(rays["prim"], np.int64),
             throughput=np.asarray(rays["tp"], np.float32),
             radiance=np.asarray(rays["rad"], np.float32),
+            _sites=rays["site"] if sites else None,
         )
         summary = rec.finish()
     except BaseException:

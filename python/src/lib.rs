@@ -610,10 +610,17 @@ struct NativeRecorder {
     dir: Option<std::path::PathBuf>,
 }
 
-fn options(payload: Vec<(String, String)>) -> PyResult<RecorderOptions> {
+fn options(payload: Vec<(String, String)>, sites: bool) -> PyResult<RecorderOptions> {
     let fields = payload.iter().map(|(n, s)| parse_field(n, s)).collect::<PyResult<Vec<_>>>()?;
     let schema = PayloadSchema::new(fields, None).map_err(record_err)?;
-    Ok(RecorderOptions { payload: schema, ..Default::default() })
+    Ok(RecorderOptions { payload: schema, sites, ..Default::default() })
+}
+
+/// The payload columns the caller gives values for (not the recorder's own `site` column).
+fn given_fields(rec: &Recorder) -> Vec<PayloadField> {
+    let fields = &rec.payload_schema().fields;
+    let own = usize::from(rec.records_sites());
+    fields[..fields.len() - own].to_vec()
 }
 
 impl NativeRecorder {
@@ -663,33 +670,42 @@ impl query::LiveTrace for Memory {
 
 #[pymethods]
 impl NativeRecorder {
-    /// Write mode: a dataset at `path` with payload columns `[(name, "f32x3"), ...]`.
+    /// Write mode: a dataset at `path` with payload columns `[(name, "f32x3"), ...]`; with
+    /// `sites`, each ray's recording site too.
     #[staticmethod]
-    fn create(py: Python<'_>, path: String, payload: Vec<(String, String)>) -> PyResult<NativeRecorder> {
-        let options = options(payload)?;
+    #[pyo3(signature = (path, payload, sites=false))]
+    fn create(py: Python<'_>, path: String, payload: Vec<(String, String)>, sites: bool) -> PyResult<NativeRecorder> {
+        let options = options(payload, sites)?;
         let rec = py.detach(|| Recorder::create(&path, options)).map_err(record_err)?;
         Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: None, dir: Some(path.into()) })
     }
 
     /// Immediate mode: the trace stays in memory.
     #[staticmethod]
-    fn immediate(payload: Vec<(String, String)>) -> PyResult<NativeRecorder> {
-        let (rec, memory) = Recorder::immediate(options(payload)?).map_err(record_err)?;
+    #[pyo3(signature = (payload, sites=false))]
+    fn immediate(payload: Vec<(String, String)>, sites: bool) -> PyResult<NativeRecorder> {
+        let (rec, memory) = Recorder::immediate(options(payload, sites)?).map_err(record_err)?;
         Ok(NativeRecorder { rec: Mutex::new(Some(rec)), kinds: Mutex::default(), memory: Some(memory), dir: None })
     }
 
     /// The payload columns as declared, `[(name, spec)]`.
     fn payload(&self) -> PyResult<Vec<(String, String)>> {
-        self.with(|r| Ok(r.payload_schema().fields.iter().map(|f| (f.name.clone(), describe_field(f))).collect()))
+        self.with(|r| Ok(given_fields(r).iter().map(|f| (f.name.clone(), describe_field(f))).collect()))
+    }
+
+    /// Whether rays record their site.
+    fn records_sites(&self) -> PyResult<bool> {
+        self.with(|r| Ok(r.records_sites()))
     }
 
     /// Records whole trees at once. Rays of one tree are contiguous and share `tree` (any
     /// integer naming the tree in this call); `parent` is the parent's index within its tree
     /// (-1: a root); `pixel` (n × 2) and `sample` of a tree come from its first ray; `t` NaN is a
-    /// miss; `prim` -1 is none; `kind` names per ray index into `kind_names`. Returns the
+    /// miss; `prim` -1 is none; `kind` names per ray index into `kind_names`; `site` per ray
+    /// indexes `site_names` (file, line, function), when sites are recorded. Returns the
     /// dataset's tree ids, one per tree, in order.
     #[allow(clippy::too_many_arguments)]
-    #[pyo3(signature = (tree, parent, origin, direction, t, kind, kind_names, pixel, sample, prim, payload))]
+    #[pyo3(signature = (tree, parent, origin, direction, t, kind, kind_names, pixel, sample, prim, payload, site=None, site_names=Vec::new()))]
     fn add_rays(
         &self,
         py: Python<'_>,
@@ -704,6 +720,8 @@ impl NativeRecorder {
         sample: &Bound<'_, PyAny>,
         prim: &Bound<'_, PyAny>,
         payload: Vec<(String, Bound<'_, PyAny>)>,
+        site: Option<&Bound<'_, PyAny>>,
+        site_names: Vec<(String, u32, Option<String>)>,
     ) -> PyResult<Vec<u64>> {
         let n = PyBuffer::<i64>::get(tree)
             .map(|b| b.item_count())
@@ -717,9 +735,14 @@ impl NativeRecorder {
         let pixel: Vec<u32> = elements(pixel, "pixel (uint32, n x 2)", n * 2)?;
         let sample: Vec<u32> = elements(sample, "sample (uint32)", n)?;
         let prim: Vec<i64> = elements(prim, "prim (int64, -1 for none)", n)?;
+        let site: Option<Vec<u32>> =
+            site.map(|s| elements(s, "site (uint32 indices into site_names)", n)).transpose()?;
+        if let Some(k) = site.as_ref().and_then(|s| s.iter().find(|k| **k as usize >= site_names.len())) {
+            return Err(record_err(format!("site index {k} is outside site_names ({} sites)", site_names.len())));
+        }
         self.with(|rec| {
             let kinds: Vec<Kind> = kind_names.iter().map(|k| self.kind(rec, k)).collect::<PyResult<_>>()?;
-            let fields = rec.payload_schema().fields.clone();
+            let fields = given_fields(rec);
             let mut cols = Vec::with_capacity(fields.len());
             for f in &fields {
                 let obj = payload
@@ -773,9 +796,16 @@ impl NativeRecorder {
                         };
                         values.clear();
                         values.extend(cols.iter().zip(&fields).map(|(c, f)| c.value(i, f.list_len)));
+                        let at = match &site {
+                            Some(s) => {
+                                let (file, line, function) = &site_names[s[i] as usize];
+                                rl::SiteRef::Named { file, line: *line, function: function.as_deref() }
+                            }
+                            None => rl::SiteRef::Named { file: "(python)", line: 0, function: None },
+                        };
                         let id = match usize::try_from(parent[i]) {
-                            Ok(p) => b.add_ray_under(rays[p], &fields_i, Payload::values(&values)),
-                            Err(_) => b.add_ray(&fields_i, Payload::values(&values)),
+                            Ok(p) => b.add_ray_under_at(at, rays[p], &fields_i, Payload::values(&values)),
+                            Err(_) => b.add_ray_at(at, &fields_i, Payload::values(&values)),
                         };
                         rays.push(id);
                     }

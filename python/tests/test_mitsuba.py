@@ -117,6 +117,12 @@ def test_the_papers_query_finds_an_injected_wrong_shadow_direction(tmp_path):
     # They leave upward-facing surfaces (the floor, the boxes' tops): every one's parent came down.
     assert wrong["highest"] < 0
     assert s.analyze("bugs").markdown.count("point at no emitter") == 1
+    # Recorded with sites, the wrong rays group on the line of the integrator that adds them.
+    rm.record("cornell", str(tmp_path / "sites"), spp=1, max_depth=3, size=(8, 8), bug="shadow-dir", sites=True)
+    source = open(rm.__file__).read().splitlines()
+    line = next(i + 1 for i, text in enumerate(source) if 'add(path, me, shadow.o, direction' in text)
+    rows = rtvtk.open(tmp_path / "sites").sql(f"SELECT CAST(site AS VARCHAR) AS site, count(*) AS n FROM rays WHERE {WRONG} GROUP BY 1").to_pylist()
+    assert [r["site"] for r in rows] == [f"{rm.__file__}:{line} record"], rows
 
 
 def test_a_second_xml_scene_with_glossy_glass_area_and_point_lights(tmp_path):

@@ -329,3 +329,27 @@ def test_the_walkthrough_runs_from_recording_to_pictures(tmp_path):
     for name in ("shadow_rays.png", "pixel_rays.png", "coherence/report.md"):
         assert (tmp_path / name).stat().st_size > 0, name
     assert rtvtk.open(tmp_path / "trace").check() == []
+
+
+def test_sites_name_the_python_line_that_added_each_ray(tmp_path):
+    rec = rtvtk.Recorder(tmp_path / "s", sites=True)
+    with rec.tree(0, 0) as t:
+        camera_line = sys._getframe().f_lineno + 1
+        t.add_ray((0, 0, 0), (0, 0, 1), 1.0, "camera")
+        t.descend()
+        shadow_line = sys._getframe().f_lineno + 1
+        t.add_ray((0, 0, 1), (0, 1, 0), None, "shadow")
+    batch_line = sys._getframe().f_lineno + 1
+    rec.add_rays(tree=[0], parent=[-1], origin=[[0, 0, 0]], direction=[[1, 0, 0]], t=[1.0], kind=["camera"], pixel=[[1, 1]])
+    rec.add_rays(tree=[0], parent=[-1], origin=[[0, 0, 0]], direction=[[1, 0, 0]], t=[1.0], kind=["camera"], pixel=[[2, 1]], site=("render.cu", 42, "trace"))
+    rec.finish()
+    rows = rtvtk.open(tmp_path / "s").sql("SELECT CAST(site AS VARCHAR) AS site FROM rays ORDER BY tree_id, ray").column("site").to_pylist()
+    me = "test_sites_name_the_python_line_that_added_each_ray"
+    assert rows == [f"{__file__}:{camera_line} {me}", f"{__file__}:{shadow_line} {me}", f"{__file__}:{batch_line} {me}", "render.cu:42 trace"]
+    # Without sites, no site column.
+    plain = rtvtk.Recorder(tmp_path / "p")
+    with plain.tree(0, 0) as t:
+        t.add_ray((0, 0, 0), (0, 0, 1), 1.0, "camera")
+    plain.finish()
+    with pytest.raises(rtvtk.QueryError, match="site"):
+        rtvtk.open(tmp_path / "p").sql("SELECT site FROM rays")
