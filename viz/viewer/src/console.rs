@@ -204,6 +204,13 @@ pub fn inspector_ui(ui: &mut Ui, s: &mut State, q: &mut QueryService) {
                 ui.end_row();
             }
         });
+        // The recording site's source line, when the file is at hand (`record --sites`).
+        if let Some(site) = f.value(0, store::scene::SITE_COLUMN).filter(|v| !v.is_empty())
+            && let Some(line) = source_line(&site)
+        {
+            ui.label(RichText::new(format!("{site}\n  {line}")).monospace().color(Color32::from_rgb(150, 200, 255)))
+                .on_hover_text("the line of the renderer that added this ray");
+        }
     }
     let mut chosen = None;
     if let (Some(t), Some(sel)) = (&s.inspector.tree, s.selection) {
@@ -227,5 +234,42 @@ pub fn inspector_ui(ui: &mut Ui, s: &mut State, q: &mut QueryService) {
     }
     if let Some(c) = chosen {
         select(s, q, c);
+    }
+}
+
+/// The text of a recording site's line (`file:line function`), read from the file when it is at
+/// hand (a path relative to the working directory, as Rust's `file!()` gives, or absolute);
+/// files are read once.
+pub fn source_line(site: &str) -> Option<String> {
+    use std::collections::HashMap;
+    thread_local! {
+        static FILES: std::cell::RefCell<HashMap<String, Option<Vec<String>>>> = std::cell::RefCell::new(HashMap::new());
+    }
+    let place = site.split(' ').next()?;
+    let (file, line) = place.rsplit_once(':')?;
+    let line: usize = line.parse().ok()?;
+    FILES.with(|files| {
+        let mut files = files.borrow_mut();
+        let lines = files
+            .entry(file.to_string())
+            .or_insert_with(|| std::fs::read_to_string(file).ok().map(|t| t.lines().map(str::to_string).collect()));
+        lines.as_ref()?.get(line.checked_sub(1)?).map(|l| l.trim().to_string())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::source_line;
+
+    #[test]
+    fn a_sites_source_line_is_read_when_the_file_is_at_hand() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("tracer.rs");
+        std::fs::write(&f, "fn a() {}\n    let shadow = trace(o, d);\n").unwrap();
+        let site = format!("{}:2 trace_path", f.display());
+        assert_eq!(source_line(&site).as_deref(), Some("let shadow = trace(o, d);"));
+        assert_eq!(source_line(&format!("{}:9", f.display())), None, "past the end");
+        assert_eq!(source_line("nowhere.rs:1"), None, "no such file");
+        assert_eq!(source_line("garbage"), None);
     }
 }
