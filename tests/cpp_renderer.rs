@@ -93,6 +93,16 @@ fn a_cpp_renderer_records_typed_payload_lights_and_a_matrix_camera() {
     // The emissive quad (two triangles) and the point light.
     assert_eq!(scalar(&[g], "SELECT count(*) FROM lights"), "3");
     assert_eq!(scalar(&[g], "SELECT count(*) FROM lights WHERE area = 0"), "1");
+    // Its BVH (the root and a leaf per quad) and the nodes every camera and diffuse ray visited:
+    // the root first, and `rtvtk analyze bvh` reads them.
+    assert_eq!(scalar(&[g], "SELECT count(*) FROM bvh_nodes"), "7");
+    assert_eq!(scalar(&[g], "SELECT max(level) FROM bvh_nodes"), "1");
+    assert_eq!(scalar(&[g], "SELECT count(DISTINCT tree_id * 100 + ray) FROM ray_nodes"), (camera + diffuse).to_string());
+    assert_eq!(scalar(&[g], "SELECT count(*) FROM ray_nodes WHERE step = 0 AND node_id <> 0"), "0");
+    assert_eq!(scalar(&[g], "SELECT count(*) FROM ray_nodes WHERE node_id = 0 AND leaf_hit IS NOT NULL"), "0");
+    let report = ok(&["analyze", "bvh", g]);
+    assert!(report.contains("nodes") && report.contains("camera"), "{report}");
+    assert_eq!(scalar(&[g], "SELECT count(*) FROM rays WHERE box_tests <> 7"), "0");
     // A correct trace: every shadow ray aims at a light (the quad's or the point light).
     assert_eq!(scalar(&[g], WRONG_SHADOWS), "0");
     // The camera from the matrix: the camera ray of a pixel lands on that pixel.

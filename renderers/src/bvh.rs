@@ -17,12 +17,9 @@
 pub const VISIT_HIT: u32 = 1 << 31;
 
 use std::mem::MaybeUninit;
-use std::sync::Arc;
 use std::time::Duration;
 
-use arrow::array::{ArrayRef, Float32Array, ListArray, RecordBatch, UInt16Array, UInt32Array};
-use arrow::buffer::OffsetBuffer;
-use arrow::datatypes::DataType;
+use arrow::array::RecordBatch;
 use glam::{Vec3A, Vec4};
 use obvhs::BvhBuildParams;
 use obvhs::bvh2::builder::build_bvh2_from_tris;
@@ -797,54 +794,26 @@ impl Bvh {
         }
     }
 
-    /// The `bvh_nodes` table: id, parent, level, bounds and leaf triangles of every node.
+    /// The `bvh_nodes` table: id, parent, level, bounds and leaf triangles of every node (built
+    /// by `store::scene::bvh_nodes_batch`, as the C API's is).
     pub fn node_table(&self) -> Result<RecordBatch, arrow::error::ArrowError> {
-        let n = self.nodes.len();
-        let mut level = vec![0u16; n];
-        let mut stack = vec![0u32];
-        while let Some(i) = stack.pop() {
-            let node = self.nodes[i as usize];
-            if node.count == 0 && n > 0 {
-                for c in [node.first, node.first + 1] {
-                    level[c as usize] = level[i as usize].saturating_add(1);
-                    stack.push(c);
-                }
-            }
-        }
-        let f = |get: fn(&Node) -> f32| -> ArrayRef {
-            Arc::new(Float32Array::from_iter_values(self.nodes.iter().map(get)))
-        };
-        let mut offsets = vec![0i32];
-        let mut values = Vec::new();
-        for node in &self.nodes {
-            if node.count > 0 {
-                values.extend_from_slice(&self.prims[node.first as usize..(node.first + node.count) as usize]);
-            }
-            offsets.push(values.len() as i32);
-        }
-        let schema = store::scene::bvh_nodes_schema();
-        let item = match schema.field_with_name(store::scene::col::PRIMS)?.data_type() {
-            DataType::List(item) => item.clone(),
-            other => return Err(arrow::error::ArrowError::SchemaError(format!("prims is {other}"))),
-        };
-        let prims =
-            ListArray::try_new(item, OffsetBuffer::new(offsets.into()), Arc::new(UInt32Array::from(values)), None)?;
-        RecordBatch::try_new(
-            schema,
-            vec![
-                Arc::new(UInt32Array::from_iter_values(0..n as u32)),
-                Arc::new(UInt32Array::from_iter(self.parents.iter().map(|&p| (p != u32::MAX).then_some(p)))),
-                Arc::new(UInt16Array::from(level)),
-                f(|n| n.min.x),
-                f(|n| n.min.y),
-                f(|n| n.min.z),
-                f(|n| n.max.x),
-                f(|n| n.max.y),
-                f(|n| n.max.z),
-                Arc::new(arrow::array::BooleanArray::from_iter(self.nodes.iter().map(|n| Some(n.count > 0)))),
-                Arc::new(prims),
-            ],
-        )
+        let rows: Vec<store::scene::BvhNodeRow<'_>> = self
+            .nodes
+            .iter()
+            .zip(&self.parents)
+            .map(|(node, &p)| store::scene::BvhNodeRow {
+                parent: (p != u32::MAX).then_some(p),
+                min: node.min.to_array(),
+                max: node.max.to_array(),
+                leaf: node.count > 0,
+                prims: if node.count > 0 {
+                    &self.prims[node.first as usize..(node.first + node.count) as usize]
+                } else {
+                    &[]
+                },
+            })
+            .collect();
+        store::scene::bvh_nodes_batch(&rows).map_err(arrow::error::ArrowError::InvalidArgumentError)
     }
 }
 

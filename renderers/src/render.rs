@@ -1,10 +1,8 @@
 //! The render driver: pixels in parallel, every ray handed to `rl` when recording.
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Instant;
 
-use arrow::array::{BooleanArray, RecordBatch, UInt32Array, UInt64Array};
 use arrow::datatypes::DataType;
 use glam::Vec3A;
 use rl::{Kind, ListValue, Payload, PayloadField, PayloadSchema, RayFields, RayId, Recorder, Value};
@@ -296,30 +294,12 @@ pub fn render(
     if let Some(rec) = rec
         && opts.record_visits
     {
-        // By ray, keeping each ray's visit order.
-        visits.sort_by_key(|v| (v.0, v.1));
-        let mut steps = Vec::with_capacity(visits.len());
-        let mut prev = None;
-        let mut step = 0u32;
-        for v in &visits {
-            step = if prev == Some((v.0, v.1)) { step + 1 } else { 0 };
-            prev = Some((v.0, v.1));
-            steps.push(step);
-        }
-        let schema = store::scene::ray_nodes_schema();
         let node = |v: &(u64, u32, u32)| v.2 & !crate::bvh::VISIT_HIT;
-        let batch = RecordBatch::try_new(
-            schema,
-            vec![
-                Arc::new(UInt64Array::from_iter_values(visits.iter().map(|v| v.0))),
-                Arc::new(UInt32Array::from_iter_values(visits.iter().map(|v| v.1))),
-                Arc::new(UInt32Array::from(steps)),
-                Arc::new(UInt32Array::from_iter_values(visits.iter().map(node))),
-                Arc::new(BooleanArray::from_iter(
-                    visits.iter().map(|v| bvh.is_leaf(node(v)).then_some(v.2 & crate::bvh::VISIT_HIT != 0)),
-                )),
-            ],
-        )?;
+        let visits = visits
+            .iter()
+            .map(|v| (v.0, v.1, node(v), bvh.is_leaf(node(v)).then_some(v.2 & crate::bvh::VISIT_HIT != 0)))
+            .collect();
+        let batch = store::scene::ray_nodes_batch(visits)?;
         rec.write_table(store::scene::RAY_NODES_TABLE, batch)?;
     }
     stats.rays = by_kind.iter().sum();

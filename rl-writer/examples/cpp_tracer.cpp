@@ -1,6 +1,7 @@
 // A small C++ path tracer that records everything a dataset can hold through rl.h, as a
 // third-party renderer would: typed payload columns (a vec3, a u32, a u8, an f64) and opaque
-// bytes, the scene's triangles with an emissive quad, a point light, the camera as a
+// bytes, the scene's triangles with an emissive quad, a point light, its BVH and the nodes each
+// closest-hit ray visited, every ray's call site, the camera as a
 // camera-to-world matrix (OpenGL convention, looking along -z), several tracing threads, an
 // immediate-mode recording read while it records, and rlLastError for every refusal. `--bug` aims the point light's shadow rays from the floor at
 // its mirror image below the floor (the paper's wrong-shadow bug).
@@ -41,11 +42,14 @@ struct Tri {
 // The payload row: packed, in the order of the columns declared below, then 8 opaque bytes.
 #pragma pack(push, 1)
 struct Row {
-    float throughput[3];  // RL_F32 x 3
-    uint32_t material;    // RL_U32
-    uint8_t bounce;       // RL_U8
-    double pdf;           // RL_F64
-    uint64_t rng_state;   // 8 opaque bytes
+    float throughput[3];     // RL_F32 x 3
+    uint32_t material;       // RL_U32
+    uint8_t bounce;          // RL_U8
+    double pdf;              // RL_F64
+    uint32_t nodes_visited;  // RL_U32: the traversal counts `rtvtk analyze bvh` reads
+    uint32_t box_tests;      // RL_U32
+    uint32_t tri_tests;      // RL_U32
+    uint64_t rng_state;      // 8 opaque bytes
 };
 #pragma pack(pop)
 
@@ -68,6 +72,39 @@ std::vector<Tri> scene() {
     quad({1, 0, 0}, {1, 1, 0}, {1, 1, -1}, {1, 0, -1}, 2);      // right, green
     quad({0.4f, 0.999f, -0.4f}, {0.6f, 0.999f, -0.4f}, {0.6f, 0.999f, -0.6f}, {0.4f, 0.999f, -0.6f}, 3);  // light
     return t;
+}
+
+// A two-level BVH: the root over the box, one leaf per quad (its two triangles).
+struct Node {
+    Vec min, max;
+    uint32_t first, count;  // leaf triangles (count 0: the root)
+};
+
+std::vector<Node> build_bvh(const std::vector<Tri> &tris) {
+    std::vector<Node> nodes(1 + tris.size() / 2);
+    auto grow = [](Node &n, Vec p) {
+        for (int k = 0; k < 3; ++k) n.min[k] = std::fmin(n.min[k], p[k]), n.max[k] = std::fmax(n.max[k], p[k]);
+    };
+    for (Node &n : nodes) n = {{1e30f, 1e30f, 1e30f}, {-1e30f, -1e30f, -1e30f}, 0, 0};
+    for (size_t q = 0; q < tris.size() / 2; ++q) {
+        Node &leaf = nodes[1 + q];
+        leaf.first = (uint32_t)(2 * q);
+        leaf.count = 2;
+        for (size_t i = 2 * q; i < 2 * q + 2; ++i)
+            for (const Vec &v : {tris[i].v0, tris[i].v1, tris[i].v2}) grow(leaf, v), grow(nodes[0], v);
+    }
+    return nodes;
+}
+
+// The slab test: whether the ray enters the box (t >= 0).
+bool enters(const Node &n, Vec o, Vec d) {
+    float t0 = 0, t1 = 1e30f;
+    for (int k = 0; k < 3; ++k) {
+        float inv = 1.0f / d[k], a = (n.min[k] - 1e-4f - o[k]) * inv, b = (n.max[k] + 1e-4f - o[k]) * inv;
+        t0 = std::fmax(t0, std::fmin(a, b));
+        t1 = std::fmin(t1, std::fmax(a, b));
+    }
+    return t0 <= t1;
 }
 
 // Closest hit (Moller-Trumbore): t, triangle, or t < 0 for a miss.
@@ -107,12 +144,15 @@ int main(int argc, char **argv) {
         return 2;
     }
     const bool bug = argc > 2 && std::strcmp(argv[2], "--bug") == 0;
-    const rl_column columns[] = {{"throughput", RL_F32, 3}, {"material", RL_U32, 1}, {"bounce", RL_U8, 1}, {"pdf", RL_F64, 1}};
+    const rl_column columns[] = {{"throughput", RL_F32, 3}, {"material", RL_U32, 1}, {"bounce", RL_U8, 1},
+                                 {"pdf", RL_F64, 1},        {"nodes_visited", RL_U32, 1}, {"box_tests", RL_U32, 1},
+                                 {"tri_tests", RL_U32, 1}};
+    const size_t kColumns = sizeof columns / sizeof columns[0];
     // Refusals name what is wrong (and record nothing).
     const rl_column bad[] = {{"x", 42, 1}};
     if (rlInitColumns(argv[1], bad, 1, 0, 0) != nullptr || std::strstr(rlLastError(), "type 42") == nullptr) die("expected a type error");
     // Every ray's call site is recorded (RL_ADD_RAY names it): SQL groups rays by source line.
-    rl_recorder *rec = rlInitColumns(argv[1], columns, 4, 8, RL_RECORD_SITES);
+    rl_recorder *rec = rlInitColumns(argv[1], columns, kColumns, 8, RL_RECORD_SITES);
     if (!rec) die("rlInitColumns");
     if (rlPayloadRowSize(rec) != (int64_t)sizeof(Row)) die("row size");
 
@@ -125,6 +165,38 @@ int main(int argc, char **argv) {
     }
     if (rlSetTriangles(rec, tris.size(), verts.data(), mats.data(), kMaterials, &kColors[0][0], &kEmission[0][0], kNames) != 0)
         die("rlSetTriangles");
+    // The BVH, and below every ray's visits to it.
+    const std::vector<Node> bvh = build_bvh(tris);
+    {
+        std::vector<rl_bvh_node> nodes;
+        std::vector<uint32_t> prims(tris.size());
+        for (size_t i = 0; i < prims.size(); ++i) prims[i] = (uint32_t)i;
+        for (size_t i = 0; i < bvh.size(); ++i)
+            nodes.push_back({i == 0 ? -1 : 0, {bvh[i].min[0], bvh[i].min[1], bvh[i].min[2]},
+                             {bvh[i].max[0], bvh[i].max[1], bvh[i].max[2]}, bvh[i].first, bvh[i].count});
+        if (rlSetBvh(rec, nodes.size(), nodes.data(), prims.size(), prims.data()) != 0) die("rlSetBvh");
+    }
+    struct Traversal {
+        std::vector<uint32_t> ids;
+        std::vector<int8_t> hit;
+        uint32_t boxes, tests;
+    };
+    auto traverse = [&](Vec o, Vec d) {
+        Traversal tr{{0}, {-1}, 1, 0};
+        for (uint32_t i = 1; i < bvh.size(); ++i) {
+            ++tr.boxes;
+            if (!enters(bvh[i], o, d)) continue;
+            std::vector<Tri> leaf(tris.begin() + bvh[i].first, tris.begin() + bvh[i].first + bvh[i].count);
+            int64_t p;
+            tr.ids.push_back(i);
+            tr.hit.push_back(intersect(leaf, o, d, p) > 0 ? 1 : 0);
+            tr.tests += bvh[i].count;
+        }
+        return tr;
+    };
+    auto visits = [&](const Traversal &tr) {
+        if (rlAddRayVisits(rec, tr.ids.size(), tr.ids.data(), tr.hit.data()) != 0) die("rlAddRayVisits");
+    };
     const float point_intensity[3] = {0.4f, 0.4f, 0.5f};
     if (rlSetPointLights(rec, 1, kPointLight.data(), point_intensity) != 0) die("rlSetPointLights");
     const float nan_light[3] = {NAN, 0, 0};
@@ -153,9 +225,12 @@ int main(int argc, char **argv) {
                     for (uint8_t bounce = 0; bounce < 3; ++bounce) {
                         int64_t prim;
                         float t = intersect(tris, o, d, prim);
-                        Row row{{throughput[0], throughput[1], throughput[2]}, prim >= 0 ? tris[prim].material : 0u, bounce, 1.0, rng()};
+                        Traversal tr = traverse(o, d);
+                        Row row{{throughput[0], throughput[1], throughput[2]}, prim >= 0 ? tris[prim].material : 0u, bounce, 1.0,
+                                (uint32_t)tr.ids.size(), tr.boxes, tr.tests, rng()};
                         if (RL_ADD_RAY(rec, o.data(), d.data(), t, bounce == 0 ? RL_CAMERA : RL_DIFFUSE, prim, &row, sizeof row) != 0)
                             die("rlAddRay");
+                        visits(tr);
                         counts[bounce == 0 ? 0 : 2]++;
                         if (prim < 0 || tris[prim].material == 3) break;
                         Vec p = o + d * t;
@@ -172,7 +247,9 @@ int main(int argc, char **argv) {
                             Vec sd = norm(targets[l] - so);
                             int64_t sp;
                             float st = intersect(tris, so, sd, sp);
-                            Row srow{{throughput[0], throughput[1], throughput[2]}, sp >= 0 ? tris[sp].material : 0u, bounce, 1.0, rng()};
+                            Traversal str = traverse(so, sd);
+                            Row srow{{throughput[0], throughput[1], throughput[2]}, sp >= 0 ? tris[sp].material : 0u, bounce, 1.0,
+                                     (uint32_t)str.ids.size(), str.boxes, str.tests, rng()};
                             int added = l == 0 ? RL_ADD_RAY(rec, so.data(), sd.data(), st, RL_SHADOW, sp, &srow, sizeof srow)   // area light
                                                : RL_ADD_RAY(rec, so.data(), sd.data(), st, RL_SHADOW, sp, &srow, sizeof srow);  // point light
                             if (added != 0) die("rlAddRay");
@@ -216,7 +293,7 @@ int main(int argc, char **argv) {
 
     // Immediate mode: a recording in memory, read while it records (as a viewer of a live
     // renderer would).
-    rl_recorder *live = rlInitImmediate(columns, 4, 8, 0, 0);
+    rl_recorder *live = rlInitImmediate(columns, kColumns, 8, 0, 0);
     if (!live) die("rlInitImmediate");
     rl_reader *cursor = rlOpenRecording(live);
     if (!cursor) die("rlOpenRecording");
@@ -226,7 +303,7 @@ int main(int argc, char **argv) {
             Vec o = {0.5f, 0.5f, 1.6f}, d = {0, 0, -1};
             int64_t prim;
             float t = intersect(tris, o, d, prim);
-            Row row{{1, 1, 1}, prim >= 0 ? tris[prim].material : 0u, 0, 1.0, 0};
+            Row row{{1, 1, 1}, prim >= 0 ? tris[prim].material : 0u, 0, 1.0, 0, 0, 0, 0};
             if (rlAddRay(live, o.data(), d.data(), t, RL_CAMERA, prim, &row, sizeof row) != 0) die("rlAddRay (immediate)");
             if (rlEndTree(live) < 0) die("rlEndTree (immediate)");
         }

@@ -159,6 +159,23 @@ int rlSetPointLights(rl_recorder *rec, size_t count, const float *positions, con
  * camera space) negates its x column first. */
 int rlSetCameraMatrix(rl_recorder *rec, const float camera_to_world[16], float forward_z, float fov, int32_t fov_axis,
                       uint32_t width, uint32_t height);
+/* A renderer's BVH node: its parent's index (-1 for the root), bounds, and for a leaf its
+ * triangles, prims[first_prim .. first_prim + prim_count) of rlSetBvh's `prims` (an inner node
+ * has prim_count 0). */
+typedef struct {
+    int64_t parent;
+    float min[3];
+    float max[3];
+    uint32_t first_prim;
+    uint32_t prim_count;
+} rl_bvh_node;
+/* The renderer's BVH as the `bvh_nodes` table (node ids are indices into `nodes`; levels are
+ * counted from the parents): `rtvtk analyze bvh` and the viewer's BVH layer read it. Copies. */
+int rlSetBvh(rl_recorder *rec, size_t node_count, const rl_bvh_node *nodes, size_t prim_count, const uint32_t *prims);
+/* The BVH nodes the last ray added on this thread visited, in order (the `ray_nodes` table):
+ * `leaf_hit` per node 1 (a triangle of the leaf was hit), 0 (none was), -1 (an inner node), or
+ * NULL when not known. Written at rlFlush / rlFinish. */
+int rlAddRayVisits(rl_recorder *rec, size_t count, const uint32_t *nodes, const int8_t *leaf_hit);
 /* Seals every ended tree to disk (and the lights table, if it changed). */
 int rlFlush(rl_recorder *rec);
 /* Seals everything, frees the recorder, and reports any error of the recording. */

@@ -34,6 +34,18 @@ struct SceneLights {
     triangles: Option<arrow::array::RecordBatch>,
     points: Vec<store::scene::PointLight>,
     changed: bool,
+    /// BVH nodes the rays visited (`rlAddRayVisits`), written as `ray_nodes` at flush and finish.
+    visits: Vec<store::scene::Visit>,
+}
+
+/// A BVH node as `rl.h` declares it (`rl_bvh_node`).
+#[repr(C)]
+pub struct RlBvhNode {
+    pub parent: i64,
+    pub min: [f32; 3],
+    pub max: [f32; 3],
+    pub first_prim: u32,
+    pub prim_count: u32,
 }
 
 /// A typed payload column of `rlInitColumns`: its element type and how many per ray.
@@ -651,9 +663,86 @@ pub unsafe extern "C" fn rlSetPointLights(
     })
 }
 
-/// Writes the `lights` table when the triangles or point lights changed since it was written.
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlSetBvh(
+    rec: *mut RlRecorder,
+    node_count: usize,
+    nodes: *const RlBvhNode,
+    prim_count: usize,
+    prims: *const u32,
+) -> i32 {
+    guard(-1, || {
+        // SAFETY: forwarded caller contract.
+        let rec = unsafe { rec_arg(rec) }?;
+        // SAFETY: `node_count` nodes and `prim_count` triangle ids, as rl.h documents.
+        let (nodes, prims) =
+            unsafe { (slice_arg(nodes, node_count, "nodes")?, slice_arg(prims, prim_count, "prims")?) };
+        let mut rows = Vec::with_capacity(nodes.len());
+        for (i, n) in nodes.iter().enumerate() {
+            let end = n.first_prim as usize + n.prim_count as usize;
+            if end > prims.len() {
+                return Err(format!(
+                    "rlSetBvh: node {i}: triangles {}..{end} past the {} given",
+                    n.first_prim,
+                    prims.len()
+                ));
+            }
+            let parent = match n.parent {
+                -1 => None,
+                p => Some(u32::try_from(p).map_err(|_| format!("rlSetBvh: node {i}: parent {p} (-1 for the root)"))?),
+            };
+            rows.push(store::scene::BvhNodeRow {
+                parent,
+                min: n.min,
+                max: n.max,
+                leaf: n.prim_count > 0,
+                prims: &prims[n.first_prim as usize..end],
+            });
+        }
+        let batch = store::scene::bvh_nodes_batch(&rows).map_err(|e| format!("rlSetBvh: {e}"))?;
+        rec.rec.write_table(store::scene::BVH_NODES_TABLE, batch).map_err(|e| e.to_string())?;
+        Ok(0)
+    })
+}
+
+#[unsafe(no_mangle)]
+pub unsafe extern "C" fn rlAddRayVisits(
+    rec: *mut RlRecorder,
+    count: usize,
+    nodes: *const u32,
+    leaf_hit: *const i8,
+) -> i32 {
+    guard(-1, || {
+        // SAFETY: forwarded caller contract.
+        let rec = unsafe { rec_arg(rec) }?;
+        // SAFETY: `count` node ids and (unless NULL) `count` flags.
+        let nodes = unsafe { slice_arg(nodes, count, "nodes") }?;
+        let hits = if leaf_hit.is_null() { None } else { Some(unsafe { slice_arg(leaf_hit, count, "leaf_hit") }?) };
+        let (tree, ray) = with_tree(rec.id, |t| (t.id().0, t.last_ray()))?;
+        let ray = ray.ok_or("rlAddRayVisits: the current tree has no ray yet (call it after rlAddRay)")?;
+        let mut scene = rec.scene.lock().unwrap_or_else(|p| p.into_inner());
+        for (k, &node) in nodes.iter().enumerate() {
+            let hit = hits.and_then(|h| match h[k] {
+                0 => Some(false),
+                1 => Some(true),
+                _ => None,
+            });
+            scene.visits.push((tree, ray.0, node, hit));
+        }
+        Ok(0)
+    })
+}
+
+/// Writes the `lights` table when the triangles or point lights changed since it was written,
+/// and the `ray_nodes` table when visits were recorded.
 fn write_lights(rec: &RlRecorder) -> Result<(), String> {
     let mut scene = rec.scene.lock().unwrap_or_else(|p| p.into_inner());
+    if !scene.visits.is_empty() {
+        // Written whole each time (the table is replaced): the visits stay held until finish.
+        let visits = scene.visits.clone();
+        let batch = store::scene::ray_nodes_batch(visits).map_err(|e| e.to_string())?;
+        rec.rec.write_table(store::scene::RAY_NODES_TABLE, batch).map_err(|e| e.to_string())?;
+    }
     if !scene.changed {
         return Ok(());
     }

@@ -423,6 +423,11 @@ impl TreeBuilder {
         TreeId(self.id)
     }
 
+    /// The ray added last, if any.
+    pub fn last_ray(&self) -> Option<RayId> {
+        self.last.map(RayId)
+    }
+
     /// Rays added so far.
     pub fn ray_count(&self) -> u32 {
         self.cols.len() as u32

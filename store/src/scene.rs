@@ -311,6 +311,129 @@ pub fn bvh_nodes_schema() -> SchemaRef {
     Arc::new(Schema::new(fields))
 }
 
+/// One node of a renderer's BVH as the recording APIs take it: its parent (None at the root),
+/// bounds, and, for a leaf, its triangles (`prims`, empty for an inner node).
+#[derive(Clone, Debug, PartialEq)]
+pub struct BvhNodeRow<'a> {
+    pub parent: Option<u32>,
+    pub min: [f32; 3],
+    pub max: [f32; 3],
+    pub leaf: bool,
+    pub prims: &'a [u32],
+}
+
+/// The `bvh_nodes` table of `nodes` (ids are positions). Levels are counted from the parents;
+/// a parent must be an existing node and the parents must form a tree under one root.
+pub fn bvh_nodes_batch(nodes: &[BvhNodeRow<'_>]) -> Result<arrow::array::RecordBatch, String> {
+    use arrow::array::{ArrayRef, BooleanArray, Float32Array, ListArray, UInt16Array, UInt32Array};
+    let n = nodes.len();
+    let mut level = vec![u16::MAX; n];
+    for i in 0..n {
+        // Walk up to a node whose level is known (or the root), then fill the path down.
+        let mut path = vec![i];
+        let mut at = i;
+        let mut steps = 0;
+        while level[at] == u16::MAX {
+            match nodes[at].parent {
+                None => {
+                    level[at] = 0;
+                    path.pop();
+                    break;
+                }
+                Some(p) => {
+                    let p = p as usize;
+                    if p >= n {
+                        return Err(format!("node {at}: parent {p} does not exist ({n} nodes)"));
+                    }
+                    steps += 1;
+                    if steps > n {
+                        return Err(format!("node {i}: its parents go round in a circle"));
+                    }
+                    at = p;
+                    path.push(at);
+                }
+            }
+        }
+        while let Some(j) = path.pop() {
+            if level[j] == u16::MAX {
+                let p = nodes[j].parent.map_or(0, |p| p as usize);
+                level[j] = level[p].saturating_add(1);
+            }
+        }
+    }
+    if let Some((i, _)) = nodes.iter().enumerate().find(|(_, nd)| nd.min.iter().chain(&nd.max).any(|v| v.is_nan())) {
+        return Err(format!("node {i}: its bounds are NaN"));
+    }
+    let f = |get: &dyn Fn(&BvhNodeRow) -> f32| -> ArrayRef {
+        Arc::new(Float32Array::from_iter_values(nodes.iter().map(get)))
+    };
+    let mut offsets = vec![0i32];
+    let mut values: Vec<u32> = Vec::new();
+    for nd in nodes {
+        values.extend_from_slice(nd.prims);
+        offsets.push(i32::try_from(values.len()).map_err(|_| "too many leaf triangles".to_string())?);
+    }
+    let schema = bvh_nodes_schema();
+    let item = match schema.field_with_name(col::PRIMS).map_err(|e| e.to_string())?.data_type() {
+        DataType::List(item) => item.clone(),
+        other => return Err(format!("prims is {other}")),
+    };
+    let prims = ListArray::try_new(
+        item,
+        arrow::buffer::OffsetBuffer::new(offsets.into()),
+        Arc::new(UInt32Array::from(values)),
+        None,
+    )
+    .map_err(|e| e.to_string())?;
+    let ids = u32::try_from(n).map_err(|_| "too many nodes".to_string())?;
+    arrow::array::RecordBatch::try_new(
+        schema,
+        vec![
+            Arc::new(UInt32Array::from_iter_values(0..ids)),
+            Arc::new(UInt32Array::from_iter(nodes.iter().map(|nd| nd.parent))),
+            Arc::new(UInt16Array::from(level)),
+            f(&|nd| nd.min[0]),
+            f(&|nd| nd.min[1]),
+            f(&|nd| nd.min[2]),
+            f(&|nd| nd.max[0]),
+            f(&|nd| nd.max[1]),
+            f(&|nd| nd.max[2]),
+            Arc::new(BooleanArray::from_iter(nodes.iter().map(|nd| Some(nd.leaf)))),
+            Arc::new(prims),
+        ],
+    )
+    .map_err(|e| e.to_string())
+}
+
+/// One BVH node a ray visited: (tree id, ray index, node id, whether the ray hit a triangle of
+/// the node when it is a leaf; None for an inner node).
+pub type Visit = (u64, u32, u32, Option<bool>);
+
+/// The `ray_nodes` table of `visits`, sorted by ray (keeping each ray's visit order) and
+/// numbered by step.
+pub fn ray_nodes_batch(mut visits: Vec<Visit>) -> Result<arrow::array::RecordBatch, arrow::error::ArrowError> {
+    use arrow::array::{BooleanArray, UInt32Array, UInt64Array};
+    visits.sort_by_key(|v| (v.0, v.1));
+    let mut steps = Vec::with_capacity(visits.len());
+    let mut prev = None;
+    let mut step = 0u32;
+    for v in &visits {
+        step = if prev == Some((v.0, v.1)) { step + 1 } else { 0 };
+        prev = Some((v.0, v.1));
+        steps.push(step);
+    }
+    arrow::array::RecordBatch::try_new(
+        ray_nodes_schema(),
+        vec![
+            Arc::new(UInt64Array::from_iter_values(visits.iter().map(|v| v.0))),
+            Arc::new(UInt32Array::from_iter_values(visits.iter().map(|v| v.1))),
+            Arc::new(UInt32Array::from(steps)),
+            Arc::new(UInt32Array::from_iter_values(visits.iter().map(|v| v.2))),
+            Arc::new(BooleanArray::from_iter(visits.iter().map(|v| v.3))),
+        ],
+    )
+}
+
 /// Schema of the `ray_nodes` table: the nodes each ray visited, in order; `leaf_hit` is null for
 /// inner nodes and says whether a visited leaf held the ray's hit.
 pub fn ray_nodes_schema() -> SchemaRef {
