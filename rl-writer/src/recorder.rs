@@ -77,6 +77,8 @@ pub(crate) struct Inner {
 /// The recording sites seen so far, interned: a caller's `Location` (Rust) by its address, a
 /// site given as text (C, Python) by its value.
 struct Sites {
+    /// This table's number in the process (never 0, never reused), for the per-thread cache.
+    serial: u64,
     slot: usize,
     by_location: RwLock<std::collections::HashMap<usize, u32>>,
     by_site: Mutex<std::collections::HashMap<store::scene::Site, u32>>,
@@ -99,9 +101,21 @@ impl Sites {
     }
 
     fn id_of_location(&self, loc: &'static std::panic::Location<'static>) -> u32 {
+        thread_local! {
+            /// The last (sites table, location, id) this thread looked up: a tracer adds runs of
+            /// rays from one place, so most rays take no lock.
+            static LAST: Cell<(u64, usize, u32)> = const { Cell::new((0, 0, 0)) };
+        }
         let key = loc as *const _ as usize;
-        if let Some(id) = self.by_location.read().unwrap_or_else(|p| p.into_inner()).get(&key) {
-            return *id;
+        let me = self.serial;
+        let (t, l, id) = LAST.with(Cell::get);
+        if t == me && l == key {
+            return id;
+        }
+        let found = self.by_location.read().unwrap_or_else(|p| p.into_inner()).get(&key).copied();
+        if let Some(id) = found {
+            LAST.with(|c| c.set((me, key, id)));
+            return id;
         }
         let id = self.id_of(store::scene::Site {
             file: loc.file().to_string(),
@@ -110,6 +124,7 @@ impl Sites {
             function: None,
         });
         self.by_location.write().unwrap_or_else(|p| p.into_inner()).insert(key, id);
+        LAST.with(|c| c.set((me, key, id)));
         id
     }
 }
@@ -202,6 +217,8 @@ pub struct Recorder {
 }
 
 static NEXT_SHARD: AtomicUsize = AtomicUsize::new(0);
+/// Numbers the recorders' site tables (from 1).
+static SITE_TABLES: AtomicU64 = AtomicU64::new(1);
 thread_local! {
     static SHARD: Cell<usize> = Cell::new(NEXT_SHARD.fetch_add(1, Ordering::Relaxed));
 }
@@ -244,6 +261,7 @@ impl Recorder {
                 mistakes: Mutex::new(Mistakes::default()),
                 mode,
                 sites: options.sites.then(|| Sites {
+                    serial: SITE_TABLES.fetch_add(1, Ordering::Relaxed),
                     slot: site_slot,
                     by_location: RwLock::default(),
                     by_site: Mutex::default(),
