@@ -4,10 +4,11 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use renderers::TracerChoice;
-use renderers::converge::{ConvergencePoint, log_log_slope, measure, write_plots};
+use renderers::converge::{ConvergencePoint, log_log_fit, measure, write_plots};
 
 /// `rtvtk converge`: error of each tracer against time, as a table, a CSV and a plot, all
 /// against one CPU reference.
+#[allow(clippy::too_many_arguments)]
 pub fn run(
     scene: &str,
     (w, h): (u32, u32),
@@ -16,6 +17,7 @@ pub fn run(
     out: &Path,
     threads: Option<usize>,
     tracers: &[TracerChoice],
+    runs: u32,
 ) -> Result<()> {
     let mut tracers = tracers.to_vec();
     tracers.dedup();
@@ -50,7 +52,7 @@ pub fn run(
     for tracer in &built {
         let t = tracer.choice();
         eprintln!("measuring the {t} tracer ...");
-        let points = measure(&reference, 0, spps, |spp, seed| {
+        let points = measure(&reference, 0, spps, runs, |spp, seed| {
             let opts = renderers::RenderOptions { spp, seed, ..base.clone() };
             tracer.render(&opts, None, &|_| {}).map(|(img, _)| img).map_err(anyhow::Error::from)
         })?;
@@ -59,13 +61,32 @@ pub fn run(
     std::fs::create_dir_all(out)?;
     reference.write_exr(&out.join("reference.exr"))?;
     reference.write_png(&out.join("reference.png"), 1.0)?;
-    let mut csv = String::from("tracer,spp,seconds,rmse,rel_mse\n");
-    println!("| tracer | spp | seconds | RMSE | relMSE |");
-    println!("|---|---|---|---|---|");
+    let mut csv = String::from("tracer,spp,seconds,seconds_min,seconds_max,runs,rmse,rel_mse\n");
+    println!("| tracer | spp | seconds (median of {runs}) | min–max | RMSE | relMSE |");
+    println!("|---|---|---|---|---|---|");
     for (t, points) in &curves {
         for p in points {
-            println!("| {} | {} | {:.4} | {:.5} | {:.6} |", t.name(), p.spp, p.secs, p.rmse, p.rel_mse);
-            csv.push_str(&format!("{},{},{},{},{}\n", t.name(), p.spp, p.secs, p.rmse, p.rel_mse));
+            println!(
+                "| {} | {} | {:.4} | {:.4}–{:.4} | {:.5} | {:.6} |",
+                t.name(),
+                p.spp,
+                p.secs,
+                p.secs_min,
+                p.secs_max,
+                p.rmse,
+                p.rel_mse
+            );
+            csv.push_str(&format!(
+                "{},{},{},{},{},{},{},{}\n",
+                t.name(),
+                p.spp,
+                p.secs,
+                p.secs_min,
+                p.secs_max,
+                p.runs,
+                p.rmse,
+                p.rel_mse
+            ));
         }
     }
     std::fs::write(out.join("convergence.csv"), csv)?;
@@ -73,12 +94,12 @@ pub fn run(
     write_plots(&named, &out.join("convergence.png"))?;
     println!();
     for (t, points) in &curves {
-        let by_spp = log_log_slope(&points.iter().map(|p| (f64::from(p.spp), p.rmse)).collect::<Vec<_>>());
-        let by_time = log_log_slope(&points.iter().map(|p| (p.secs, p.rmse)).collect::<Vec<_>>());
-        let rel_spp = log_log_slope(&points.iter().map(|p| (f64::from(p.spp), p.rel_mse.sqrt())).collect::<Vec<_>>());
-        let rel_time = log_log_slope(&points.iter().map(|p| (p.secs, p.rel_mse.sqrt())).collect::<Vec<_>>());
+        let by_spp = log_log_fit(&points.iter().map(|p| (f64::from(p.spp), p.rmse)).collect::<Vec<_>>());
+        let by_time = log_log_fit(&points.iter().map(|p| (p.secs, p.rmse)).collect::<Vec<_>>());
+        let rel_spp = log_log_fit(&points.iter().map(|p| (f64::from(p.spp), p.rel_mse.sqrt())).collect::<Vec<_>>());
+        let rel_time = log_log_fit(&points.iter().map(|p| (p.secs, p.rel_mse.sqrt())).collect::<Vec<_>>());
         println!(
-            "{}: log-log slopes (Monte Carlo: -0.5): RMSE {by_spp:.3} vs spp, {by_time:.3} vs time; sqrt(relMSE) {rel_spp:.3} vs spp, {rel_time:.3} vs time",
+            "{}: log-log slopes with 95% intervals (Monte Carlo: -0.5): RMSE {by_spp} vs spp, {by_time} vs time; sqrt(relMSE) {rel_spp} vs spp, {rel_time} vs time",
             t.name()
         );
     }

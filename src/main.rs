@@ -80,6 +80,9 @@ enum Command {
         /// The tracers to measure side by side (comma separated): path (or cpu), gpu.
         #[arg(long, value_delimiter = ',', default_value = "path", value_parser = args::parse_tracer)]
         tracer: Vec<renderers::TracerChoice>,
+        /// Renders per point: its time is their median, shown with their spread.
+        #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..=100))]
+        runs: u32,
     },
     /// Counts, bytes per ray, kinds, payload schema and format version of a dataset.
     Info {
@@ -219,8 +222,8 @@ fn main() {
     }
     let result: Result<i32> = match cli.command {
         Command::Demo { out, size, spp, threads } => demo::run(out, size, spp, threads).map(|_| 0),
-        Command::Converge { scene, size, reference_spp, spp, out, threads, tracer } => {
-            converge::run(&scene, size, reference_spp, &spp, &out, threads, &tracer).map(|_| 0)
+        Command::Converge { scene, size, reference_spp, spp, out, threads, tracer, runs } => {
+            converge::run(&scene, size, reference_spp, &spp, &out, threads, &tracer, runs).map(|_| 0)
         }
         Command::Record(args) => record::run(&args).map(|_| 0),
         Command::Render(args) => render::run(&args).map(|_| 0),

@@ -78,19 +78,38 @@ fn the_papers_bug_is_found_in_a_gpu_trace() {
 fn converge_measures_both_tracers_against_one_reference() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("c");
-    let args = ["converge", "--size", "24x18", "--reference-spp", "64", "--spp", "2,8,32", "--tracer", "cpu,gpu"];
+    let args = [
+        "converge",
+        "--size",
+        "24x18",
+        "--reference-spp",
+        "64",
+        "--spp",
+        "2,8,32",
+        "--tracer",
+        "cpu,gpu",
+        "--runs",
+        "3",
+    ];
     let s = ok(&[&args[..], &["--out", out.to_str().unwrap()]].concat());
     assert!(s.contains("gpu against path at the same spp"), "{s}");
+    // Slopes come with their 95% interval.
+    assert!(s.contains("RMSE -") && s.contains(" ± "), "{s}");
     let csv = std::fs::read_to_string(out.join("convergence.csv")).unwrap();
     let mut lines = csv.lines();
-    assert_eq!(lines.next(), Some("tracer,spp,seconds,rmse,rel_mse"));
+    assert_eq!(lines.next(), Some("tracer,spp,seconds,seconds_min,seconds_max,runs,rmse,rel_mse"));
     let rows: Vec<Vec<&str>> = lines.map(|l| l.split(',').collect()).collect();
     assert_eq!(
         rows.iter().map(|r| (r[0], r[1])).collect::<Vec<_>>(),
         [("path", "2"), ("path", "8"), ("path", "32"), ("gpu", "2"), ("gpu", "8"), ("gpu", "32")]
     );
+    for r in &rows {
+        // Each point timed over 3 runs: the median lies within their spread.
+        let [secs, lo, hi]: [f64; 3] = [2, 3, 4].map(|k| r[k].parse().unwrap());
+        assert!(lo <= secs && secs <= hi && r[5] == "3", "{r:?}");
+    }
     for t in ["path", "gpu"] {
-        let e: Vec<f64> = rows.iter().filter(|r| r[0] == t).map(|r| r[3].parse().unwrap()).collect();
+        let e: Vec<f64> = rows.iter().filter(|r| r[0] == t).map(|r| r[6].parse().unwrap()).collect();
         // 16x the samples: the error falls (by ~4x in expectation; noisy at this size).
         assert!(e[2] < e[0] * 0.6, "{t}: RMSE {e:?}");
     }

@@ -10,11 +10,17 @@ use crate::render::{RenderOptions, render};
 use crate::scene::Scene;
 use crate::{Error, Result};
 
-/// One measurement: error of an image rendered at `spp` samples per pixel.
+/// One measurement: error of an image rendered at `spp` samples per pixel, timed over `runs`
+/// renders (the same image each time).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ConvergencePoint {
     pub spp: u32,
+    /// Median wall time of the runs.
     pub secs: f64,
+    /// Fastest and slowest run.
+    pub secs_min: f64,
+    pub secs_max: f64,
+    pub runs: u32,
     /// Root mean squared error over pixels and channels.
     pub rmse: f64,
     /// Mean of (x − ref)² / (ref² + 0.01).
@@ -52,7 +58,7 @@ pub fn convergence(
         )));
     }
     let reference = reference(scene, bvh, base, reference_spp)?;
-    let points = measure(&reference, base.seed, spps, |opts_spp, seed| {
+    let points = measure(&reference, base.seed, spps, 1, |opts_spp, seed| {
         let opts = RenderOptions { spp: opts_spp, seed, ..base.clone() };
         render(scene, bvh, &opts, None, &|_| {}).map(|(img, _)| img)
     })?;
@@ -66,38 +72,114 @@ pub fn reference(scene: &Scene, bvh: &Bvh, base: &RenderOptions, reference_spp: 
     Ok(render(scene, bvh, &opts, None, &|_| {})?.0)
 }
 
-/// Times `render(spp, seed)` for each of `spps` (seed `seed + i + 1` for the i-th) and measures
-/// its image's error against `reference`: any tracer's convergence against the same reference.
+/// Times `render(spp, seed)` `runs` times for each of `spps` (seed `seed + i + 1` for the i-th,
+/// the same each run, so every run makes the same image) and measures the image's error against
+/// `reference`: any tracer's convergence against the same reference, with the median time and
+/// the spread of the runs (one timing alone is at the mercy of the machine: 4 spp once took
+/// 0.042 s and 8 spp 0.033 s).
 pub fn measure<E>(
     reference: &Film,
     seed: u64,
     spps: &[u32],
+    runs: u32,
     mut render: impl FnMut(u32, u64) -> std::result::Result<Film, E>,
 ) -> std::result::Result<Vec<ConvergencePoint>, E> {
+    let runs = runs.max(1);
     let mut points = Vec::new();
     for (i, &spp) in spps.iter().enumerate() {
-        let t = Instant::now();
-        let img = render(spp, seed.wrapping_add(i as u64 + 1))?;
-        let secs = t.elapsed().as_secs_f64();
-        let (rmse, rel_mse) = image_error(&img, reference);
-        points.push(ConvergencePoint { spp, secs, rmse, rel_mse });
+        let mut times = Vec::with_capacity(runs as usize);
+        let mut error = None;
+        for _ in 0..runs {
+            let t = Instant::now();
+            let img = render(spp, seed.wrapping_add(i as u64 + 1))?;
+            times.push(t.elapsed().as_secs_f64());
+            if error.is_none() {
+                error = Some(image_error(&img, reference));
+            }
+        }
+        times.sort_by(f64::total_cmp);
+        let (rmse, rel_mse) = error.unwrap_or((f64::NAN, f64::NAN));
+        points.push(ConvergencePoint {
+            spp,
+            secs: median(&times),
+            secs_min: times[0],
+            secs_max: times[times.len() - 1],
+            runs,
+            rmse,
+            rel_mse,
+        });
     }
     Ok(points)
 }
 
-/// Least-squares slope of log(y) against log(x).
-pub fn log_log_slope(points: &[(f64, f64)]) -> f64 {
-    let pts: Vec<(f64, f64)> =
-        points.iter().filter(|(x, y)| *x > 0.0 && *y > 0.0).map(|(x, y)| (x.ln(), y.ln())).collect();
-    let n = pts.len() as f64;
-    if n < 2.0 {
+/// The median of sorted values.
+fn median(sorted: &[f64]) -> f64 {
+    let n = sorted.len();
+    if n == 0 {
         return f64::NAN;
     }
-    let mx = pts.iter().map(|p| p.0).sum::<f64>() / n;
-    let my = pts.iter().map(|p| p.1).sum::<f64>() / n;
+    if n % 2 == 1 { sorted[n / 2] } else { 0.5 * (sorted[n / 2 - 1] + sorted[n / 2]) }
+}
+
+/// A least-squares line through log(y) against log(x): its slope and the half-width of the
+/// slope's 95% confidence interval (Student's t with n − 2 degrees of freedom; NaN with fewer
+/// than 3 points).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LogLogFit {
+    pub slope: f64,
+    pub ci95: f64,
+    pub points: usize,
+}
+
+impl std::fmt::Display for LogLogFit {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        if self.ci95.is_finite() {
+            write!(f, "{:.3} ± {:.3}", self.slope, self.ci95)
+        } else {
+            write!(f, "{:.3}", self.slope)
+        }
+    }
+}
+
+/// The 0.975 quantile of Student's t with `dof` degrees of freedom.
+fn t975(dof: usize) -> f64 {
+    const T: [f64; 30] = [
+        12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
+        2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042,
+    ];
+    match dof {
+        0 => f64::NAN,
+        d if d <= T.len() => T[d - 1],
+        _ => 1.96,
+    }
+}
+
+/// The least-squares fit of log(y) against log(x), with the slope's 95% confidence interval.
+pub fn log_log_fit(points: &[(f64, f64)]) -> LogLogFit {
+    let pts: Vec<(f64, f64)> =
+        points.iter().filter(|(x, y)| *x > 0.0 && *y > 0.0).map(|(x, y)| (x.ln(), y.ln())).collect();
+    let n = pts.len();
+    if n < 2 {
+        return LogLogFit { slope: f64::NAN, ci95: f64::NAN, points: n };
+    }
+    let nf = n as f64;
+    let mx = pts.iter().map(|p| p.0).sum::<f64>() / nf;
+    let my = pts.iter().map(|p| p.1).sum::<f64>() / nf;
     let sxy: f64 = pts.iter().map(|p| (p.0 - mx) * (p.1 - my)).sum();
     let sxx: f64 = pts.iter().map(|p| (p.0 - mx).powi(2)).sum();
-    sxy / sxx
+    let slope = sxy / sxx;
+    let ci95 = if n > 2 {
+        let rss: f64 = pts.iter().map(|p| (p.1 - my - slope * (p.0 - mx)).powi(2)).sum();
+        t975(n - 2) * (rss / (nf - 2.0) / sxx).sqrt()
+    } else {
+        f64::NAN
+    };
+    LogLogFit { slope, ci95, points: n }
+}
+
+/// Least-squares slope of log(y) against log(x).
+pub fn log_log_slope(points: &[(f64, f64)]) -> f64 {
+    log_log_fit(points).slope
 }
 
 /// The colours of the curves of the i-th tracer of a plot: (RMSE, sqrt(relMSE)).
@@ -183,6 +265,18 @@ pub fn write_plots(tracers: &[(&str, &[ConvergencePoint])], path: &Path) -> Resu
                 .label(label("sqrt(relMSE)"))
                 .legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], red.stroke_width(2)));
             chart.draw_series(rel.iter().map(|&p| Circle::new(p, 3, red.filled()))).map_err(|e| bad(e.to_string()))?;
+            // The spread of the runs' times: a bar from the fastest to the slowest at each point.
+            for (f, colour) in [
+                (&(|p: &ConvergencePoint| p.rmse.max(1e-12)) as &dyn Fn(&ConvergencePoint) -> f64, blue),
+                (&|p: &ConvergencePoint| p.rel_mse.max(1e-24).sqrt(), red),
+            ] {
+                chart
+                    .draw_series(points.iter().filter(|p| p.secs_max > p.secs_min).map(|p| {
+                        let y = f(p);
+                        PathElement::new([(p.secs_min.max(1e-9), y), (p.secs_max.max(1e-9), y)], colour.stroke_width(1))
+                    }))
+                    .map_err(|e| bad(e.to_string()))?;
+            }
             first = first.or(rmse.first().copied());
         }
         if let Some((sx, sy)) = first {
@@ -218,6 +312,9 @@ mod tests {
             .map(|&spp| ConvergencePoint {
                 spp,
                 secs: 0.01 * f64::from(spp),
+                secs_min: 0.009 * f64::from(spp),
+                secs_max: 0.012 * f64::from(spp),
+                runs: 3,
                 rmse: 0.5 / f64::from(spp).sqrt(),
                 rel_mse: 0.2 / f64::from(spp),
             })
@@ -232,5 +329,40 @@ mod tests {
         let ink = img.pixels().filter(|q| q.0.iter().all(|c| *c < 90)).count();
         assert!(blue > 200 && red > 200, "curves drawn: {blue} {red}");
         assert!(ink > 2000, "axes and labels drawn: {ink}");
+    }
+
+    #[test]
+    fn the_fit_gives_the_slope_and_an_interval_that_holds_it() {
+        // An exact power law: the slope, and no width.
+        let exact: Vec<(f64, f64)> = [1.0f64, 2.0, 4.0, 8.0, 16.0].iter().map(|&x| (x, 3.0 * x.powf(-0.5))).collect();
+        let f = log_log_fit(&exact);
+        assert!((f.slope + 0.5).abs() < 1e-12 && f.ci95 < 1e-9 && f.points == 5, "{f:?}");
+        // Noisy: multiplicative noise of a few percent; the interval holds -1/2 and is narrow.
+        let noise = [1.03, 0.97, 1.05, 0.96, 1.02, 0.99, 1.04, 0.98];
+        let noisy: Vec<(f64, f64)> =
+            (0..8).map(|i| 2f64.powi(i)).zip(noise).map(|(x, k)| (x, k * x.powf(-0.5))).collect();
+        let f = log_log_fit(&noisy);
+        assert!((f.slope + 0.5).abs() <= f.ci95 && f.ci95 < 0.05, "{f:?}");
+        // Two points: a slope, no interval; one: nothing.
+        assert!(log_log_fit(&exact[..2]).ci95.is_nan());
+        assert!(log_log_fit(&exact[..1]).slope.is_nan());
+        assert_eq!(format!("{}", LogLogFit { slope: -0.5, ci95: 0.01, points: 5 }), "-0.500 ± 0.010");
+    }
+
+    #[test]
+    fn each_point_is_timed_over_its_runs_with_one_image() {
+        let reference = Film::new(2, 2);
+        let mut calls = Vec::new();
+        let points = measure(&reference, 7, &[1, 4], 3, |spp, seed| {
+            calls.push((spp, seed));
+            Ok::<_, ()>(Film::new(2, 2))
+        })
+        .unwrap();
+        assert_eq!(calls, vec![(1, 8), (1, 8), (1, 8), (4, 9), (4, 9), (4, 9)]);
+        for p in &points {
+            assert_eq!(p.runs, 3);
+            assert!(p.secs_min <= p.secs && p.secs <= p.secs_max);
+            assert_eq!(p.rmse, 0.0);
+        }
     }
 }
