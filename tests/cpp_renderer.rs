@@ -13,25 +13,9 @@ use std::process::Command;
 
 use common::{WRONG_SHADOWS, ok, scalar};
 
-/// `librl.a` as cargo built it for this test run (the newest of the uplifted one and the
-/// `deps/librl-*.a` of a test-only build).
-fn static_lib() -> PathBuf {
-    let exe = std::env::current_exe().unwrap();
-    let deps = exe.parent().unwrap();
-    let uplifted = deps.parent().unwrap().join("librl.a");
-    let newest = std::fs::read_dir(deps)
-        .unwrap()
-        .filter_map(|e| e.ok())
-        .filter(|e| {
-            let n = e.file_name().to_string_lossy().to_string();
-            n.starts_with("librl-") && n.ends_with(".a")
-        })
-        .map(|e| e.path());
-    newest
-        .chain(std::iter::once(uplifted.clone()).filter(|p| p.exists()))
-        .max_by_key(|p| p.metadata().and_then(|m| m.modified()).ok())
-        .unwrap_or_else(|| panic!("expected {} or deps/librl-*.a (rl's crate-type staticlib)", uplifted.display()))
-}
+#[path = "../rl-writer/tests/support/static_lib.rs"]
+mod support;
+use support::static_lib;
 
 /// Compiles the example with the system's C++ compiler (`CXX`, else `c++`).
 fn build(dir: &Path) -> PathBuf {

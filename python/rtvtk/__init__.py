@@ -103,7 +103,6 @@ class _TextBar:
     """A one-line progress bar on stderr, for when tqdm is not installed."""
 
     def __init__(self, desc: str, unit: str):
-        import sys
         import time
 
         self._out = sys.stderr
@@ -303,8 +302,6 @@ class Session:
         ``dataset``) and returns when its window is closed. With ``screenshot``, the window is
         written there once everything is drawn, and closes. One window per process, from the
         main thread (winit's rule); it needs a display (``DISPLAY`` or ``WAYLAND_DISPLAY``)."""
-        import sys
-
         if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
             raise RenderError("view needs a display: neither DISPLAY nor WAYLAND_DISPLAY is set (use render() for pictures without one)")
         self._native.view(dataset, None if screenshot is None else os.fspath(screenshot), tracer)

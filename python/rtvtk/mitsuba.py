@@ -213,7 +213,9 @@ def record(
     sc = load(scene, size)
     sensor = sc.sensors()[0]
     tris, mats, colors, emission, names, offsets, skipped = _geometry(mi, sc)
-    shape_index = {sh: i for i, sh in enumerate(sc.shapes())}
+    shapes = sc.shapes()
+    shape_index = {sh: i for i, sh in enumerate(shapes)}
+    meshes = [sh.is_mesh() for sh in shapes]
     pos, target, up, fov_y, w, h = _camera(mi, sensor)
     depth_limit = max_depth if max_depth >= 0 else 1 << 30
     ctx = mi.BSDFContext()
@@ -231,7 +233,7 @@ def record(
 
     def prim_of(si: Any) -> int:
         i = shape_index.get(si.shape)
-        return -1 if i is None or not sc.shapes()[i].is_mesh() else offsets[i] + int(si.prim_index)
+        return -1 if i is None or not meshes[i] else offsets[i] + int(si.prim_index)
 
     def add(tree: int, parent: int, o: Any, d: Any, t: Optional[float], kind: str, prim: int, tp: Any, rad: Any) -> int:
         if sites:

@@ -451,6 +451,8 @@ pub(crate) struct RaysScanExec {
     pub(crate) pushdown: Pushdown,
     pub(crate) parts: Vec<SegmentPlan>,
     properties: Arc<PlanProperties>,
+    /// The `sites` table's texts, read once per plan by the first partition that needs them.
+    site_texts: std::sync::OnceLock<Arc<arrow::array::StringArray>>,
 }
 
 impl std::fmt::Debug for RaysScanExec {
@@ -467,7 +469,7 @@ impl RaysScanExec {
             EmissionType::Incremental,
             Boundedness::Bounded,
         ));
-        Self { ds, schema, pushdown, parts, properties }
+        Self { ds, schema, pushdown, parts, properties, site_texts: std::sync::OnceLock::new() }
     }
 
     /// Whether a partition is answered from its segment's per-kind, per-depth ray counts: when the
@@ -546,7 +548,13 @@ impl RaysScanExec {
         if !text {
             return Ok(it);
         }
-        let texts = site_texts(&self.ds)?;
+        let texts = match self.site_texts.get() {
+            Some(t) => t.clone(),
+            None => {
+                let t = site_texts(&self.ds)?;
+                self.site_texts.get_or_init(|| t).clone()
+            }
+        };
         let schema = self.schema.clone();
         let path = self.ds.dir().join("tables/sites.parquet");
         Ok(Box::new(it.map(move |b| {

@@ -20,22 +20,25 @@ pub struct RlRecorder {
     id: usize,
     /// The typed payload columns as `rlAddRay` reads them from a packed row.
     columns: Vec<Column>,
-    /// Bytes of one packed payload row: the typed columns, then the opaque bytes.
+    /// Bytes of one packed payload row: the typed columns (`typed_size`), then the opaque bytes.
     row_size: usize,
-    /// The scene's triangles and point lights, from which the `lights` table is written (at
-    /// `rlFlush` and `rlFinish`, when they changed).
-    scene: std::sync::Mutex<SceneLights>,
+    typed_size: usize,
+    /// The scene's triangles, point lights and the rays' BVH visits, from which the `lights` and
+    /// `ray_nodes` tables are written (at `rlFlush` and `rlFinish`, when they changed).
+    scene: std::sync::Mutex<SceneTables>,
     /// Immediate mode: the recording in memory, readable while recording (`rlOpenRecording`).
     memory: Option<crate::MemoryTrace>,
 }
 
 #[derive(Default)]
-struct SceneLights {
+struct SceneTables {
     triangles: Option<arrow::array::RecordBatch>,
     points: Vec<store::scene::PointLight>,
     changed: bool,
     /// BVH nodes the rays visited (`rlAddRayVisits`), written as `ray_nodes` at flush and finish.
     visits: Vec<store::scene::Visit>,
+    /// Visits in the `ray_nodes` table written last.
+    visits_written: usize,
 }
 
 /// A BVH node as `rl.h` declares it (`rl_bvh_node`).
@@ -127,7 +130,15 @@ impl Decoded {
                 )
             };
         }
-        *self = Decoded::default();
+        // Cleared, not replaced: the buffers keep their capacity from ray to ray.
+        self.f32s.clear();
+        self.f64s.clear();
+        self.i32s.clear();
+        self.u32s.clear();
+        self.i64s.clear();
+        self.u64s.clear();
+        self.u8s.clear();
+        self.u16s.clear();
         let mut at = 0;
         for c in columns {
             match c.element {
@@ -313,9 +324,10 @@ fn make_recorder(
             (rec, Some(memory))
         }
     };
-    let row_size = columns.iter().map(|(_, c, _)| c.element.size() * c.count).sum::<usize>() + bytes_size;
+    let typed_size = columns.iter().map(|(_, c, _)| c.element.size() * c.count).sum::<usize>();
     let columns = columns.into_iter().map(|(_, c, _)| c).collect();
-    let boxed = Box::new(RlRecorder { rec, id: 0, columns, row_size, scene: Default::default(), memory });
+    let row_size = typed_size + bytes_size;
+    let boxed = Box::new(RlRecorder { rec, id: 0, columns, row_size, typed_size, scene: Default::default(), memory });
     let ptr = Box::into_raw(boxed);
     // SAFETY: just allocated.
     unsafe { (*ptr).id = ptr as usize };
@@ -499,7 +511,7 @@ unsafe fn add_ray(
             // SAFETY: the caller passes `payload_size` readable bytes.
             Some(unsafe { std::slice::from_raw_parts(payload as *const u8, payload_size) })
         };
-        let typed: usize = rec.columns.iter().map(|c| c.element.size() * c.count).sum();
+        let typed = rec.typed_size;
         if let Some(r) = row
             && r.len() != rec.row_size
         {
@@ -733,15 +745,15 @@ pub unsafe extern "C" fn rlAddRayVisits(
     })
 }
 
-/// Writes the `lights` table when the triangles or point lights changed since it was written,
-/// and the `ray_nodes` table when visits were recorded.
-fn write_lights(rec: &RlRecorder) -> Result<(), String> {
+/// Writes the tables the recorder gathers across calls: `ray_nodes` when visits were recorded,
+/// `lights` when the triangles or point lights changed since it was written.
+fn write_scene_tables(rec: &RlRecorder) -> Result<(), String> {
     let mut scene = rec.scene.lock().unwrap_or_else(|p| p.into_inner());
-    if !scene.visits.is_empty() {
-        // Written whole each time (the table is replaced): the visits stay held until finish.
-        let visits = scene.visits.clone();
-        let batch = store::scene::ray_nodes_batch(visits).map_err(|e| e.to_string())?;
+    if scene.visits.len() > scene.visits_written {
+        // A table is written whole (it replaces the last one), so the visits stay held.
+        let batch = store::scene::ray_nodes_batch(scene.visits.clone()).map_err(|e| e.to_string())?;
         rec.rec.write_table(store::scene::RAY_NODES_TABLE, batch).map_err(|e| e.to_string())?;
+        scene.visits_written = scene.visits.len();
     }
     if !scene.changed {
         return Ok(());
@@ -831,7 +843,7 @@ pub unsafe extern "C" fn rlFlush(rec: *mut RlRecorder) -> i32 {
     guard(-1, || {
         // SAFETY: forwarded caller contract.
         let rec = unsafe { rec_arg(rec) }?;
-        write_lights(rec)?;
+        write_scene_tables(rec)?;
         rec.rec.flush().map(|_| 0).map_err(|e| e.to_string())
     })
 }
@@ -846,7 +858,7 @@ pub unsafe extern "C" fn rlFinish(rec: *mut RlRecorder) -> i32 {
         let boxed = unsafe { Box::from_raw(rec) };
         // Trees this thread left open are not part of the trace (finish reports them).
         OPEN.with(|o| o.borrow_mut().retain(|(r, _)| *r != boxed.id));
-        let lights = write_lights(&boxed);
+        let lights = write_scene_tables(&boxed);
         let finished = boxed.rec.finish().map(|_| 0).map_err(|e| e.to_string());
         lights.and(finished)
     })
