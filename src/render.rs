@@ -78,6 +78,23 @@ pub struct RenderArgs {
     /// No legends or colour bars.
     #[arg(long)]
     pub no_legend: bool,
+    /// How the rays and query layers draw: lines (opaque), alpha (translucent, order
+    /// independent) or density (rays per pixel, with a colour bar).
+    #[arg(long, default_value = "lines")]
+    pub style: rtvtk_viz::splat::RayStyle,
+    /// Opacity of the rays and query layers, 0..1 (default 1; in the alpha style, chosen so
+    /// that nine in ten covered pixels stay at most half covered).
+    #[arg(long)]
+    pub opacity: Option<f32>,
+    /// The density style's scale: log or linear.
+    #[arg(long, default_value = "log")]
+    pub density_scale: rtvtk_viz::splat::DensityScale,
+    /// The density style's colour map (default: the rays' own colours, brightness by density).
+    #[arg(long)]
+    pub density_map: Option<String>,
+    /// The colour map of the query layer's --colour-by column.
+    #[arg(long)]
+    pub map: Option<String>,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -145,6 +162,11 @@ pub fn render_to_png(a: &RenderArgs) -> Result<Vec<String>> {
         image_source: a.image_source.clone(),
         image_spp: a.image_spp,
         legend: !a.no_legend,
+        style: a.style,
+        opacity: a.opacity,
+        density_scale: a.density_scale,
+        density_map: a.density_map.clone(),
+        map: a.map.clone(),
     };
     let (img, report) = rtvtk_viz::headless::render(sources, &request)?;
     save(&img, &a.out)?;

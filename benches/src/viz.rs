@@ -64,6 +64,7 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
                 target: &target,
                 progress: &progress,
                 preview: None,
+                occluder: None,
             };
             rays.render(&mut ctx)?;
             gpu.wait()?;

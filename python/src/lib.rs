@@ -458,6 +458,17 @@ fn render_request(o: &Bound<'_, PyDict>) -> PyResult<rtvtk_viz::headless::Render
             "image_source" => r.image_source = v.extract()?,
             "image_spp" => r.image_spp = v.extract()?,
             "legend" => r.legend = v.extract()?,
+            "style" => {
+                let name: String = v.extract()?;
+                r.style = name.parse().map_err(RenderError::new_err)?;
+            }
+            "opacity" => r.opacity = v.extract()?,
+            "density_scale" => {
+                let name: String = v.extract()?;
+                r.density_scale = name.parse().map_err(RenderError::new_err)?;
+            }
+            "density_map" => r.density_map = v.extract()?,
+            "map" | "colour_map" | "color_map" => r.map = v.extract()?,
             "camera" => {
                 let c: Option<CameraArg> = v.extract()?;
                 r.camera = match c {

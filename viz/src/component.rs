@@ -61,6 +61,18 @@ pub struct RenderCtx<'a> {
     pub progress: &'a Progress,
     /// Draw at most this many items, evenly spread (a preview while the camera moves).
     pub preview: Option<u64>,
+    /// The scene's depth below this layer (the nearest occluder layer under it), for layers that
+    /// hide their items behind surfaces as they draw them (the alpha and density ray styles).
+    pub occluder: Option<OccluderRef<'a>>,
+}
+
+/// An occluder layer's depth as another layer reads it.
+#[derive(Clone, Copy)]
+pub struct OccluderRef<'a> {
+    /// Its Depth32Float target (bound as an unfilterable float texture).
+    pub depth: &'a wgpu::TextureView,
+    /// Its near and far planes.
+    pub range: [f32; 2],
 }
 
 /// How far a layer's long load (millions of rays) has got, shared with another thread (the
@@ -271,8 +283,9 @@ pub struct TracedPixel {
 pub enum Legend {
     /// Named colours (ray kinds, materials).
     Swatches { title: String, entries: Vec<(String, [u8; 4])> },
-    /// A colour map from `min` to `max` of a value.
-    ColourBar { title: String, map: String, min: f64, max: f64 },
+    /// A colour map from `min` to `max` of a value (on a log scale when `log`); `min == max`
+    /// is a constant, drawn as one swatch with its value.
+    ColourBar { title: String, map: String, min: f64, max: f64, log: bool },
 }
 
 /// One component of the pipeline: it owns its data and draws into its own layer.

@@ -202,11 +202,45 @@ pub struct Lines {
     shape: LineShape,
     pipeline: Option<wgpu::RenderPipeline>,
     pick: Option<wgpu::RenderPipeline>,
+    /// The alpha and density styles' buffers and pipelines (`splat.rs`), made on first use.
+    splat: Option<crate::splat::Splat>,
 }
 
 impl Lines {
     pub fn new(shape: LineShape) -> Lines {
-        Lines { shape, pipeline: None, pick: None }
+        Lines { shape, pipeline: None, pick: None, splat: None }
+    }
+
+    /// [`Lines::draw`] in a ray style: `lines` draws as `draw` does; `alpha` and `density`
+    /// accumulate every set (the first thinned to the preview budget when `preview`) and
+    /// resolve into the layer. Returns what the styled draw found.
+    pub fn draw_styled(
+        &mut self,
+        ctx: &RenderCtx,
+        view: &ViewUniform,
+        sets: &[Option<&SegmentBuffers>],
+        preview: bool,
+        style: &crate::splat::StyleParams,
+    ) -> crate::Result<crate::splat::Drawn> {
+        if style.style == crate::splat::RayStyle::Lines {
+            self.draw(ctx, view, sets, preview);
+            return Ok(crate::splat::Drawn { opacity: style.opacity, ..Default::default() });
+        }
+        let splat = match &mut self.splat {
+            Some(s) => s,
+            None => self.splat.insert(crate::splat::Splat::new(ctx.gpu, self.shape.vertex_entry())?),
+        };
+        // Density counts rays per pixel: lines one pixel wide, whatever the layer's width.
+        let mut view = *view;
+        if style.style == crate::splat::RayStyle::Density {
+            view.viewport[2] = 1.0;
+        }
+        let strided: Vec<(&SegmentBuffers, u32)> = sets
+            .iter()
+            .enumerate()
+            .filter_map(|(i, s)| s.map(|s| (s, if preview && i == 0 { s.stride_for(ctx.preview) } else { 1 })))
+            .collect();
+        splat.draw(ctx, &view, &strided, self.shape.per_item(), style)
     }
 
     /// Draws `sets` into the layer (the first clears it; with `preview`, the first is thinned to
@@ -403,15 +437,8 @@ impl SegmentBuffers {
         self.buffers.iter().map(|(b, _)| b.size()).sum()
     }
 
-    /// Bind groups (view uniform + storage) of every buffer, the staged segments uploaded into one
-    /// more, each with its segment count and the index of its first segment (from `base`).
-    fn bind_groups(
-        &self,
-        gpu: &Gpu,
-        pipeline: &wgpu::RenderPipeline,
-        ubuf: &wgpu::Buffer,
-        base: u32,
-    ) -> Vec<(wgpu::BindGroup, u32, u32)> {
+    /// Every non-empty buffer with its segment count, the staged segments uploaded into one more.
+    pub fn chunks(&self, gpu: &Gpu) -> Vec<(wgpu::Buffer, u32)> {
         let staged = (!self.staged.is_empty()).then(|| {
             use wgpu::util::DeviceExt;
             let b = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -421,11 +448,23 @@ impl SegmentBuffers {
             });
             (b, self.staged.len() as u64)
         });
+        self.buffers.iter().filter(|(_, n)| *n > 0).cloned().chain(staged).map(|(b, n)| (b, n as u32)).collect()
+    }
+
+    /// Bind groups (view uniform + storage) of every chunk, each with its segment count and the
+    /// index of its first segment (from `base`).
+    fn bind_groups(
+        &self,
+        gpu: &Gpu,
+        pipeline: &wgpu::RenderPipeline,
+        ubuf: &wgpu::Buffer,
+        base: u32,
+    ) -> Vec<(wgpu::BindGroup, u32, u32)> {
         let mut first = base;
         let mut groups = Vec::new();
-        for (b, n) in self.buffers.iter().filter(|(_, n)| *n > 0).chain(staged.iter()) {
-            groups.push((bind_view_storage(gpu, pipeline, ubuf, b), *n as u32, first));
-            first = first.saturating_add(*n as u32);
+        for (b, n) in self.chunks(gpu) {
+            groups.push((bind_view_storage(gpu, pipeline, ubuf, &b), n, first));
+            first = first.saturating_add(n);
         }
         groups
     }

@@ -9,6 +9,7 @@ use crate::components::geometry::{GeometrySettings, SurfaceStyle};
 use crate::components::picture::{HeatmapSettings, ImageSettings, ImageSource};
 use crate::components::query::QuerySettings;
 use crate::components::rays::RaysSettings;
+use crate::splat::{DensityScale, RayStyle};
 use crate::{Error, Gpu, Pipeline, Result, Sources, ViewCamera};
 
 /// What to draw (`rtvtk render`'s flags).
@@ -51,6 +52,16 @@ pub struct RenderRequest {
     pub image_spp: u32,
     /// Legends and colour bars.
     pub legend: bool,
+    /// How the rays and query layers draw: lines, alpha or density.
+    pub style: RayStyle,
+    /// Their opacity (default: 1; in the alpha style, chosen from how many rays cover each pixel).
+    pub opacity: Option<f32>,
+    /// The density style's scale.
+    pub density_scale: DensityScale,
+    /// The density style's colour map (default: the rays' own colours, brightness by density).
+    pub density_map: Option<String>,
+    /// The query layer's colour map for `colour_by` (default: plasma).
+    pub map: Option<String>,
 }
 
 impl Default for RenderRequest {
@@ -74,11 +85,22 @@ impl Default for RenderRequest {
             image_source: "auto".into(),
             image_spp: 16,
             legend: true,
+            style: RayStyle::Lines,
+            opacity: None,
+            density_scale: DensityScale::Log,
+            density_map: None,
+            map: None,
         }
     }
 }
 
 impl RenderRequest {
+    /// The opacity of the ray and query layers (in the alpha style without one, the most the
+    /// automatic choice may take).
+    fn opacity(&self) -> f32 {
+        self.opacity.unwrap_or(if self.style == RayStyle::Alpha { 0.5 } else { 1.0 })
+    }
+
     /// The settings of layer `kind` from the request.
     fn settings(&self, kind: &str, has_query_layer: bool) -> Result<serde_json::Value> {
         Ok(match kind {
@@ -90,6 +112,11 @@ impl RenderRequest {
                 depth: self.depth,
                 max_rays: self.max_rays.or(Some(10_000_000)),
                 line_width: self.line_width,
+                opacity: self.opacity(),
+                auto_opacity: self.opacity.is_none(),
+                style: self.style,
+                density_scale: self.density_scale,
+                density_map: self.density_map.clone(),
                 ..Default::default()
             }
             .encode(),
@@ -126,7 +153,12 @@ impl RenderRequest {
                     sql: sql.clone(),
                     colour_by: self.colour_by.clone(),
                     line_width: self.line_width.max(2.0),
-                    ..Default::default()
+                    opacity: self.opacity(),
+                    auto_opacity: self.opacity.is_none(),
+                    style: self.style,
+                    density_scale: self.density_scale,
+                    density_map: self.density_map.clone(),
+                    map: self.map.clone().unwrap_or_else(|| QuerySettings::default().map),
                 }
                 .encode()
             }

@@ -11,6 +11,7 @@ pub mod legend;
 pub mod pipeline;
 pub mod registry;
 pub mod sources;
+pub mod splat;
 
 pub use camera::ViewCamera;
 pub use component::{Component, ComponentId, LayerRole, Legend, Picked};

@@ -5,8 +5,8 @@
 
 use crate::camera::ViewCamera;
 use crate::component::{
-    Component, ComponentId, Frame, IdleCtx, LayerRole, LayerTarget, Legend, Pick, PickCtx, PickTarget, RenderCtx,
-    depth_range,
+    Component, ComponentId, Frame, IdleCtx, LayerRole, LayerTarget, Legend, OccluderRef, Pick, PickCtx, PickTarget,
+    RenderCtx, depth_range,
 };
 use crate::gpu::{COLOR_FORMAT, Gpu};
 use crate::legend::{Canvas, draw_legends};
@@ -21,6 +21,9 @@ struct RenderKey {
     frame: Frame,
     /// The preview budget the layer was drawn with (only for layers that preview).
     preview: Option<u64>,
+    /// The occluder under the layer and how often it was rendered (its depth hides the layer's
+    /// items as they are drawn in the alpha and density styles).
+    occluder: Option<(ComponentId, u64)>,
 }
 
 /// One layer: a component, whether it is shown, its own camera (when it does not follow the
@@ -107,7 +110,7 @@ pub fn crop_matrix([x, y]: [u32; 2], [w, h]: [u32; 2], size: u32) -> glam::Mat4 
 }
 
 /// Relative depth bias of the composition: a segment ending on a surface stays visible.
-const DEPTH_BIAS: f32 = 2e-3;
+pub(crate) const DEPTH_BIAS: f32 = 2e-3;
 
 /// A pipeline's work finishes before it goes: nothing it submitted still runs on the device
 /// when its buffers are freed or the process exits (lavapipe's exit handlers tear down LLVM
@@ -291,7 +294,19 @@ impl Pipeline {
     /// the viewer's window samples it as it is), the same texture until the size changes.
     pub fn render(&mut self) -> Result<&wgpu::Texture> {
         let size = [self.width, self.height];
-        for l in self.layers.iter_mut().filter(|l| l.enabled) {
+        for i in 0..self.layers.len() {
+            let (below, rest) = self.layers.split_at_mut(i);
+            let Some(l) = rest.first_mut().filter(|l| l.enabled) else { continue };
+            // The nearest occluder under a scene layer: its depth hides what the layer draws.
+            let occluder = match l.component.role() {
+                LayerRole::Scene => below
+                    .iter()
+                    .rev()
+                    .filter(|o| o.enabled)
+                    .find(|o| o.component.role() == LayerRole::Occluder)
+                    .and_then(|o| o.target.as_ref().map(|t| (o, t))),
+                _ => None,
+            };
             let camera = l.camera.unwrap_or(self.camera);
             let key = RenderKey {
                 generation: l.component.generation(),
@@ -299,6 +314,7 @@ impl Pipeline {
                 size,
                 frame: self.frame,
                 preview: self.preview.filter(|_| l.component.previews()),
+                occluder: occluder.map(|(o, _)| (o.component.id(), o.renders)),
             };
             if l.key == Some(key) {
                 continue;
@@ -316,6 +332,7 @@ impl Pipeline {
                 target,
                 progress: &self.progress,
                 preview: key.preview,
+                occluder: occluder.map(|(o, t)| OccluderRef { depth: &t.depth_view, range: o.range }),
             };
             l.component.render(&mut ctx)?;
             self.gpu.check().map_err(|e| Error::Layer { layer: l.component.kind().into(), message: e.to_string() })?;

@@ -205,7 +205,7 @@ impl Layer for BvhBoxes {
             BoxColour::Level => "BVH level".to_string(),
             BoxColour::Visits => "log10(1 + visits)".to_string(),
         };
-        vec![Legend::ColourBar { title, map: self.settings.map.clone(), min, max }]
+        vec![Legend::ColourBar { title, map: self.settings.map.clone(), min, max, log: false }]
     }
     fn report(&self) -> Vec<String> {
         vec![format!("bvh: {} boxes", self.boxes.as_ref().map_or(0, |b| b.count))]

@@ -708,7 +708,13 @@ impl Layer for Heatmap {
     fn legend(&self) -> Vec<Legend> {
         match self.range {
             Some((min, max)) => {
-                vec![Legend::ColourBar { title: self.settings.title.clone(), map: self.settings.map.clone(), min, max }]
+                vec![Legend::ColourBar {
+                    title: self.settings.title.clone(),
+                    map: self.settings.map.clone(),
+                    min,
+                    max,
+                    log: false,
+                }]
             }
             None => Vec::new(),
         }

@@ -13,6 +13,7 @@ use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, 
 use crate::components::rays::{SegmentBuilder, f32_columns, kind_names};
 use crate::draw::SegmentBuffers;
 use crate::legend::colour_map;
+use crate::splat::{DensityScale, Drawn, RayStyle, StyleParams};
 use crate::{Error, Result};
 
 const SEGMENT_COLUMNS: [&str; 6] = ["origin_x", "origin_y", "origin_z", "dir_x", "dir_y", "dir_z"];
@@ -27,17 +28,55 @@ pub struct QuerySettings {
     pub map: String,
     pub line_width: f32,
     pub opacity: f32,
+    /// How the rows are drawn: `lines`, `alpha` or `density` (as the rays layer's).
+    pub style: RayStyle,
+    /// The density style's scale: `log` or `linear`.
+    pub density_scale: DensityScale,
+    /// The alpha style lowers `opacity` so that nine in ten covered pixels stay at most half
+    /// covered (what lies under the rays shows however many there are); false: `opacity` as is.
+    pub auto_opacity: bool,
+    /// The density style's colour map (`None`: the rows' colours, brightness by density).
+    pub density_map: Option<String>,
 }
 
 impl crate::component::Settings for QuerySettings {
     const KIND: &'static str = "query";
+    fn choices() -> Vec<(&'static str, &'static [&'static str])> {
+        vec![("map", &crate::legend::COLOUR_MAPS), ("style", RayStyle::NAMES), ("density_scale", DensityScale::NAMES)]
+    }
 }
 
 impl Default for QuerySettings {
     fn default() -> Self {
-        QuerySettings { sql: String::new(), colour_by: None, map: "plasma".into(), line_width: 2.0, opacity: 1.0 }
+        QuerySettings {
+            sql: String::new(),
+            colour_by: None,
+            map: "plasma".into(),
+            line_width: 2.0,
+            opacity: 1.0,
+            style: RayStyle::Lines,
+            density_scale: DensityScale::Log,
+            density_map: None,
+            auto_opacity: true,
+        }
     }
 }
+
+impl QuerySettings {
+    fn style_params(&self) -> StyleParams {
+        StyleParams {
+            style: self.style,
+            scale: self.density_scale,
+            map: self.density_map.clone(),
+            opacity: self.opacity,
+            auto_opacity: self.auto_opacity,
+        }
+    }
+}
+
+/// At most this many distinct integer values are told apart by a categorical legend (more get a
+/// colour bar).
+const MAX_CATEGORIES: usize = 12;
 
 enum Values {
     None,
@@ -59,6 +98,8 @@ pub struct Query {
     skipped: u64,
     /// Result row of every drawn segment or point (picking).
     row_of: Vec<u64>,
+    /// What the last styled draw found (the density colour bar's range, the alpha opacity).
+    drawn: Drawn,
 }
 
 fn palette(i: usize) -> [u8; 4] {
@@ -80,6 +121,7 @@ impl Query {
             rows: 0,
             skipped: 0,
             row_of: Vec::new(),
+            drawn: Drawn::default(),
         };
         q.set_settings(settings)?;
         Ok(q)
@@ -93,6 +135,7 @@ impl Query {
             self.loaded = Some((ctx.frame, self.settings.clone()));
             return Ok(());
         };
+        let mut categories_in_order: Vec<String> = Vec::new();
         let has = |n: &[&str]| n.iter().all(|c| schema.index_of(c).is_ok());
         let as_segments = has(&SEGMENT_COLUMNS);
         if !as_segments && !has(&POINT_COLUMNS) {
@@ -115,13 +158,48 @@ impl Query {
                 Values::Names(kind_names(c.as_ref())?)
             })
         };
-        let all: Vec<Values> = batches.iter().map(values).collect::<Result<_>>()?;
+        let mut all: Vec<Values> = batches.iter().map(values).collect::<Result<_>>()?;
+        let (lo, hi) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |acc, v| match v {
+            Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).fold(acc, |(a, b), &x| (a.min(x), b.max(x))),
+            _ => acc,
+        });
+        // A number column of a few distinct values (a constant, depths, material ids) is a set of
+        // categories: each value gets its own colour and a count, not a place on a colour bar.
+        if lo <= hi {
+            let mut distinct: Vec<f64> = Vec::new();
+            let few = all.iter().all(|v| match v {
+                Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).all(|&x| {
+                    if !distinct.contains(&x) {
+                        distinct.push(x);
+                    }
+                    distinct.len() <= MAX_CATEGORIES
+                }),
+                _ => true,
+            });
+            if few && (distinct.len() == 1 || distinct.iter().all(|x| x.fract() == 0.0)) {
+                all = all
+                    .into_iter()
+                    .map(|v| match v {
+                        Values::Numbers(n) => Values::Names(
+                            n.into_iter().map(|x| x.is_finite().then(|| crate::legend::label(x))).collect(),
+                        ),
+                        other => other,
+                    })
+                    .collect();
+                distinct.sort_by(f64::total_cmp);
+                categories_in_order = distinct.iter().map(|x| crate::legend::label(*x)).collect();
+            }
+        }
         let (lo, hi) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |acc, v| match v {
             Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).fold(acc, |(a, b), &x| (a.min(x), b.max(x))),
             _ => acc,
         });
         let map = colour_map(&self.settings.map)?;
-        let mut names: BTreeMap<String, usize> = BTreeMap::new();
+        // Categories numbered in legend order (sorted values for numbers, else first seen), with
+        // the rows drawn of each.
+        let mut names: BTreeMap<String, usize> =
+            categories_in_order.iter().enumerate().map(|(i, k)| (k.clone(), i)).collect();
+        let mut counts: BTreeMap<String, u64> = BTreeMap::new();
         let mut bufs = SegmentBuffers::new(gpu);
         let mut builder = SegmentBuilder::new(ctx.sources.bounds, ctx.frame);
         let mut rows = 0;
@@ -129,7 +207,7 @@ impl Query {
         for (b, vals) in batches.iter().zip(&all) {
             let first = rows;
             rows += b.num_rows() as u64;
-            let colour = |r: usize, names: &mut BTreeMap<String, usize>| -> [u8; 4] {
+            let mut colour = |r: usize, names: &mut BTreeMap<String, usize>| -> [u8; 4] {
                 match vals {
                     Values::None => [255, 120, 0, 255],
                     Values::Numbers(n) if n[r].is_finite() => {
@@ -141,6 +219,7 @@ impl Query {
                     Values::Names(s) => {
                         let k = s[r].clone().unwrap_or_else(|| "null".into());
                         let next = names.len();
+                        *counts.entry(k.clone()).or_default() += 1;
                         palette(*names.entry(k).or_insert(next))
                     }
                 }
@@ -192,14 +271,24 @@ impl Query {
         self.skipped = builder.skipped;
         self.legend = match (&self.settings.colour_by, lo <= hi, names.is_empty()) {
             (Some(c), true, _) => {
-                vec![Legend::ColourBar { title: c.clone(), map: self.settings.map.clone(), min: lo, max: hi }]
+                vec![Legend::ColourBar {
+                    title: c.clone(),
+                    map: self.settings.map.clone(),
+                    min: lo,
+                    max: hi,
+                    log: false,
+                }]
             }
             (Some(c), false, false) => {
                 let mut e: Vec<(usize, String)> = names.into_iter().map(|(k, i)| (i, k)).collect();
                 e.sort();
                 vec![Legend::Swatches {
                     title: c.clone(),
-                    entries: e.into_iter().map(|(i, k)| (k, palette(i))).collect(),
+                    entries: e
+                        .into_iter()
+                        .filter(|(_, k)| counts.contains_key(k))
+                        .map(|(i, k)| (format!("{k} ({})", counts[&k]), palette(i)))
+                        .collect(),
                 }]
             }
             _ => Vec::new(),
@@ -230,6 +319,9 @@ impl Layer for Query {
             return Err(Error::Settings("query: the layer needs a SQL query (--sql)".into()));
         }
         colour_map(&s.map)?;
+        if let Some(m) = &s.density_map {
+            colour_map(m)?;
+        }
         crate::component::check_lines("query", s.line_width, s.opacity)?;
         crate::component::replace_settings(&mut self.settings, s, &mut self.generation);
         Ok(())
@@ -240,7 +332,7 @@ impl Layer for Query {
         }
         let s = &self.settings;
         let view = ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, 1.0);
-        self.lines.draw(ctx, &view, &[self.segments.as_ref()], false);
+        self.drawn = self.lines.draw_styled(ctx, &view, &[self.segments.as_ref()], false, &s.style_params())?;
         Ok(())
     }
     fn pick(&mut self, ctx: &mut crate::component::PickCtx) -> Result<bool> {
@@ -251,10 +343,14 @@ impl Layer for Query {
         Some(crate::component::Picked::Row { row })
     }
     fn legend(&self) -> Vec<Legend> {
-        self.legend.clone()
+        let s = self.settings.style_params();
+        let mut l = if s.style == RayStyle::Density && s.map.is_some() { Vec::new() } else { self.legend.clone() };
+        l.extend(crate::components::rays::density_legend(&s, self.drawn.density));
+        l
     }
     fn report(&self) -> Vec<String> {
         let mut r = vec![format!("query: {} rows drawn", self.segments.as_ref().map_or(0, |s| s.count))];
+        r.extend(crate::splat::style_report("query", &self.settings.style_params(), &self.drawn));
         if self.skipped > 0 {
             r.push(format!("query: skipped {} of {} rows with NaN or infinite positions", self.skipped, self.rows));
         }

@@ -14,6 +14,7 @@ use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, 
 use crate::draw::{GpuSegment, SEGMENT_BYTES, SegmentBuffers, pack_rgba};
 use crate::gpu::Gpu;
 use crate::sources::Sources;
+use crate::splat::{DensityScale, DensityStats, Drawn, RayStyle, StyleParams};
 use crate::{Error, Result};
 
 /// The colour of a ray kind (Figure 6 of the paper).
@@ -50,6 +51,16 @@ pub struct RaysSettings {
     pub max_rays: Option<u64>,
     pub line_width: f32,
     pub opacity: f32,
+    /// How the rays are drawn: `lines` (opaque), `alpha` (translucent at `opacity`, in no
+    /// particular order) or `density` (rays per pixel).
+    pub style: RayStyle,
+    /// The density style's scale: `log` or `linear`.
+    pub density_scale: DensityScale,
+    /// The alpha style lowers `opacity` so that nine in ten covered pixels stay at most half
+    /// covered (what lies under the rays shows however many there are); false: `opacity` as is.
+    pub auto_opacity: bool,
+    /// The density style's colour map (`None`: the kinds' colours, brightness by density).
+    pub density_map: Option<String>,
     /// Direction as a gradient (dim at the origin, full colour at the end).
     pub gradient: bool,
     /// Highlight this tree (drawn wider).
@@ -62,7 +73,7 @@ pub struct RaysSettings {
 
 impl crate::component::Settings for RaysSettings {
     fn choices() -> Vec<(&'static str, &'static [&'static str])> {
-        vec![("tracer", TracerChoice::NAMES)]
+        vec![("tracer", TracerChoice::NAMES), ("style", RayStyle::NAMES), ("density_scale", DensityScale::NAMES)]
     }
     const KIND: &'static str = "rays";
 }
@@ -79,6 +90,10 @@ impl Default for RaysSettings {
             max_rays: Some(10_000_000),
             line_width: 1.5,
             opacity: 1.0,
+            style: RayStyle::Lines,
+            density_scale: DensityScale::Log,
+            density_map: None,
+            auto_opacity: true,
             gradient: true,
             selected_tree: None,
             tracer: TracerChoice::Path,
@@ -130,6 +145,17 @@ impl RaysSettings {
             w.push(format!("ray <= {n}"));
         }
         Ok(if w.is_empty() { "TRUE".into() } else { w.join(" AND ") })
+    }
+
+    /// The style settings as the line drawing takes them.
+    pub fn style_params(&self) -> StyleParams {
+        StyleParams {
+            style: self.style,
+            scale: self.density_scale,
+            map: self.density_map.clone(),
+            opacity: self.opacity,
+            auto_opacity: self.auto_opacity,
+        }
     }
 
     fn data_key(&self) -> DataKey {
@@ -248,6 +274,8 @@ pub struct Rays {
     tracer: Option<Box<dyn renderers::Tracer>>,
     /// The last load was cancelled after this many segments (kept, drawn).
     cancelled_after: Option<u64>,
+    /// What the last styled draw found (the density colour bar's range, the alpha opacity).
+    drawn: Drawn,
 }
 
 impl Rays {
@@ -274,6 +302,7 @@ impl Rays {
             bvh: None,
             tracer: None,
             cancelled_after: None,
+            drawn: Drawn::default(),
         };
         if !settings.is_null() {
             r.set_settings(settings)?;
@@ -510,6 +539,20 @@ fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<BTreeMap<us
     Ok(Some(out))
 }
 
+/// The colour bar of a density draw: rays per pixel from 1 to the most on one pixel, in the
+/// style's scale and map (a brightness ramp when the rays keep their own colours).
+pub fn density_legend(style: &StyleParams, stats: Option<DensityStats>) -> Option<Legend> {
+    let s = stats.filter(|_| style.style == RayStyle::Density)?;
+    let log = style.scale == DensityScale::Log;
+    Some(Legend::ColourBar {
+        title: format!("rays per pixel{}", if log { " (log)" } else { "" }),
+        map: style.map.clone().unwrap_or_else(|| "greys".into()),
+        min: if log { 1.0 } else { 0.0 },
+        max: f64::from(s.max.max(1)),
+        log,
+    })
+}
+
 /// The distinct names of a kind column and each row's index into them (dictionary-encoded or
 /// plain strings).
 fn kind_codes(col: &dyn Array) -> Result<(Vec<Option<String>>, Vec<usize>)> {
@@ -551,6 +594,9 @@ impl Layer for Rays {
     fn apply(&mut self, s: RaysSettings) -> Result<()> {
         s.predicate()?;
         crate::component::check_lines("rays", s.line_width, s.opacity)?;
+        if let Some(m) = &s.density_map {
+            crate::legend::colour_map(m)?;
+        }
         crate::component::replace_settings(&mut self.settings, s, &mut self.generation);
         Ok(())
     }
@@ -564,7 +610,13 @@ impl Layer for Rays {
         let view =
             ViewUniform::new(ctx.view_proj(), ctx.target.width, ctx.target.height, s.line_width, s.opacity, gradient);
         // The loaded rays (thinned while the camera moves), then the traced tree over them.
-        self.lines.draw(ctx, &view, &[self.segments.as_ref(), self.traced.as_ref()], true);
+        self.drawn = self.lines.draw_styled(
+            ctx,
+            &view,
+            &[self.segments.as_ref(), self.traced.as_ref()],
+            true,
+            &self.settings.style_params(),
+        )?;
         Ok(())
     }
     fn trace_ray(&mut self, ctx: &mut TraceCtx, [x, y]: [u32; 2]) -> Result<Option<TracedPixel>> {
@@ -648,7 +700,12 @@ impl Layer for Rays {
         if entries.is_empty() {
             return Vec::new();
         }
-        vec![Legend::Swatches { title: "ray kinds".into(), entries }]
+        let mut out = Vec::new();
+        if self.settings.density_map.is_none() || self.settings.style != RayStyle::Density {
+            out.push(Legend::Swatches { title: "ray kinds".into(), entries });
+        }
+        out.extend(density_legend(&self.settings.style_params(), self.drawn.density));
+        out
     }
     fn report(&self) -> Vec<String> {
         let mut r = vec![format!(
@@ -659,6 +716,7 @@ impl Layer for Rays {
             self.misses,
             self.load_secs
         )];
+        r.extend(crate::splat::style_report("rays", &self.settings.style_params(), &self.drawn));
         if self.skipped > 0 {
             r.push(format!("rays: skipped {} rays with NaN or infinite origin/direction", self.skipped));
         }

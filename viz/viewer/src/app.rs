@@ -654,8 +654,46 @@ fn legend_ui(ui: &mut Ui, legend: &[Legend]) {
                     }
                 });
             }
-            Legend::ColourBar { title, map, min, max } => {
-                ui.label(format!("{title}: {map} from {min:.4} to {max:.4}"));
+            Legend::ColourBar { title, map, min, max, log } => {
+                use rtvtk_viz::legend::{bar_position, colour_map, label, ticks};
+                ui.label(RichText::new(title).strong());
+                let grad = colour_map(map).ok();
+                let rgb = |t: f64| {
+                    grad.as_ref().map_or(Color32::GRAY, |g| {
+                        let c = g.eval_continuous(t);
+                        Color32::from_rgb(c.r, c.g, c.b)
+                    })
+                };
+                if max <= min {
+                    ui.horizontal(|ui| {
+                        let (r, _) = ui.allocate_exact_size(egui::vec2(12.0, 12.0), egui::Sense::hover());
+                        ui.painter().rect_filled(r, 2.0, rgb(0.5));
+                        ui.label(label(*min));
+                    });
+                    continue;
+                }
+                let width = ui.available_width().clamp(80.0, 260.0);
+                let (r, _) = ui.allocate_exact_size(egui::vec2(width, 28.0), egui::Sense::hover());
+                let bar = egui::Rect::from_min_size(r.min, egui::vec2(width, 10.0));
+                let steps = 64;
+                for i in 0..steps {
+                    let t = (i as f64 + 0.5) / steps as f64;
+                    let x0 = bar.min.x + bar.width() * i as f32 / steps as f32;
+                    let x1 = bar.min.x + bar.width() * (i + 1) as f32 / steps as f32;
+                    let cell = egui::Rect::from_min_max(egui::pos2(x0, bar.min.y), egui::pos2(x1, bar.max.y));
+                    ui.painter().rect_filled(cell, 0.0, rgb(t));
+                }
+                for v in ticks(*min, *max, *log) {
+                    let x = bar.min.x + bar.width() * bar_position(v, *min, *max, *log) as f32;
+                    ui.painter().vline(x, bar.max.y..=bar.max.y + 3.0, egui::Stroke::new(1.0, Color32::WHITE));
+                    ui.painter().text(
+                        egui::pos2(x, bar.max.y + 3.0),
+                        egui::Align2::CENTER_TOP,
+                        label(v),
+                        egui::FontId::proportional(10.0),
+                        Color32::LIGHT_GRAY,
+                    );
+                }
             }
         }
     }
