@@ -312,6 +312,11 @@ pub trait Component: Send {
     }
     /// Counter bumped on every change of output (settings, data, progressive refinement).
     fn generation(&self) -> u64;
+    /// Whether the layer hides its items behind the occluder's depth as it draws them (the alpha
+    /// and density ray styles), and so is drawn again when the occluder is.
+    fn reads_occluder(&self) -> bool {
+        false
+    }
     fn settings(&self) -> serde_json::Value;
     /// The settings that take one of a few values, with those values (the viewer draws them as
     /// drop-downs, not text fields).
@@ -399,6 +404,9 @@ pub trait Layer: Send {
     fn id(&self) -> ComponentId;
     fn role(&self) -> LayerRole;
     fn generation(&self) -> u64;
+    fn reads_occluder(&self) -> bool {
+        false
+    }
     /// Its settings now.
     fn current(&self) -> &Self::Settings;
     /// Checks and takes `settings` (bumping the generation when the output changes); on an error
@@ -453,6 +461,9 @@ impl<L: Layer> Component for L {
     }
     fn generation(&self) -> u64 {
         Layer::generation(self)
+    }
+    fn reads_occluder(&self) -> bool {
+        Layer::reads_occluder(self)
     }
     fn settings(&self) -> serde_json::Value {
         self.current().encode()

@@ -297,15 +297,15 @@ impl Pipeline {
         for i in 0..self.layers.len() {
             let (below, rest) = self.layers.split_at_mut(i);
             let Some(l) = rest.first_mut().filter(|l| l.enabled) else { continue };
-            // The nearest occluder under a scene layer: its depth hides what the layer draws.
-            let occluder = match l.component.role() {
-                LayerRole::Scene => below
+            // The nearest occluder under a layer that reads it: its depth hides what the layer draws.
+            let occluder = match l.component.reads_occluder() {
+                true => below
                     .iter()
                     .rev()
                     .filter(|o| o.enabled)
                     .find(|o| o.component.role() == LayerRole::Occluder)
                     .and_then(|o| o.target.as_ref().map(|t| (o, t))),
-                _ => None,
+                false => None,
             };
             let camera = l.camera.unwrap_or(self.camera);
             let key = RenderKey {

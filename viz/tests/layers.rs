@@ -256,6 +256,27 @@ fn each_layer_matches_its_stored_picture() {
         ),
         ("heatmap", vec![("heatmap", Value::Null)], None),
         (
+            "rays_density",
+            vec![
+                ("geometry", json!({"opacity": 0.3})),
+                ("composition", Value::Null),
+                ("rays", json!({"max_rays": null, "style": "density"})),
+            ],
+            Some(orbit),
+        ),
+        (
+            "query_alpha",
+            vec![
+                ("geometry", json!({"style": "transparent", "opacity": 0.35})),
+                ("composition", Value::Null),
+                (
+                    "query",
+                    json!({"sql": "SELECT origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t, depth FROM rays WHERE kind = 'diffuse'", "colour_by": "depth", "style": "alpha"}),
+                ),
+            ],
+            Some(orbit),
+        ),
+        (
             "layered",
             vec![
                 ("image", Value::Null),
@@ -422,11 +443,16 @@ fn every_choice_a_component_offers_is_a_setting_it_takes() {
         for (key, values) in choices {
             let c = &mut p.layer_mut(id).unwrap().component;
             for v in values {
-                c.set_settings(&json!({ key: v })).unwrap_or_else(|e| panic!("{} {key}={v}: {e}", info.kind));
+                // As the viewer changes one setting: the others kept.
+                let mut s = c.settings();
+                s[key] = json!(v);
+                c.set_settings(&s).unwrap_or_else(|e| panic!("{} {key}={v}: {e}", info.kind));
                 assert_eq!(c.settings()[key], *v, "{} {key}", info.kind);
                 offered += 1;
             }
-            assert!(c.set_settings(&json!({ key: "no-such-value" })).is_err(), "{} {key}", info.kind);
+            let mut s = c.settings();
+            s[key] = json!("no-such-value");
+            assert!(c.set_settings(&s).is_err(), "{} {key}", info.kind);
         }
     }
     assert!(offered >= 9, "image source, geometry style and ray tracer at least: {offered}");
@@ -587,4 +613,171 @@ fn a_preview_thins_the_ray_layer_only() {
     p.preview = None;
     assert_eq!(lit(&p.snapshot(false).unwrap()), full, "all segments again");
     assert_eq!(renders(&p), [1, 3]);
+}
+
+/// Segments `(x, z, colour name)` as a query: vertical, from y = 60 up 200 units.
+fn vertical_segments(rows: &[(f64, f64, &str)], order: &str) -> String {
+    let values: Vec<String> = rows.iter().enumerate().map(|(i, (x, z, c))| format!("({i}, {x}, {z}, '{c}')")).collect();
+    format!(
+        "SELECT x AS origin_x, 60.0 AS origin_y, z AS origin_z, 0.0 AS dir_x, 1.0 AS dir_y, 0.0 AS dir_z, 200.0 AS t, c \
+         FROM (VALUES {}) v(k, x, z, c) ORDER BY k {order}",
+        values.join(", ")
+    )
+}
+
+#[test]
+fn density_counts_rays_per_pixel_and_hides_those_behind_surfaces() {
+    // Seven segments on one line in front of the tall box, three behind it: one pixel wide in
+    // the density style, each pixel of the front line counts 7, and the composition hides the
+    // three behind the box as they are counted.
+    let mut rows = vec![(370.0, 150.0, "a"); 7];
+    rows.extend([(370.0, 500.0, "a"); 3]);
+    let q = json!({"sql": vertical_segments(&rows, "ASC"), "style": "density", "density_scale": "linear"});
+    let s = Sources::open(dataset()).unwrap();
+    let (cam, f) = (s.camera.unwrap(), s.frame());
+    let at = |z: f64| {
+        let p = cam.project([370.0, 160.0, z], f.anchor, f.radius, 4 * W, 4 * H).unwrap();
+        (p[0] as u32, p[1] as u32)
+    };
+    let (front, back) = (at(150.0), at(500.0));
+    let mut p = pipeline(&[("composition", Value::Null), ("query", q.clone())]);
+    p.resize(4 * W, 4 * H).unwrap();
+    let img = p.snapshot(false).unwrap();
+    let report = p.report().join("\n");
+    assert!(report.contains("density style, at most 7 rays on one pixel"), "{report}");
+    let bar = p.legends().into_iter().find_map(|l| match l {
+        rtvtk_viz::Legend::ColourBar { title, min, max, log, .. } => Some((title, min, max, log)),
+        _ => None,
+    });
+    assert_eq!(bar, Some(("rays per pixel".to_string(), 0.0, 7.0, false)));
+    let lum = |(x, y): (u32, u32)| img.get_pixel(x, y).0[..3].iter().map(|c| u32::from(*c)).max().unwrap_or(0);
+    assert!(lum(front) > 150, "the front line at full density: {:?}", img.get_pixel(front.0, front.1));
+    assert!(lum(back) < 40, "the line behind the box is hidden: {:?}", img.get_pixel(back.0, back.1));
+    // Without the occluder the back line counts too, at 3 of 7: linear, so dimmer than the front.
+    let mut p = pipeline(&[("query", q)]);
+    p.resize(4 * W, 4 * H).unwrap();
+    let img2 = p.snapshot(false).unwrap();
+    let lum2 = |(x, y): (u32, u32)| img2.get_pixel(x, y).0[..3].iter().map(|c| u32::from(*c)).max().unwrap_or(0);
+    assert!(lum2(back) > 40 && lum2(back) + 40 < lum2(front), "back {} front {}", lum2(back), lum2(front));
+}
+
+#[test]
+fn the_alpha_style_does_not_depend_on_draw_order() {
+    // A red and a blue line cross (different depths); drawn in either order, the alpha style
+    // gives the same picture, with both colours at the crossing.
+    let rows = [(300.0, 150.0, "red"), (300.0, 152.0, "blue")];
+    let sql = |order: &str| {
+        let v = vertical_segments(&rows, order);
+        // Tilt the second: dir_x from the row's colour, so the lines cross half way up.
+        v.replace("0.0 AS dir_x", "CASE WHEN c = 'blue' THEN 0.4 ELSE -0.4 END AS dir_x")
+            .replace("x AS origin_x", "CASE WHEN c = 'blue' THEN x - 40.0 ELSE x + 40.0 END AS origin_x")
+    };
+    let draw = |order: &str| {
+        // Coloured by the row number: two integer categories, in value order whatever the row order.
+        let q = json!({"sql": sql(order).replace("t, c", "t, c, k"), "colour_by": "k", "style": "alpha", "opacity": 0.6, "line_width": 4.0});
+        let mut p = pipeline(&[("query", q)]);
+        p.resize(4 * W, 4 * H).unwrap();
+        p.snapshot(false).unwrap()
+    };
+    let (a, b) = (draw("ASC"), draw("DESC"));
+    assert!(lit(&a) > 100);
+    let differ = a.pixels().zip(b.pixels()).filter(|(x, y)| x != y).count();
+    assert_eq!(differ, 0, "the alpha style's picture does not depend on draw order");
+    // The two colours (palette blue and orange) mix at the crossing.
+    let colours: std::collections::BTreeSet<[u8; 3]> =
+        a.pixels().filter(|p| p.0[..3].iter().any(|c| *c > 40)).map(|p| [p.0[0], p.0[1], p.0[2]]).collect();
+    assert!(colours.len() >= 3, "two lines and their mix: {colours:?}");
+}
+
+#[test]
+fn a_sample_of_many_rays_is_stratified_and_refines_to_all() {
+    let s = Sources::open(dataset()).unwrap();
+    let counts = s.query("SELECT kind, count(*) AS n FROM rays GROUP BY kind").unwrap();
+    let mut by_kind = std::collections::BTreeMap::new();
+    for b in &counts {
+        use arrow::array::AsArray;
+        let k = arrow::compute::cast(b.column(0), &arrow::datatypes::DataType::Utf8).unwrap();
+        let n = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::UInt64).unwrap();
+        for r in 0..b.num_rows() {
+            by_kind.insert(
+                k.as_string::<i32>().value(r).to_string(),
+                n.as_primitive::<arrow::datatypes::UInt64Type>().value(r),
+            );
+        }
+    }
+    let total: u64 = by_kind.values().sum();
+    let budget = total / 10;
+    let mut p =
+        pipeline(&[("rays", json!({"max_rays": budget, "refine": true, "style": "density", "line_width": 1.0}))]);
+    p.resize(2 * W, 2 * H).unwrap();
+    p.snapshot(false).unwrap();
+    let report = p.report().join("\n");
+    assert!(report.contains(&format!("of the {total} matching rays drawn")), "{report}");
+    // Each kind gets its share (within one ray per depth stratum), not the first rows' kinds.
+    let legend = p.legends();
+    let entries = legend
+        .iter()
+        .find_map(|l| match l {
+            rtvtk_viz::Legend::Swatches { title, entries } if title.starts_with("ray kinds (") => Some(entries.clone()),
+            _ => None,
+        })
+        .expect("a ray kinds legend that says how many of how many");
+    for (kind, n) in &by_kind {
+        let drawn: u64 = entries
+            .iter()
+            .find_map(|(label, _)| label.strip_prefix(&format!("{kind} (")))
+            .and_then(|v| v.trim_end_matches(')').parse().ok())
+            .unwrap_or_else(|| panic!("{kind} is not in the legend {entries:?}"));
+        let want = *n as f64 * budget as f64 / total as f64;
+        assert!((drawn as f64 - want).abs() <= 12.0, "{kind}: drew {drawn}, its share is {want:.1}");
+    }
+    // Refining while idle reaches every ray.
+    let mut steps = 0;
+    while p.idle().unwrap() {
+        p.render().unwrap();
+        steps += 1;
+        assert!(steps < 10, "refinement ends");
+    }
+    assert!(steps >= 1);
+    let report = p.report().join("\n");
+    assert!(!report.contains("matching rays drawn"), "all rays drawn at the end: {report}");
+    let segments =
+        p.report().iter().find_map(|r| r.strip_prefix("rays: ").and_then(|r| r.split(' ').next()?.parse::<u64>().ok()));
+    assert_eq!(segments, Some(total), "{report}");
+}
+
+#[test]
+fn legends_tell_constants_categories_and_ranges_apart() {
+    let legend_of = |sql: &str| {
+        let q = json!({"sql": sql, "colour_by": "v"});
+        let mut p = pipeline(&[("query", q)]);
+        p.snapshot(false).unwrap();
+        p.legends()
+    };
+    let base = "SELECT origin_x AS x, origin_y AS y, origin_z AS z";
+    // A constant: one swatch with its value and count, not a colour bar of five equal ticks.
+    let l = legend_of(&format!("{base}, 1 AS v FROM rays WHERE kind = 'shadow' LIMIT 50"));
+    match &l[..] {
+        [rtvtk_viz::Legend::Swatches { entries, .. }] => {
+            assert_eq!(entries.iter().map(|e| e.0.as_str()).collect::<Vec<_>>(), ["1 (50)"])
+        }
+        other => panic!("{other:?}"),
+    }
+    // A few integers (depths): categories in order, with counts that add up.
+    let l = legend_of(&format!("{base}, depth AS v FROM rays WHERE depth < 3 LIMIT 400"));
+    match &l[..] {
+        [rtvtk_viz::Legend::Swatches { entries, .. }] => {
+            let names: Vec<&str> = entries.iter().map(|e| e.0.split(' ').next().unwrap()).collect();
+            assert_eq!(names, ["0", "1", "2"]);
+            let sum: u64 = entries
+                .iter()
+                .map(|e| e.0.split('(').nth(1).unwrap().trim_end_matches(')').parse::<u64>().unwrap())
+                .sum();
+            assert_eq!(sum, 400);
+        }
+        other => panic!("{other:?}"),
+    }
+    // Many distinct numbers: a colour bar over their range.
+    let l = legend_of(&format!("{base}, t AS v FROM rays WHERE t IS NOT NULL LIMIT 400"));
+    assert!(matches!(&l[..], [rtvtk_viz::Legend::ColourBar { min, max, log: false, .. }] if min < max), "{l:?}");
 }

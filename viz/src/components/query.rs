@@ -308,6 +308,9 @@ impl Layer for Query {
     fn role(&self) -> LayerRole {
         LayerRole::Scene
     }
+    fn reads_occluder(&self) -> bool {
+        self.settings.style != RayStyle::Lines
+    }
     fn generation(&self) -> u64 {
         self.generation
     }

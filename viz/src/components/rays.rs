@@ -29,6 +29,9 @@ pub fn kind_color(kind: &str) -> [u8; 4] {
     }
 }
 
+/// The most rays a refining layer loads (640 MiB of segments).
+pub const REFINE_LIMIT: u64 = 20_000_000;
+
 /// The kinds in legend order.
 pub const KIND_ORDER: [&str; 5] = ["camera", "shadow", "diffuse", "specular", "transmission"];
 
@@ -47,8 +50,13 @@ pub struct RaysSettings {
     pub sample: Option<u32>,
     /// Only rays whose index in their tree is at most this (stepping through a tree ray by ray).
     pub ray_upto: Option<u32>,
-    /// At most this many rays (`None`: all that match).
+    /// At most this many rays (`None`: all that match). When more match, a sample stratified
+    /// by kind and depth, spread over the pixels, is drawn (never the first rows), and the
+    /// legend says how many of how many.
     pub max_rays: Option<u64>,
+    /// After drawing a sample, draw larger ones while idle (four times as many each time), up to
+    /// every matching ray or [`REFINE_LIMIT`] (the viewer refines; a headless render does not).
+    pub refine: bool,
     pub line_width: f32,
     pub opacity: f32,
     /// How the rays are drawn: `lines` (opaque), `alpha` (translucent at `opacity`, in no
@@ -88,6 +96,7 @@ impl Default for RaysSettings {
             sample: None,
             ray_upto: None,
             max_rays: Some(10_000_000),
+            refine: false,
             line_width: 1.5,
             opacity: 1.0,
             style: RayStyle::Lines,
@@ -276,6 +285,12 @@ pub struct Rays {
     cancelled_after: Option<u64>,
     /// What the last styled draw found (the density colour bar's range, the alpha opacity).
     drawn: Drawn,
+    /// Rays that matched the filters at the last load, and how many of them were drawn when
+    /// that was a sample.
+    matched: u64,
+    sampled: Option<u64>,
+    /// The budget of a refining layer's next load (`None`: `max_rays`).
+    budget: Option<u64>,
 }
 
 impl Rays {
@@ -303,6 +318,9 @@ impl Rays {
             tracer: None,
             cancelled_after: None,
             drawn: Drawn::default(),
+            matched: 0,
+            sampled: None,
+            budget: None,
         };
         if !settings.is_null() {
             r.set_settings(settings)?;
@@ -364,10 +382,19 @@ impl Rays {
         let [dx, dy, dz] = col::DIR;
         let names: Vec<String> =
             [col::TREE_ID, col::RAY, col::DEPTH, col::KIND, ox, oy, oz, dx, dy, dz, col::T].map(String::from).to_vec();
-        let mut left = s.max_rays.unwrap_or(u64::MAX);
+        let budget = self.budget.or(s.max_rays);
+        let mut left = budget.unwrap_or(u64::MAX);
+        // Where more rays match than the budget allows: each (kind, depth) stratum keeps every
+        // 1/p-th of its rays (systematic sampling; rows arrive tree by tree, in pixel order, so
+        // the kept rays spread over the image too). `p` is set once the matching rows are known.
+        let mut p = 1.0f64;
+        let mut strata: std::collections::HashMap<(usize, u32), f64> = std::collections::HashMap::new();
+        let mut kind_ids: Vec<String> = Vec::new();
+        let mut matched = 0u64;
+        let mut known: Option<u64> = None;
         // One batch of rows (columns in `names`' order) into segments; false once no more are
         // wanted (cancelled, or `max_rays` reached).
-        let mut consume = |b: &RecordBatch| -> Result<bool> {
+        let mut consume = |b: &RecordBatch, p: f64| -> Result<bool> {
             if !progress.advance(b.num_rows() as u64) {
                 self.cancelled_after = Some(pick_trees.len() as u64);
                 return Ok(false);
@@ -380,23 +407,39 @@ impl Rays {
             let depth = arrow::compute::cast(b.column(2), &arrow::datatypes::DataType::UInt32)?;
             let depth = depth.as_primitive::<arrow::datatypes::UInt32Type>();
             let (names_of, codes) = kind_codes(b.column(3).as_ref())?;
-            // Per kind value: its colour, and whether the kind filter keeps it.
-            let per_kind: Vec<([u8; 4], bool)> = names_of
+            // Per kind value: its colour, whether the kind filter keeps it, and its stratum id.
+            let per_kind: Vec<([u8; 4], bool, usize)> = names_of
                 .iter()
                 .map(|n| {
                     let n = n.as_deref().unwrap_or("?");
-                    (kind_color(n), s.kinds.as_ref().is_none_or(|k| k.iter().any(|w| w == n)))
+                    let id = match kind_ids.iter().position(|k| k == n) {
+                        Some(i) => i,
+                        None => {
+                            kind_ids.push(n.to_string());
+                            kind_ids.len() - 1
+                        }
+                    };
+                    (kind_color(n), s.kinds.as_ref().is_none_or(|k| k.iter().any(|w| w == n)), id)
                 })
                 .collect();
             let mut per_count = vec![0u64; names_of.len()];
             let mut more = true;
             for (r, &k) in codes.iter().enumerate() {
-                let (colour, keep) = per_kind[k];
+                let (colour, keep, stratum) = per_kind[k];
                 if !keep
                     || s.depth.is_some_and(|[a, z]| depth.value(r) < a || depth.value(r) > z)
                     || s.ray_upto.is_some_and(|n| ray.value(r) > n)
                 {
                     continue;
+                }
+                matched += 1;
+                if p < 1.0 {
+                    let acc = strata.entry((stratum, depth.value(r))).or_insert(0.5);
+                    *acc += p;
+                    if *acc < 1.0 {
+                        continue;
+                    }
+                    *acc -= 1.0;
                 }
                 if left == 0 {
                     more = false;
@@ -429,6 +472,11 @@ impl Rays {
                 let total = rows.as_ref().map_or(ds.ray_count(), |per| {
                     per.values().flat_map(|r| r.iter().map(|r| r.end - r.start)).sum::<u64>()
                 });
+                if let Some(b) = budget.filter(|b| total > *b) {
+                    let m = matching_rows(ds, &s, rows.as_ref(), total)?;
+                    known = Some(m);
+                    p = (b as f64 / m.max(1) as f64).min(1.0);
+                }
                 progress.start("loading rays", total);
                 'segments: for i in 0..ds.manifest().segments.len() {
                     let ranges = match &rows {
@@ -439,27 +487,35 @@ impl Rays {
                         None => None,
                     };
                     for b in read_ahead(ds.segment_columns_in(i, &names, ranges)?) {
-                        if !consume(&b?)? {
+                        if !consume(&b?, p)? {
                             break 'segments;
                         }
                     }
                 }
             }
             None => {
-                // A service's dataset: the same rows through SQL, in tree order.
-                let limit = s.max_rays.map_or(String::new(), |n| format!(" LIMIT {n}"));
+                // A service's dataset: the same rows through SQL, in tree order, sampled as above
+                // once a count says how many match.
+                let (table, pred) = (sources.table("rays"), s.predicate()?);
+                if let Some(b) = budget {
+                    let counted = sources.query(&format!("SELECT count(*) AS n FROM {table} WHERE {pred}"))?;
+                    let m = counted
+                        .first()
+                        .and_then(|c| arrow::compute::cast(c.column(0), &arrow::datatypes::DataType::UInt64).ok())
+                        .map_or(0, |c| c.as_primitive::<UInt64Type>().value(0));
+                    known = Some(m);
+                    p = (b as f64 / m.max(1) as f64).min(1.0);
+                }
                 let sql = format!(
-                    "SELECT {} FROM {} WHERE {} ORDER BY {}, {}{limit}",
+                    "SELECT {} FROM {table} WHERE {pred} ORDER BY {}, {}",
                     names.join(", "),
-                    sources.table("rays"),
-                    s.predicate()?,
                     col::TREE_ID,
                     col::RAY
                 );
-                progress.start("loading rays", s.max_rays.unwrap_or(0));
+                progress.start("loading rays", budget.unwrap_or(0));
                 let mut done = false;
                 sources.query_batches(&sql, |b| {
-                    if !done && !consume(b)? {
+                    if !done && !consume(b, p)? {
                         done = true;
                     }
                     Ok(())
@@ -467,13 +523,17 @@ impl Rays {
             }
         }
         bufs.flush(gpu);
+        self.matched = known.unwrap_or(matched);
+        self.sampled = (p < 1.0).then_some(pick_trees.len() as u64);
         self.skipped = builder.skipped;
         self.misses = builder.misses;
         self.kinds = kinds;
         self.segments = Some(bufs);
         self.pick_trees = pick_trees;
         self.pick_rays = pick_rays;
-        self.loaded = Some((frame, self.settings.data_key()));
+        let mut key = self.settings.data_key();
+        key.5 = budget;
+        self.loaded = Some((frame, key));
         self.load_secs = t0.elapsed().as_secs_f64();
         Ok(())
     }
@@ -553,6 +613,65 @@ pub fn density_legend(style: &StyleParams, stats: Option<DensityStats>) -> Optio
     })
 }
 
+/// How many rows of `rows` (whole segments where `None`; `total` rows) pass the kind, depth and
+/// `ray_upto` filters: `total` without such filters, else a scan of those three columns.
+fn matching_rows(
+    ds: &store::Dataset,
+    s: &RaysSettings,
+    rows: Option<&BTreeMap<usize, Vec<std::ops::Range<u64>>>>,
+    total: u64,
+) -> Result<u64> {
+    if s.kinds.is_none() && s.depth.is_none() && s.ray_upto.is_none() {
+        return Ok(total);
+    }
+    use store::scene::col;
+    let names: Vec<String> = [col::KIND, col::DEPTH, col::RAY].map(String::from).to_vec();
+    let mut n = 0u64;
+    for i in 0..ds.manifest().segments.len() {
+        let ranges = match rows {
+            Some(per) => match per.get(&i) {
+                Some(r) => Some(r.as_slice()),
+                None => continue,
+            },
+            None => None,
+        };
+        for b in ds.segment_columns_in(i, &names, ranges)? {
+            let b = b?;
+            let (names_of, codes) = kind_codes(b.column(0).as_ref())?;
+            let keep: Vec<bool> = names_of
+                .iter()
+                .map(|k| s.kinds.as_ref().is_none_or(|w| w.iter().any(|w| Some(w) == k.as_ref())))
+                .collect();
+            let depth = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::UInt32)?;
+            let depth = depth.as_primitive::<arrow::datatypes::UInt32Type>();
+            let ray = arrow::compute::cast(b.column(2), &arrow::datatypes::DataType::UInt32)?;
+            let ray = ray.as_primitive::<arrow::datatypes::UInt32Type>();
+            n += codes
+                .iter()
+                .enumerate()
+                .filter(|&(r, &k)| {
+                    keep[k]
+                        && s.depth.is_none_or(|[a, z]| (a..=z).contains(&depth.value(r)))
+                        && s.ray_upto.is_none_or(|u| ray.value(r) <= u)
+                })
+                .count() as u64;
+        }
+    }
+    Ok(n)
+}
+
+/// A count in a few characters: 950, 12.3K, 5.56M, 1.2B.
+pub fn short_count(n: u64) -> String {
+    let f = n as f64;
+    let (v, unit) = match n {
+        0..1_000 => return n.to_string(),
+        1_000..1_000_000 => (f / 1e3, "K"),
+        1_000_000..1_000_000_000 => (f / 1e6, "M"),
+        _ => (f / 1e9, "B"),
+    };
+    format!("{}{unit}", crate::legend::label(v))
+}
+
 /// The distinct names of a kind column and each row's index into them (dictionary-encoded or
 /// plain strings).
 fn kind_codes(col: &dyn Array) -> Result<(Vec<Option<String>>, Vec<usize>)> {
@@ -582,6 +701,9 @@ impl Layer for Rays {
     fn role(&self) -> LayerRole {
         LayerRole::Scene
     }
+    fn reads_occluder(&self) -> bool {
+        self.settings.style != RayStyle::Lines
+    }
     fn previews(&self) -> bool {
         true
     }
@@ -597,11 +719,15 @@ impl Layer for Rays {
         if let Some(m) = &s.density_map {
             crate::legend::colour_map(m)?;
         }
+        if s.data_key() != self.settings.data_key() {
+            self.budget = None;
+        }
         crate::component::replace_settings(&mut self.settings, s, &mut self.generation);
         Ok(())
     }
     fn render(&mut self, ctx: &mut RenderCtx) -> Result<()> {
-        let key = (ctx.frame, self.settings.data_key());
+        let mut key = (ctx.frame, self.settings.data_key());
+        key.1.5 = self.budget.or(key.1.5);
         if self.loaded.as_ref() != Some(&key) {
             self.load_with(ctx.gpu, ctx.sources, ctx.frame, ctx.progress)?;
         }
@@ -618,6 +744,25 @@ impl Layer for Rays {
             &self.settings.style_params(),
         )?;
         Ok(())
+    }
+    fn idle(&mut self, _ctx: &mut crate::component::IdleCtx) -> Result<bool> {
+        // A refining layer that drew a sample loads four times as many next (until all match
+        // or the limit), once the last load is on screen.
+        let Some(drawn) = self.sampled.filter(|_| self.settings.refine && self.loaded.is_some()) else {
+            return Ok(false);
+        };
+        let current = self.budget.or(self.settings.max_rays).unwrap_or(u64::MAX);
+        if self.loaded.as_ref().is_none_or(|(_, k)| k.5 != Some(current)) {
+            // The last refinement is not loaded yet.
+            return Ok(false);
+        }
+        let next = current.saturating_mul(4).min(REFINE_LIMIT.max(current));
+        if next <= current || drawn >= self.matched || self.cancelled_after.is_some() {
+            return Ok(false);
+        }
+        self.budget = Some(next);
+        self.generation += 1;
+        Ok(true)
     }
     fn trace_ray(&mut self, ctx: &mut TraceCtx, [x, y]: [u32; 2]) -> Result<Option<TracedPixel>> {
         let Some(scene) = &ctx.sources.scene else { return Ok(None) };
@@ -702,7 +847,11 @@ impl Layer for Rays {
         }
         let mut out = Vec::new();
         if self.settings.density_map.is_none() || self.settings.style != RayStyle::Density {
-            out.push(Legend::Swatches { title: "ray kinds".into(), entries });
+            let title = match self.sampled {
+                Some(n) => format!("ray kinds ({} of {} rays drawn)", short_count(n), short_count(self.matched)),
+                None => "ray kinds".into(),
+            };
+            out.push(Legend::Swatches { title, entries });
         }
         out.extend(density_legend(&self.settings.style_params(), self.drawn.density));
         out
@@ -716,6 +865,14 @@ impl Layer for Rays {
             self.misses,
             self.load_secs
         )];
+        if let Some(n) = self.sampled {
+            r.push(format!(
+                "rays: {n} of the {} matching rays drawn ({:.2}%), a sample stratified by kind and depth, spread over the pixels{}",
+                self.matched,
+                100.0 * n as f64 / self.matched.max(1) as f64,
+                if self.settings.refine { "; refining while idle" } else { "" }
+            ));
+        }
         r.extend(crate::splat::style_report("rays", &self.settings.style_params(), &self.drawn));
         if self.skipped > 0 {
             r.push(format!("rays: skipped {} rays with NaN or infinite origin/direction", self.skipped));

@@ -252,7 +252,13 @@ pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], tracer: renderers::Tr
     // The ray trees of the centre pixel to start with (readable, as the paper's Figure 3): all
     // trees are one click away in the rays tab ("All trees"). With no dataset, none.
     let rays = match has_dataset {
-        true => RaysSettings { pixel: Some([w / 2, h / 2]), max_rays: Some(100_000), tracer, ..Default::default() },
+        true => RaysSettings {
+            pixel: Some([w / 2, h / 2]),
+            max_rays: Some(100_000),
+            refine: true,
+            tracer,
+            ..Default::default()
+        },
         false => RaysSettings { max_rays: Some(0), tracer, ..Default::default() },
     };
     let geometry = GeometrySettings { style: SurfaceStyle::Wireframe, opacity: 0.6, line_width: 1.0 };
@@ -343,8 +349,11 @@ struct State {
     pipeline: Pipeline,
 }
 
-/// Segments a ray layer draws per frame while the camera moves, when full frames are slow.
+/// Segments a ray layer draws per frame while the camera moves, when full frames are slow, to
+/// start with: then as many as fit the frame time asked for.
 const PREVIEW_SEGMENTS: u64 = 200_000;
+/// The frame time previews aim at.
+const PREVIEW_TARGET_MS: f64 = 50.0;
 /// Full frames slower than this get previews while the camera moves.
 const PREVIEW_ABOVE_MS: f64 = 100.0;
 /// The camera counts as resting after this long without a camera command.
@@ -370,6 +379,8 @@ fn run(
     let mut full_pending = false;
     // How long the last full frame took: previews only where full frames are slow.
     let mut last_full_ms = 0.0f64;
+    // The preview budget, adapted to the measured frame time of previews.
+    let mut preview_budget = PREVIEW_SEGMENTS;
     loop {
         let mut cmds = Vec::new();
         if dirty || refining {
@@ -421,7 +432,7 @@ fn run(
             // While the camera moves and full frames are slow (millions of rays on a CPU
             // rasterizer), the ray layers draw an evenly thinned preview; once no camera command
             // came for PREVIEW_REST, everything again.
-            let preview = (last_camera.is_some() && last_full_ms > PREVIEW_ABOVE_MS).then_some(PREVIEW_SEGMENTS);
+            let preview = (last_camera.is_some() && last_full_ms > PREVIEW_ABOVE_MS).then_some(preview_budget);
             if s.pipeline.preview != preview {
                 s.pipeline.preview = preview;
                 dirty = true;
@@ -449,8 +460,11 @@ fn run(
                     Ok(pixels) => {
                         let size = s.pipeline.size();
                         let ms = t0.elapsed().as_secs_f64() * 1e3;
-                        if s.pipeline.preview.is_none() {
-                            last_full_ms = ms;
+                        match s.pipeline.preview {
+                            None => last_full_ms = ms,
+                            // Halfway (geometrically) to the budget that would have met the
+                            // target, so one slow frame does not swing it.
+                            Some(b) => preview_budget = adapt_budget(b, ms),
                         }
                         let camera = s.pipeline.camera();
                         send(Event::Frame(Rendered { size, pixels, ms, camera }));
@@ -464,6 +478,13 @@ fn run(
             .fetch_sub(n.min(pending.load(std::sync::atomic::Ordering::SeqCst)), std::sync::atomic::Ordering::SeqCst);
         wake();
     }
+}
+
+/// The next preview budget after a preview of `budget` segments took `ms`: halfway
+/// (geometrically) to the one that meets [`PREVIEW_TARGET_MS`], within 10K..50M segments.
+fn adapt_budget(budget: u64, ms: f64) -> u64 {
+    let ratio = (PREVIEW_TARGET_MS / ms.max(0.1)).sqrt().clamp(0.25, 4.0);
+    ((budget as f64 * ratio) as u64).clamp(10_000, 50_000_000)
 }
 
 fn layers(p: &Pipeline) -> Vec<LayerInfo> {
@@ -601,5 +622,21 @@ fn apply(
                 .map(|_| path);
             Some(Event::Screenshot(r))
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_preview_budget_follows_the_frame_time() {
+        // Four times too slow: halves (the square root of the ratio, damped).
+        assert_eq!(adapt_budget(200_000, 200.0), 100_000);
+        // Four times faster than the target: doubles.
+        assert_eq!(adapt_budget(200_000, 12.5), 400_000);
+        // Bounded both ways, whatever the measurement.
+        assert_eq!(adapt_budget(20_000, 10_000.0), 10_000);
+        assert_eq!(adapt_budget(40_000_000, 0.0), 50_000_000);
     }
 }
