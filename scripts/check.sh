@@ -31,11 +31,12 @@ source scripts/lint-env.sh
 cargo build --workspace --all-targets --locked
 cargo nextest run --workspace --locked --no-fail-fast
 # The same pictures on wgpu's GL backend (Mesa's llvmpipe, as on a machine with no Vulkan driver):
-# the layer snapshots, against the same stored pictures, and the demo's picture. The run above
+# the layer snapshots, against the same stored pictures, the README's figures and the demo's
+# picture. The run above
 # took the Vulkan adapter (lavapipe), which is preferred where both are installed.
 # The whole workspace's build (no other feature set to compile), filtered to those tests.
 WGPU_BACKEND=gl cargo nextest run --workspace --locked --no-fail-fast \
-  -E 'binary_id(rtvtk-viz::layers) | binary_id(rtvtk-gpu::device) | (binary_id(rtvtk::cli) & test(demo_draws_a_picture))'
+  -E 'binary_id(rtvtk-viz::layers) | binary_id(rtvtk-gpu::device) | binary_id(rtvtk::figures) | (binary_id(rtvtk::cli) & test(demo_draws_a_picture))'
 cargo test --workspace --doc --locked
 # The Python package: its wheel built and installed into a fresh venv, and its tests.
 bash scripts/python-check.sh

@@ -140,6 +140,8 @@ impl RenderRequest {
                 BvhSettings {
                     only_visited: self.bvh_visited,
                     tree: self.tree,
+                    pixel: self.pixel,
+                    sample: self.sample,
                     levels: self.bvh_levels.unwrap_or(d.levels),
                     ..d
                 }

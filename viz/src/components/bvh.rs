@@ -29,6 +29,9 @@ pub struct BvhSettings {
     pub only_visited: bool,
     /// With `only_visited`: only the visits of this tree.
     pub tree: Option<u64>,
+    /// With `only_visited`: only the visits of the trees of this pixel (and `sample`).
+    pub pixel: Option<[u32; 2]>,
+    pub sample: Option<u32>,
     pub colour: BoxColour,
     pub map: String,
     pub line_width: f32,
@@ -45,6 +48,8 @@ impl Default for BvhSettings {
             levels: [0, 4],
             only_visited: false,
             tree: None,
+            pixel: None,
+            sample: None,
             colour: BoxColour::Level,
             map: "turbo".into(),
             line_width: 1.0,
@@ -99,7 +104,25 @@ impl BvhBoxes {
         let s = &self.settings;
         let [a, b] = s.levels;
         if s.only_visited || s.colour == BoxColour::Visits {
-            let tree = s.tree.map_or(String::new(), |t| format!(" WHERE tree_id = {t}"));
+            let mut of = Vec::new();
+            if let Some(t) = s.tree {
+                of.push(format!("tree_id = {t}"));
+            }
+            if s.pixel.is_some() || s.sample.is_some() {
+                let mut w = Vec::new();
+                if let Some([x, y]) = s.pixel {
+                    w.push(format!("pixel_x = {x} AND pixel_y = {y}"));
+                }
+                if let Some(k) = s.sample {
+                    w.push(format!("sample = {k}"));
+                }
+                of.push(format!(
+                    "tree_id IN (SELECT tree_id FROM {} WHERE {})",
+                    sources.table("trees"),
+                    w.join(" AND ")
+                ));
+            }
+            let tree = if of.is_empty() { String::new() } else { format!(" WHERE {}", of.join(" AND ")) };
             let join = if s.only_visited { "JOIN" } else { "LEFT JOIN" };
             format!(
                 "SELECT n.level, n.min_x, n.min_y, n.min_z, n.max_x, n.max_y, n.max_z, coalesce(v.visits, 0) AS visits, n.node_id \
