@@ -14,48 +14,44 @@ fn median(v: &mut [f64]) -> f64 {
     v[v.len() / 2]
 }
 
+/// Resident and peak resident memory of this process (bytes), from /proc (zero elsewhere).
+fn rss() -> (u64, u64) {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let field = |name: &str| {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(name)?.trim().strip_suffix("kB")?.trim().parse::<u64>().ok())
+            .unwrap_or(0)
+            * 1024
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
+
 pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, rounds: usize) -> Result<()> {
     let sources = Sources::open(dataset)?;
     let total = sources.dataset.as_ref().map_or(0, |d| d.ray_count());
     let gpu = Gpu::shared()?;
     println!("adapter: {}, {}x{}, dataset {} rays", gpu.describe(), w, h, total);
-    println!("| rays | SQL scan s | layer load s | load / scan | frame ms (median) | frames/s | GPU bytes/segment |");
-    println!("|---|---|---|---|---|---|---|");
+    println!(
+        "load: the layer's load of N rays (a stratified sample of all where N is fewer) beside a SQL scan of the same \
+         columns of the rows it reads; memory: resident growth over the load and frames, beside the segment buffer"
+    );
+    println!(
+        "| rays | SQL scan s | layer load s | load / scan | lines ms | alpha ms | density ms | GPU bytes/segment | resident growth MiB | segments MiB | growth / segments |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let frame = sources.frame();
     let target = LayerTarget::new(&gpu, "bench", w, h);
-    for &n in counts {
-        if n > total {
-            bail!("the dataset has {total} rays, fewer than {n}; record a bigger one");
-        }
-        let sql = format!(
-            "SELECT tree_id, kind, origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t FROM rays WHERE TRUE LIMIT {n}"
-        );
-        let mut scan = Vec::new();
-        let mut load = Vec::new();
-        let mut rays = Rays::new(ComponentId(1), &sources, &serde_json::json!({"max_rays": n, "line_width": 1.0}))?;
-        for _ in 0..rounds {
-            let t = Instant::now();
-            let mut rows = 0u64;
-            sources.query_batches(&sql, |b| {
-                rows += b.num_rows() as u64;
-                Ok(())
-            })?;
-            scan.push(t.elapsed().as_secs_f64());
-            let t = Instant::now();
-            rays.load(&gpu, &sources, frame)?;
-            gpu.wait()?;
-            load.push(t.elapsed().as_secs_f64());
-            if rows != n {
-                bail!("the scan returned {rows} rows, expected {n}");
-            }
-        }
-        // Frames: orbit the camera a little each frame so every frame really draws.
-        let mut cam = sources.initial_camera();
-        let mut times = Vec::with_capacity(frames);
-        let progress = rtvtk_viz::component::Progress::default();
-        for i in 0..frames + 2 {
-            cam.orbit(0.002, 0.0);
-            let t = Instant::now();
+    // Warm up: the pipelines of every style compiled and the device's pools allocated once, so
+    // the first row's memory is the layer's own.
+    {
+        let mut warm = Rays::new(ComponentId(2), &sources, &serde_json::json!({"max_rays": 1000}))?;
+        for style in ["lines", "alpha", "density"] {
+            let mut settings = warm.settings();
+            settings["style"] = serde_json::json!(style);
+            warm.set_settings(&settings)?;
+            let progress = rtvtk_viz::component::Progress::default();
+            let cam = sources.initial_camera();
             let mut ctx = RenderCtx {
                 gpu: &gpu,
                 sources: &sources,
@@ -66,27 +62,93 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
                 preview: None,
                 occluder: None,
             };
-            rays.render(&mut ctx)?;
+            warm.render(&mut ctx)?;
+        }
+        gpu.wait()?;
+    }
+    for &n in counts {
+        if n > total {
+            bail!("the dataset has {total} rays, fewer than {n}; record a bigger one");
+        }
+        // The layer reads every row and keeps a sample when N is fewer: the scan reads them all.
+        let sql = "SELECT tree_id, ray, depth, kind, origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, t FROM rays";
+        let mut scan = Vec::new();
+        let mut load = Vec::new();
+        let mut rays = Rays::new(ComponentId(1), &sources, &serde_json::json!({"max_rays": n, "line_width": 1.0}))?;
+        // Memory first, before any SQL scan in this round: resident growth over one load and the
+        // frames in every style.
+        let (before, _) = rss();
+        rays.load(&gpu, &sources, frame)?;
+        gpu.wait()?;
+        // Frames in each style: orbit the camera a little each frame so every frame really draws.
+        let mut per_style = Vec::new();
+        for style in ["lines", "alpha", "density"] {
+            let mut settings = rays.settings();
+            settings["style"] = serde_json::json!(style);
+            rays.set_settings(&settings)?;
+            let mut cam = sources.initial_camera();
+            let mut times = Vec::with_capacity(frames);
+            let progress = rtvtk_viz::component::Progress::default();
+            for i in 0..frames + 2 {
+                cam.orbit(0.002, 0.0);
+                let t = Instant::now();
+                let mut ctx = RenderCtx {
+                    gpu: &gpu,
+                    sources: &sources,
+                    camera: &cam,
+                    frame,
+                    target: &target,
+                    progress: &progress,
+                    preview: None,
+                    occluder: None,
+                };
+                rays.render(&mut ctx)?;
+                gpu.wait()?;
+                if i >= 2 {
+                    times.push(t.elapsed().as_secs_f64());
+                }
+            }
+            per_style.push(median(&mut times));
+        }
+        let (after, _) = rss();
+        for _ in 0..rounds {
+            let t = Instant::now();
+            let mut rows = 0u64;
+            sources.query_batches(sql, |b| {
+                rows += b.num_rows() as u64;
+                Ok(())
+            })?;
+            scan.push(t.elapsed().as_secs_f64());
+            let t = Instant::now();
+            rays.load(&gpu, &sources, frame)?;
             gpu.wait()?;
-            if i >= 2 {
-                times.push(t.elapsed().as_secs_f64());
+            load.push(t.elapsed().as_secs_f64());
+            if rows != total {
+                bail!("the scan returned {rows} rows, expected {total}");
             }
         }
         let segs = rays.segment_count().max(1);
-        let (s, l, f) = (median(&mut scan), median(&mut load), median(&mut times));
+        let (s, l) = (median(&mut scan), median(&mut load));
+        let growth = after.saturating_sub(before) as f64 / f64::from(1 << 20);
+        let seg_mib = rays.gpu_bytes() as f64 / f64::from(1 << 20);
         println!(
-            "| {} | {:.3} | {:.3} | {:.2}x | {:.2} | {:.1} | {:.1} |",
+            "| {} | {:.3} | {:.3} | {:.2}x | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {:.2}x |",
             n,
             s,
             l,
             l / s,
-            f * 1e3,
-            1.0 / f,
-            rays.gpu_bytes() as f64 / segs as f64
+            per_style[0] * 1e3,
+            per_style[1] * 1e3,
+            per_style[2] * 1e3,
+            rays.gpu_bytes() as f64 / segs as f64,
+            growth,
+            seg_mib,
+            growth / seg_mib.max(1e-9),
         );
         for r in rays.report() {
             println!("  {r}");
         }
+        drop(rays);
     }
     whole_frames(sources, gpu, counts.first().copied().unwrap_or(0), (w, h), frames)
 }

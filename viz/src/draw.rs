@@ -373,6 +373,9 @@ pub struct GpuSegment {
     pub flags: u32,
 }
 
+/// Items (segments, boxes) per submission of a line draw.
+pub const DRAW_BATCH: u32 = 1 << 18;
+
 /// Bytes of GPU memory per segment.
 pub const SEGMENT_BYTES: u64 = std::mem::size_of::<GpuSegment>() as u64;
 
@@ -424,6 +427,12 @@ impl SegmentBuffers {
         self.buffers.push((buf, n));
         self.count += n;
         self.staged.clear();
+    }
+
+    /// Writes the staged segments and frees the staging memory (the load is done).
+    pub fn finish(&mut self, gpu: &Gpu) {
+        self.flush(gpu);
+        self.staged = Vec::new();
     }
 
     /// Segments made elsewhere, uploaded at the first draw.
@@ -532,15 +541,35 @@ impl SegmentBuffers {
         view.params[1] = stride as f32;
         let ubuf = uniform(gpu, "view", &view);
         let groups = self.bind_groups(gpu, pipeline, &ubuf, 0);
-        let mut enc = gpu.device.create_command_encoder(&Default::default());
-        {
-            let mut pass = pass_into(&mut enc, ctx.target, true, clear);
-            pass.set_pipeline(pipeline);
-            for (g, n, _) in &groups {
-                pass.set_bind_group(0, g, &[]);
-                pass.draw(0..n.div_ceil(stride) * per, 0..1);
+        // Submissions of at most DRAW_BATCH items, each waited for before the next: a software
+        // rasterizer (lavapipe, llvmpipe) bins a whole submission's triangles before drawing
+        // them, so millions of segments in one would hold gigabytes of bins.
+        let mut first = true;
+        let batches: Vec<(&wgpu::BindGroup, u32, u32)> = groups
+            .iter()
+            .flat_map(|(g, n, _)| {
+                let items = n.div_ceil(stride);
+                (0..items.div_ceil(DRAW_BATCH)).map(move |b| (g, b * DRAW_BATCH, ((b + 1) * DRAW_BATCH).min(items)))
+            })
+            .collect();
+        for (g, a, b) in &batches {
+            let mut enc = gpu.device.create_command_encoder(&Default::default());
+            {
+                let mut pass = pass_into(&mut enc, ctx.target, true, clear && first);
+                pass.set_pipeline(pipeline);
+                pass.set_bind_group(0, *g, &[]);
+                pass.draw(a * per..b * per, 0..1);
+            }
+            first = false;
+            gpu.queue.submit([enc.finish()]);
+            if batches.len() > 1 {
+                let _ = gpu.wait();
             }
         }
-        gpu.queue.submit([enc.finish()]);
+        if batches.is_empty() && clear {
+            let mut enc = gpu.device.create_command_encoder(&Default::default());
+            drop(pass_into(&mut enc, ctx.target, true, true));
+            gpu.queue.submit([enc.finish()]);
+        }
     }
 }

@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
 use crate::component::RenderCtx;
-use crate::draw::{SegmentBuffers, shader, uniform};
+use crate::draw::{DRAW_BATCH, SegmentBuffers, shader, uniform};
 use crate::gpu::{DEPTH_FORMAT, Gpu};
 use crate::{Error, Result};
 
@@ -158,7 +158,14 @@ pub struct Splat {
     lut_map: Option<String>,
     /// Bound where no occluder is (never read then).
     no_occluder: wgpu::TextureView,
+    /// The alpha style's automatic opacity and the 90th percentile it came from, for the items,
+    /// size and opacity setting it was chosen at.
+    auto: Option<(AutoKey, f32, u32)>,
 }
+
+/// What the alpha style's automatic opacity depends on: items drawn, width, height and the
+/// opacity setting's bits.
+type AutoKey = (u64, u32, u32, u32);
 
 impl Splat {
     /// The pipelines of the accumulating styles for segments drawn by `vertex` of `lines.wgsl`;
@@ -278,6 +285,7 @@ impl Splat {
             lut: buffer("splat colour map", 256 * 4, B::STORAGE | B::COPY_DST),
             lut_map: None,
             no_occluder,
+            auto: None,
         })
     }
 
@@ -349,10 +357,11 @@ impl Splat {
             extra: [style.opacity, 0.0, 0.0, 0.0],
         };
         // Clears the sums and accumulates every set into them with `u` (the style) and the rays'
-        // opacity `opacity`.
-        let accumulate = |enc: &mut wgpu::CommandEncoder, u: &SplatUniform, opacity: f32| {
+        // opacity `opacity`, in submissions of at most `DRAW_BATCH` items waited for one by one
+        // (as `SegmentBuffers::draw_strided` does, for software rasterizers' bins).
+        let accumulate = |u: &SplatUniform, opacity: f32| -> Result<wgpu::Buffer> {
             let ubuf = uniform(gpu, "splat", u);
-            let mut groups = Vec::new();
+            let mut batches = Vec::new();
             for (set, stride) in sets {
                 let mut v = *view;
                 v.params[1] = (*stride).max(1) as f32;
@@ -370,27 +379,49 @@ impl Splat {
                             wgpu::BindGroupEntry { binding: 4, resource: ubuf.as_entire_binding() },
                         ],
                     });
-                    groups.push((g, n.div_ceil((*stride).max(1)) * per));
+                    let items = n.div_ceil((*stride).max(1));
+                    let g = std::sync::Arc::new(g);
+                    for b in 0..items.div_ceil(DRAW_BATCH) {
+                        batches.push((g.clone(), b * DRAW_BATCH * per, ((b + 1) * DRAW_BATCH).min(items) * per));
+                    }
                 }
             }
+            let mut enc = gpu.device.create_command_encoder(&Default::default());
             enc.clear_buffer(acc, 0, None);
             enc.clear_buffer(&self.stats, 0, None);
-            let mut pass = crate::draw::pass_into(enc, ctx.target, false, true);
-            pass.set_pipeline(&self.accumulate);
-            for (g, vertices) in &groups {
-                pass.set_bind_group(0, g, &[]);
-                pass.draw(0..*vertices, 0..1);
+            drop(crate::draw::pass_into(&mut enc, ctx.target, false, true));
+            gpu.queue.submit([enc.finish()]);
+            for (g, a, b) in &batches {
+                let mut enc = gpu.device.create_command_encoder(&Default::default());
+                {
+                    let mut pass = crate::draw::pass_into(&mut enc, ctx.target, false, false);
+                    pass.set_pipeline(&self.accumulate);
+                    pass.set_bind_group(0, g.as_ref(), &[]);
+                    pass.draw(*a..*b, 0..1);
+                }
+                gpu.queue.submit([enc.finish()]);
+                if batches.len() > 1 {
+                    gpu.wait()?;
+                }
             }
-            ubuf
+            Ok(ubuf)
         };
         let mut opacity = style.opacity;
-        if style.style == RayStyle::Alpha && style.auto_opacity {
+        let items: u64 = sets.iter().map(|(s, stride)| s.count.div_ceil(u64::from((*stride).max(1)))).sum();
+        let auto_key = (items, w, h, style.opacity.to_bits());
+        if style.style == RayStyle::Alpha
+            && style.auto_opacity
+            && let Some((key, o, n)) = self.auto
+            && key == auto_key
+        {
+            // Chosen already for these rays at this size (not again at every camera move).
+            opacity = o;
+            p90 = Some(n);
+        } else if style.style == RayStyle::Alpha && style.auto_opacity {
             // Count the rays per pixel first: the rays' opacity leaves nine in ten covered pixels
             // at most half covered, so what lies under them shows.
-            let mut enc = gpu.device.create_command_encoder(&Default::default());
             let counting = SplatUniform { params: [2.0, u.params[1], u.params[2], u.params[3]], ..u };
-            accumulate(&mut enc, &counting, 1.0);
-            gpu.queue.submit([enc.finish()]);
+            accumulate(&counting, 1.0)?;
             let words: Vec<u32> = gpu.read_values(acc, bytes)?;
             let mut counts: Vec<u32> = words.iter().step_by(WORDS as usize).copied().filter(|&n| n > 0).collect();
             if !counts.is_empty() {
@@ -398,10 +429,11 @@ impl Splat {
                 let n = *counts.select_nth_unstable(k).1;
                 opacity = opacity.min(1.0 - 0.5f32.powf(1.0 / n.max(1) as f32));
                 p90 = Some(n);
+                self.auto = Some((auto_key, opacity, n));
             }
         }
+        let ubuf = accumulate(&u, opacity)?;
         let mut enc = gpu.device.create_command_encoder(&Default::default());
-        let ubuf = accumulate(&mut enc, &u, opacity);
         if density {
             let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("splat reduce"),

@@ -175,7 +175,7 @@ impl BvhBoxes {
                 },
             );
         }
-        bufs.flush(gpu);
+        bufs.finish(gpu);
         self.boxes = Some(bufs);
         self.loaded = Some((ctx.frame, self.settings.clone()));
         Ok(())

@@ -265,7 +265,7 @@ impl Query {
                 }
             }
         }
-        bufs.flush(gpu);
+        bufs.finish(gpu);
         self.rows = rows;
         self.row_of = row_of;
         self.skipped = builder.skipped;

@@ -522,7 +522,7 @@ impl Rays {
                 })?;
             }
         }
-        bufs.flush(gpu);
+        bufs.finish(gpu);
         self.matched = known.unwrap_or(matched);
         self.sampled = (p < 1.0).then_some(pick_trees.len() as u64);
         self.skipped = builder.skipped;

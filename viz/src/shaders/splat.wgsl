@@ -54,7 +54,8 @@ fn fs_accum(v: LOut) {
     if splat.params.x > 1.5 {
         // Colour sums stop at 2^24 rays (they would wrap past 2^32); the count goes on.
         let n = atomicAdd(&acc[i], 1u);
-        if n < 16777216u {
+        // A colour map needs only the count.
+        if n < 16777216u && splat.size.w == 0u {
             atomicAdd(&acc[i + 1u], rgb.r);
             atomicAdd(&acc[i + 2u], rgb.g);
             atomicAdd(&acc[i + 3u], rgb.b);
