@@ -42,8 +42,12 @@ enum Analysis {
         #[arg(long, default_value_t = 3)]
         level: u16,
     },
-    /// Shadow rays aiming at no light, broken directions, self-intersections.
-    Bugs { dataset: PathBuf },
+    /// Numerical health: NaN/Inf values, broken directions, self-intersections, detached origins,
+    /// leaks (rays replayed against the triangles), energy gain, shadow rays aiming at no light
+    /// (the paper's bug) and fireflies, each with its first rays and a heatmap (the `numerics`
+    /// view in SQL). `bugs` is its old name.
+    #[command(alias = "bugs")]
+    Numerics { dataset: PathBuf },
     /// Two traces side by side by kind, depth and image tile.
     Diff {
         a: PathBuf,
@@ -71,9 +75,9 @@ pub fn run(a: &AnalyzeArgs) -> Result<()> {
                 let ctx = session(vec![source("trace", dataset)]).await?;
                 Ok(analyze::bvh(&ctx, *level).await?)
             }
-            Analysis::Bugs { dataset } => {
+            Analysis::Numerics { dataset } => {
                 let ctx = session(vec![source("trace", dataset)]).await?;
-                Ok(analyze::bugs(&ctx).await?)
+                Ok(analyze::numerics(&ctx).await?)
             }
             Analysis::Diff { a, b, tile } => {
                 let ctx = session(vec![source("a", a), source("b", b)]).await?;

@@ -3,16 +3,10 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
-use clap::{Parser, ValueEnum};
+use clap::Parser;
 use indicatif::{ProgressBar, ProgressStyle};
 use renderers::{Bug, Bvh, Camera, RenderOptions, TracerChoice};
 use rl::{Kind, Recorder, RecorderOptions};
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum BugArg {
-    /// Shadow rays from diffuse surfaces (after the first bounce) aimed at no light (Figure 1).
-    ShadowDir,
-}
 
 #[derive(Parser, Debug)]
 pub struct RecordArgs {
@@ -84,8 +78,13 @@ pub struct RecordArgs {
     pub exr: Option<PathBuf>,
     #[arg(long, default_value_t = 1.0)]
     pub exposure: f32,
-    #[arg(long, value_enum)]
-    pub inject_bug: Option<BugArg>,
+    /// A bug to inject, to be found with the toolkit: shadow-dir (the paper's Figure 1: shadow
+    /// rays aimed at no light, found by `analyze numerics` and `bugs`), nan (a zero light pdf at
+    /// grazing angles: infinite weights, NaN pixels), no-offset (secondary rays start on the
+    /// surface: self-intersections) or leak (secondary rays start 1% of the scene's size along
+    /// their direction: through walls). The GPU tracer has shadow-dir only.
+    #[arg(long, value_parser = Bug::parse)]
+    pub inject_bug: Option<Bug>,
     /// Camera position X,Y,Z (with --camera-target and --fov; default: the scene's camera).
     #[arg(long, value_parser = parse_vec3, requires = "camera_target")]
     pub camera_pos: Option<[f32; 3]>,
@@ -100,6 +99,20 @@ pub struct RecordArgs {
     /// Split every quad of a built-in scene n × n (more triangles, same picture).
     #[arg(long, default_value_t = 1)]
     pub subdivide: u32,
+    /// Scale the scene (and its camera) by S: the extreme-scale cases (1e-4, 1e5) of the
+    /// numerical checks.
+    #[arg(long, default_value_t = 1.0, value_parser = parse_scale)]
+    pub scale: f32,
+    /// Move the scene (and its camera) by X,Y,Z after scaling: far from the origin (1e6,1e6,1e6).
+    #[arg(long, value_parser = parse_vec3)]
+    pub offset: Option<[f32; 3]>,
+}
+
+fn parse_scale(s: &str) -> Result<f32, String> {
+    match s.trim().parse::<f32>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("bad scale {s:?}: expected a positive finite number")),
+    }
 }
 
 fn parse_window(s: &str) -> Result<[u32; 4], String> {
@@ -139,6 +152,9 @@ pub fn run(a: &RecordArgs) -> Result<()> {
     let mut scene = renderers::load_scene(&a.scene, camera, a.subdivide)?;
     if let (Some(f), None) = (a.fov, camera) {
         scene.camera.fov_y = f;
+    }
+    if a.scale != 1.0 || a.offset.is_some() {
+        scene = scene.transformed(a.scale, glam::Vec3A::from_array(a.offset.unwrap_or([0.0; 3])));
     }
     if scene.report.degenerate_skipped > 0 {
         eprintln!("note: skipped {} degenerate triangles of {}", scene.report.degenerate_skipped, a.scene);
@@ -181,7 +197,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         window,
         samples,
         threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
-        bug: a.inject_bug.map(|_| Bug::ShadowDir),
+        bug: a.inject_bug,
         record_kinds,
         record_visits: a.record_visits,
     };
@@ -189,6 +205,12 @@ pub fn run(a: &RecordArgs) -> Result<()> {
     let bvh = Bvh::build(&scene.tris);
     let build_secs = t.elapsed().as_secs_f64();
     if a.tracer.on_gpu() {
+        if let Some(bug) = a.inject_bug.filter(|b| *b != Bug::ShadowDir) {
+            bail!(
+                "--inject-bug {}: the GPU tracer injects shadow-dir only (the path and whitted tracers inject every bug)",
+                bug.name()
+            );
+        }
         if a.record_visits {
             bail!("--record-visits: the GPU tracer does not record the BVH nodes each ray visits (use --tracer path)");
         }

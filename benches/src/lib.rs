@@ -46,7 +46,7 @@ fn path_traced(scene_name: &str, min_rays: u64) -> Result<Trace> {
     use renderers::tracer::{SampleRecord, TraceCtx, path_sample};
     let scene = renderers::load_scene(scene_name, None, 1)?;
     let bvh = renderers::Bvh::build(&scene.tris);
-    let ctx = TraceCtx { scene: &scene, bvh: &bvh, max_depth: 8, bug: None, record_visits: false };
+    let ctx = TraceCtx::new(&scene, &bvh, 8, None, false);
     let (w, h) = (1024u32, 768u32);
     let mut trees = Vec::new();
     let mut rays = 0u64;

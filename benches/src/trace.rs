@@ -85,7 +85,7 @@ pub fn run(subdivide: u32, rotate: bool, width: u32, spp: u32, rounds: u32) -> R
         obvhs::bvh2::builder::build_bvh2_from_tris(&tris, BvhBuildParams::medium_build(), &mut Duration::default());
 
     // Rays of a path-traced frame, by kind.
-    let ctx = TraceCtx { scene: &scene, bvh: &bvh, max_depth: 6, bug: None, record_visits: false };
+    let ctx = TraceCtx::new(&scene, &bvh, 6, None, false);
     let mut rays: Vec<(Kind, BenchRay)> = Vec::new();
     let mut rec = SampleRecord::new(true);
     for y in 0..width {

@@ -28,6 +28,12 @@ impl GpuTracer {
         if opts.tracer == TracerChoice::Whitted {
             return Err(Error::Input("the GPU tracer is a path tracer: the Whitted tracer runs on the CPU".into()));
         }
+        if let Some(bug) = opts.bug.filter(|b| *b != renderers::Bug::ShadowDir) {
+            return Err(Error::Input(format!(
+                "--inject-bug {}: the GPU tracer injects shadow-dir only; the CPU tracers (path, whitted) inject every bug",
+                bug.name()
+            )));
+        }
         if opts.record_visits && rec.is_some() {
             return Err(Error::Input(
                 "the GPU tracer does not record the BVH nodes each ray visits: record them with the CPU tracer".into(),

@@ -291,7 +291,7 @@ class Session:
     def analyze(self, analysis: str, progress: bool = False, **options: Any) -> Report:
         """One of ``rtvtk analyze``'s analyses on this session's engine: ``"coherence"``
         (``width=8``, ``orders=["trace", "morton", "octant", "material"]``, ``kind=None``),
-        ``"bvh"`` (``level=3``), ``"bugs"``, or ``"diff"`` (``a=``, ``b=`` dataset names, by
+        ``"bvh"`` (``level=3``), ``"numerics"`` (old name ``"bugs"``), or ``"diff"`` (``a=``, ``b=`` dataset names, by
         default the first two opened; ``tile=16``). ``progress=True`` counts its queries;
         Ctrl-C stops it."""
         with _progress(progress, f"analyze {analysis}", "queries") as bar:

@@ -346,7 +346,7 @@ impl Session {
 enum Analysis {
     Coherence(query::analyze::CoherenceOptions),
     Bvh(u16),
-    Bugs,
+    Numerics,
     Diff { a: String, b: String, tile: usize },
 }
 
@@ -371,7 +371,7 @@ impl Analysis {
                 Analysis::Coherence(c)
             }
             "bvh" => Analysis::Bvh(get("level").map(|v| v.extract()).transpose()?.unwrap_or(3)),
-            "bugs" => Analysis::Bugs,
+            "numerics" | "bugs" => Analysis::Numerics,
             "diff" => {
                 let names: Vec<String> = engine.datasets().iter().map(|d| d.name.clone()).collect();
                 let pick = |v: Option<Bound<'_, PyAny>>, i: usize| -> PyResult<String> {
@@ -391,7 +391,7 @@ impl Analysis {
             }
             other => {
                 return Err(QueryError::new_err(format!(
-                    "unknown analysis {other:?}: expected coherence, bvh, bugs or diff"
+                    "unknown analysis {other:?}: expected coherence, bvh, numerics (or bugs) or diff"
                 )));
             }
         };
@@ -415,7 +415,7 @@ impl Analysis {
         match self {
             Analysis::Coherence(o) => analyze::coherence(engine, o).await,
             Analysis::Bvh(level) => analyze::bvh(engine, *level).await,
-            Analysis::Bugs => analyze::bugs(engine).await,
+            Analysis::Numerics => analyze::numerics(engine).await,
             Analysis::Diff { a, b, tile } => analyze::diff(engine, a, b, *tile).await,
         }
     }

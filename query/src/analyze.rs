@@ -620,84 +620,140 @@ async fn register_subtrees(ctx: &Engine, session: &datafusion::prelude::SessionC
 pub const WRONG_SHADOW: &str =
     "kind = 'shadow' AND NOT aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)";
 
-/// Suspicious rays: shadow rays aiming at no light, broken directions, self-intersections.
-pub async fn bugs(ctx: &Engine) -> Result<Report> {
+/// The numerical health of a trace: every check of the `numerics` view (`crate::numerics`)
+/// with its count, first offending rays and a heatmap over the image, and the paper's bug (shadow
+/// rays aiming at no light) by depth and parent.
+pub async fn numerics(ctx: &Engine) -> Result<Report> {
+    use crate::numerics::CHECKS;
     let mut rep = Report::default();
-    rep.para("# Suspicious rays");
-    let lights = scalar(ctx, "SELECT count(*) FROM lights").await.unwrap_or(f64::NAN);
-    rep.heading("Shadow rays aiming at no light (the paper's Figure 1 bug)");
-    if lights.is_nan() || lights <= 0.0 {
-        rep.para("*(the trace has no `lights` table: this check needs the emitters)*");
-    } else {
-        let n = scalar(ctx, &format!("SELECT count(*) FROM rays WHERE {WRONG_SHADOW}")).await?;
-        let all = scalar(ctx, "SELECT count(*) FROM rays WHERE kind = 'shadow'").await?;
-        rep.para(&format!(
-            "**{}** of {} shadow rays ({}%) point at no emitter.",
-            num(n),
-            num(all),
-            num(if all > 0.0 { 100.0 * n / all } else { 0.0 })
-        ));
-        if n > 0.0 {
-            rep.para("By depth, and by the ray they leave from (its kind and material):");
-            let parents = rays_with_material(ctx).await?;
-            let t = run(
-                ctx,
-                &format!(
-                    "SELECT s.depth, p.kind AS parent_kind, p.material AS parent_material, count(*) AS wrong \
-                     FROM rays s JOIN {parents} p ON s.tree_id = p.tree_id AND s.parent = p.ray \
-                     WHERE s.kind = 'shadow' AND NOT aims_at_light(s.origin_x, s.origin_y, s.origin_z, s.dir_x, s.dir_y, s.dir_z) \
-                     GROUP BY s.depth, p.kind, p.material ORDER BY wrong DESC, s.depth LIMIT 20"
-                ),
-            )
-            .await?;
-            rep.para(&markdown(&t)?);
-            rep.para("Pixels with the most (open one with `rtvtk tree DATASET --pixel X,Y`):");
-            let t = run(
-                ctx,
-                &format!(
-                    "SELECT pixel_x, pixel_y, count(*) AS wrong FROM rays WHERE {WRONG_SHADOW} \
-                     GROUP BY pixel_x, pixel_y ORDER BY wrong DESC, pixel_y, pixel_x LIMIT 10"
-                ),
-            )
-            .await?;
-            rep.para(&markdown(&t)?);
-            let size = image_size(ctx, "").await?;
-            let sql =
-                format!("SELECT pixel_x, pixel_y, count(*) FROM rays WHERE {WRONG_SHADOW} GROUP BY pixel_x, pixel_y");
-            let title = "shadow rays aiming at no light, per pixel";
-            rep.add_grid(ctx, None, &sql, Cells::pixels(size), "wrong_shadow_rays", title).await?;
+    rep.para("# Numerical health");
+    // Which checks the view has, and why not the others (`numerics_checks`, made beside it).
+    let mut missing = std::collections::HashMap::new();
+    for b in run(ctx, "SELECT problem, missing FROM numerics_checks").await? {
+        let utf8 =
+            |i: usize| arrow::compute::cast(b.column(i), &DataType::Utf8).map_err(|e| Error::DataFusion(e.into()));
+        let (p, m) = (utf8(0)?, utf8(1)?);
+        let (p, m) = (p.as_string::<i32>(), m.as_string::<i32>());
+        for r in 0..b.num_rows() {
+            missing.insert(p.value(r).to_string(), m.is_valid(r).then(|| m.value(r).to_string()));
         }
     }
-    rep.heading("Broken rays");
-    let t = run(
-        ctx,
-        "SELECT kind, \
-           count(*) FILTER (WHERE isnan(origin_x) OR isnan(origin_y) OR isnan(origin_z) OR isnan(dir_x) OR isnan(dir_y) OR isnan(dir_z) \
-             OR abs(origin_x) = 'inf'::double OR abs(origin_y) = 'inf'::double OR abs(origin_z) = 'inf'::double \
-             OR abs(dir_x) = 'inf'::double OR abs(dir_y) = 'inf'::double OR abs(dir_z) = 'inf'::double) AS non_finite, \
-           count(*) FILTER (WHERE abs(sqrt(dir_x * dir_x + dir_y * dir_y + dir_z * dir_z) - 1) > 1e-3) AS non_unit_dir, \
-           count(*) FILTER (WHERE t IS NOT NULL AND t <= 0) AS non_positive_t \
-         FROM rays GROUP BY kind ORDER BY kind",
-    )
-    .await?;
-    rep.para(&markdown(&t)?);
-    rep.heading("Suspected self-intersections");
-    let diag = scene_diagonal(ctx).await?;
+    let checks: Vec<(crate::numerics::Check, Option<String>)> = CHECKS
+        .iter()
+        .map(|c| (*c, missing.get(c.name).cloned().unwrap_or_else(|| Some("not in this engine's view".into()))))
+        .collect();
+    let total = scalar(ctx, "SELECT count(*) FROM rays").await?;
+    let mut counts = std::collections::HashMap::new();
+    for b in run(ctx, "SELECT problem, count(*) AS n FROM numerics GROUP BY problem").await? {
+        let names = arrow::compute::cast(b.column(0), &DataType::Utf8).map_err(|e| Error::DataFusion(e.into()))?;
+        let names = names.as_string::<i32>();
+        let n = arrow::compute::cast(b.column(1), &DataType::Float64).map_err(|e| Error::DataFusion(e.into()))?;
+        let n = n.as_primitive::<arrow::datatypes::Float64Type>();
+        for r in 0..b.num_rows() {
+            counts.insert(names.value(r).to_string(), n.value(r));
+        }
+    }
+    let bugs: f64 = CHECKS.iter().filter(|c| c.bug).map(|c| counts.get(c.name).copied().unwrap_or(0.0)).sum();
     rep.para(&format!(
-        "Secondary rays that hit the triangle their parent hit, closer than 1e-4 of the scene diagonal ({}).",
-        num(diag * 1e-4)
+        "**{}** findings of the bug checks over {} rays (a ray can fail more than one check; `SELECT * FROM numerics` lists them, `WHERE problem = '...'` one check).",
+        num(bugs),
+        num(total)
     ));
-    let t = run(
-        ctx,
-        &format!(
-            "SELECT r.kind, count(*) AS rays FROM rays r JOIN rays p ON r.tree_id = p.tree_id AND r.parent = p.ray \
-             WHERE r.prim = p.prim AND r.t < {} GROUP BY r.kind ORDER BY r.kind",
-            diag * 1e-4
-        ),
-    )
-    .await?;
-    rep.para(&markdown(&t)?);
+    let mut table = String::from("| check | finds | rays | share |\n|---|---|---|---|\n");
+    for (c, missing) in &checks {
+        let (n, share) = match missing {
+            Some(why) => ("not run".to_string(), format!("*{why}*")),
+            None => {
+                let n = counts.get(c.name).copied().unwrap_or(0.0);
+                (num(n), format!("{}%", num(if total > 0.0 { 100.0 * n / total } else { 0.0 })))
+            }
+        };
+        let _ = writeln!(
+            table,
+            "| {} | {}{} | {n} | {share} |",
+            c.name,
+            c.title,
+            if c.bug { "" } else { " *(not a bug)*" }
+        );
+    }
+    rep.para(&table);
+    let size = image_size(ctx, "").await?;
+    for (c, missing) in &checks {
+        let n = counts.get(c.name).copied().unwrap_or(0.0);
+        if c.name == "wrong_shadow" {
+            wrong_shadow(ctx, &mut rep, missing.is_none(), size).await?;
+            continue;
+        }
+        if missing.is_some() || n == 0.0 {
+            continue;
+        }
+        rep.heading(&format!("{}: {}", c.name, c.title));
+        rep.para(&format!("**{}** rays. The first (open one with `rtvtk tree DATASET --pixel X,Y`):", num(n)));
+        let t = run(
+            ctx,
+            &format!(
+                "SELECT tree_id, ray, pixel_x, pixel_y, sample, depth, kind, value, detail FROM numerics \
+                 WHERE problem = '{}' ORDER BY tree_id, ray LIMIT 5",
+                c.name
+            ),
+        )
+        .await?;
+        rep.para(&markdown(&t)?);
+        let sql = format!(
+            "SELECT pixel_x, pixel_y, count(*) FROM numerics WHERE problem = '{}' GROUP BY pixel_x, pixel_y",
+            c.name
+        );
+        let title = format!("{} rays per pixel", c.name);
+        rep.add_grid(ctx, None, &sql, Cells::pixels(size), &format!("numerics_{}", c.name), &title).await?;
+    }
     Ok(rep)
+}
+
+/// The paper's Figure-1 bug in detail: shadow rays aiming at no light, by depth and by the ray
+/// they leave from, the pixels with the most, and their heatmap.
+async fn wrong_shadow(ctx: &Engine, rep: &mut Report, lights: bool, size: (usize, usize)) -> Result<()> {
+    rep.heading("Shadow rays aiming at no light (the paper's Figure 1 bug)");
+    if !lights {
+        rep.para("*(the trace has no `lights` table: this check needs the emitters)*");
+        return Ok(());
+    }
+    let n = scalar(ctx, &format!("SELECT count(*) FROM rays WHERE {WRONG_SHADOW}")).await?;
+    let all = scalar(ctx, "SELECT count(*) FROM rays WHERE kind = 'shadow'").await?;
+    rep.para(&format!(
+        "**{}** of {} shadow rays ({}%) point at no emitter.",
+        num(n),
+        num(all),
+        num(if all > 0.0 { 100.0 * n / all } else { 0.0 })
+    ));
+    if n > 0.0 {
+        rep.para("By depth, and by the ray they leave from (its kind and material):");
+        let parents = rays_with_material(ctx).await?;
+        let t = run(
+            ctx,
+            &format!(
+                "SELECT s.depth, p.kind AS parent_kind, p.material AS parent_material, count(*) AS wrong \
+                 FROM rays s JOIN {parents} p ON s.tree_id = p.tree_id AND s.parent = p.ray \
+                 WHERE s.kind = 'shadow' AND NOT aims_at_light(s.origin_x, s.origin_y, s.origin_z, s.dir_x, s.dir_y, s.dir_z) \
+                 GROUP BY s.depth, p.kind, p.material ORDER BY wrong DESC, s.depth LIMIT 20"
+            ),
+        )
+        .await?;
+        rep.para(&markdown(&t)?);
+        rep.para("Pixels with the most (open one with `rtvtk tree DATASET --pixel X,Y`):");
+        let t = run(
+            ctx,
+            &format!(
+                "SELECT pixel_x, pixel_y, count(*) AS wrong FROM rays WHERE {WRONG_SHADOW} \
+                 GROUP BY pixel_x, pixel_y ORDER BY wrong DESC, pixel_y, pixel_x LIMIT 10"
+            ),
+        )
+        .await?;
+        rep.para(&markdown(&t)?);
+        let sql = format!("SELECT pixel_x, pixel_y, count(*) FROM rays WHERE {WRONG_SHADOW} GROUP BY pixel_x, pixel_y");
+        let title = "shadow rays aiming at no light, per pixel";
+        rep.add_grid(ctx, None, &sql, Cells::pixels(size), "wrong_shadow_rays", title).await?;
+    }
+    Ok(())
 }
 
 /// Two traces (`a.*` and `b.*` in the session) side by side by kind, depth and image tile.

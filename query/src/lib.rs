@@ -7,6 +7,7 @@ mod engine;
 mod error;
 mod functions;
 mod live;
+pub mod numerics;
 mod plan_util;
 mod scan;
 pub mod service;
@@ -18,8 +19,8 @@ pub use count_by_key::{CountByKey, CountByKeyExec};
 pub use engine::{Catalog, Engine};
 pub use error::{Error, Result};
 pub use functions::{
-    RAY_SECTION, SceneContext, functions_markdown, ray_aggregates, ray_functions, ray_scalar_functions,
-    register_functions,
+    RAY_SECTION, SceneContext, SceneTriangles, TriangleBvh, functions_markdown, ray_aggregates, ray_functions,
+    ray_scalar_functions, register_functions,
 };
 pub use live::LiveTrace;
 pub use sliced::{SegmentFiles, SliceableScans};

@@ -138,7 +138,8 @@ pub fn session_state(options: &SessionOptions) -> Result<datafusion::execution::
 }
 
 /// Registers datasets already open in `ctx` (each in the schema named after it, the first one's
-/// tables also unqualified) and the ray functions over the first dataset's scene.
+/// tables also unqualified), the ray functions over the first dataset's scene, and each
+/// dataset's `numerics` view (`crate::numerics`).
 pub async fn register_datasets(ctx: &SessionContext, datasets: &[Registered]) -> Result<()> {
     let mut names = std::collections::HashSet::new();
     for (i, d) in datasets.iter().enumerate() {
@@ -152,6 +153,11 @@ pub async fn register_datasets(ctx: &SessionContext, datasets: &[Registered]) ->
         None => SceneContext::default(),
     };
     register_functions(ctx, Arc::new(scene));
+    // The `numerics` views read the ray functions; the scene's (lights, triangles) are the first
+    // dataset's, so only its view has the checks that need them.
+    for (i, d) in datasets.iter().enumerate() {
+        crate::numerics::register_view(ctx, &d.name, &d.dataset.table_names(), i == 0, i == 0).await?;
+    }
     Ok(())
 }
 

@@ -120,7 +120,7 @@ pub fn describe_recording(rec: &Recorder, scene: &Scene, bvh: &Bvh, opts: &Rende
         ("spp", opts.spp.to_string()),
         ("seed", opts.seed.to_string()),
         ("max_depth", opts.max_depth.to_string()),
-        ("inject_bug", opts.bug.map_or("none".into(), |_| "shadow-dir".into())),
+        ("inject_bug", opts.bug.map_or("none", Bug::name).into()),
         (
             "camera",
             format!(
@@ -214,13 +214,7 @@ pub fn render(
     let samples = opts.samples.clone().unwrap_or(0..opts.spp);
     let next_row = AtomicU32::new(y0);
     let done = AtomicU32::new(0);
-    let ctx = TraceCtx {
-        scene,
-        bvh,
-        max_depth: opts.max_depth,
-        bug: opts.bug,
-        record_visits: opts.record_visits && rec.is_some(),
-    };
+    let ctx = TraceCtx::new(scene, bvh, opts.max_depth, opts.bug, opts.record_visits && rec.is_some());
     let keep = opts.record_kinds.as_deref();
     let outs: Vec<ThreadOut> = std::thread::scope(|s| {
         let handles: Vec<_> = (0..opts.threads.max(1))

@@ -18,6 +18,39 @@ pub enum Bug {
     /// bounce are mirrored about the vertical axis, so many are aimed at no light. Visibility
     /// comes from the wrong direction, shading from the right one: the image still looks plausible.
     ShadowDir,
+    /// A zero light-sampling pdf where the light is seen at a grazing angle (cosine below 0.1):
+    /// the shadow ray's weight divides by it, so its throughput is infinite and the pixel NaN or
+    /// infinite (the "NaN pixel" of many renderers' issue trackers).
+    Nan,
+    /// Secondary rays start at the hit point itself, not offset off the surface by its float
+    /// error bound: about half of them hit the surface they leave (self-intersection, acne).
+    NoOffset,
+    /// Secondary rays start a fixed step (1% of the scene's diagonal) along their direction:
+    /// near corners and thin parts they start behind a surface they never hit (light leaks).
+    Leak,
+}
+
+impl Bug {
+    /// Every bug, in the order of `--inject-bug`'s help.
+    pub const ALL: [Bug; 4] = [Bug::ShadowDir, Bug::Nan, Bug::NoOffset, Bug::Leak];
+
+    /// The bug's name on the command line and in a dataset's `inject_bug` attribute.
+    pub fn name(self) -> &'static str {
+        match self {
+            Bug::ShadowDir => "shadow-dir",
+            Bug::Nan => "nan",
+            Bug::NoOffset => "no-offset",
+            Bug::Leak => "leak",
+        }
+    }
+
+    /// The bug named `s`; an error listing the names otherwise.
+    pub fn parse(s: &str) -> Result<Bug, String> {
+        Bug::ALL.into_iter().find(|b| b.name() == s).ok_or_else(|| {
+            let names: Vec<&str> = Bug::ALL.iter().map(|b| b.name()).collect();
+            format!("unknown bug {s:?}: expected one of {}", names.join(", "))
+        })
+    }
 }
 
 /// One traced ray as recorded.
@@ -132,9 +165,28 @@ pub struct TraceCtx<'a> {
     pub max_depth: u32,
     pub bug: Option<Bug>,
     pub record_visits: bool,
+    /// How far `Bug::Leak` pushes secondary rays along their direction (1% of the diagonal).
+    leak_step: f32,
 }
 
-impl TraceCtx<'_> {
+impl<'a> TraceCtx<'a> {
+    pub fn new(scene: &'a Scene, bvh: &'a Bvh, max_depth: u32, bug: Option<Bug>, record_visits: bool) -> Self {
+        let (lo, hi) = scene.bounds();
+        let diag = (hi - lo).length();
+        let leak_step = if diag.is_finite() { 0.01 * diag } else { 0.0 };
+        TraceCtx { scene, bvh, max_depth, bug, record_visits, leak_step }
+    }
+
+    /// Where a secondary ray leaving surface point `p` on the side of normal `n` in direction
+    /// `dir` starts: off the surface by its float error bound (`offset_point`), or where an
+    /// injected bug puts it.
+    fn spawn(&self, p: Vec3A, n: Vec3A, dir: Vec3A) -> Vec3A {
+        match self.bug {
+            Some(Bug::NoOffset) => p,
+            Some(Bug::Leak) => p + dir * self.leak_step,
+            _ => offset_point(p, n),
+        }
+    }
     fn closest(&self, ray: &Ray, rec: &mut Option<&mut SampleRecord>) -> (Option<Hit>, TraversalStats, (u32, u32)) {
         let mut st = TraversalStats::default();
         match rec {
@@ -246,7 +298,7 @@ pub fn path_sample(
         if matches!(m.kind, MaterialKind::Diffuse | MaterialKind::Glossy) {
             // Next-event estimation: one shadow ray to a point on an emitter.
             if let Some((q, nl, lprim, pdf_area)) = ctx.sample_light(rng) {
-                let origin = offset_point(p, n);
+                let origin = ctx.spawn(p, n, (q - p).normalize_or_zero());
                 let to = q - origin;
                 let dist2 = to.length_squared();
                 let dist = dist2.sqrt();
@@ -261,6 +313,7 @@ pub fn path_sample(
                     let sray = Ray::new(origin, sdir);
                     let (occ, sst, svis) = ctx.occluded(&sray, dist * (1.0 - 1e-4), lprim, &mut rec);
                     let f = material::eval(m, n, -ray.dir, wi);
+                    let pdf_area = if ctx.bug == Some(Bug::Nan) && cos_l < 0.1 { 0.0 } else { pdf_area };
                     let weight = beta * f * (cos_x * cos_l / (dist2 * pdf_area));
                     if occ.is_none() {
                         l += weight * scene.material_of(lprim).emission;
@@ -289,7 +342,7 @@ pub fn path_sample(
             break;
         }
         let side = if s.dir.dot(ng) > 0.0 { ng } else { -ng };
-        ray = Ray::new(offset_point(p, side), s.dir);
+        ray = Ray::new(ctx.spawn(p, side, s.dir), s.dir);
         parent = Some(idx);
         depth += 1;
     }
@@ -350,7 +403,7 @@ fn whitted(
                     let c = (v0 + v1 + v2) / 3.0;
                     let area = scene.emitter_area(li);
                     let scale = if scene.lights.len() <= 32 { 1.0 } else { scene.light_area / (area * k as f32) };
-                    let origin = offset_point(p, n);
+                    let origin = ctx.spawn(p, n, (c - p).normalize_or_zero());
                     let to = c - origin;
                     let d2 = to.length_squared();
                     let wi = to / d2.sqrt();
@@ -362,20 +415,24 @@ fn whitted(
                     let (occ, sst, svis) = ctx.occluded(&sray, d2.sqrt() * (1.0 - 1e-4), prim, rec);
                     let le = scene.material_of(prim).emission;
                     let cos_l = scene.normals[prim as usize].dot(wi).abs();
-                    let g = m.diffuse / std::f32::consts::PI * (area * scale * cos_x * cos_l / d2);
+                    // Bug::Nan: the same zero denominator at grazing light angles as the path tracer's pdf.
+                    let denom = if ctx.bug == Some(Bug::Nan) && cos_l < 0.1 { 0.0 } else { d2 };
+                    let g = m.diffuse / std::f32::consts::PI * (area * scale * cos_x * cos_l / denom);
                     if occ.is_none() {
                         l += g * le;
                     }
                     push(rec, RecRay::shadow(scene, idx, &sray, prim, d2.sqrt(), occ, weight * g, sst, svis));
                 }
                 if m.kind == MaterialKind::Glossy && m.specular.max_element() > 0.0 {
-                    let r = Ray::new(offset_point(p, n), reflect(ray.dir, n));
+                    let d = reflect(ray.dir, n);
+                    let r = Ray::new(ctx.spawn(p, n, d), d);
                     l += m.specular
                         * whitted(ctx, &r, Kind::SPECULAR, Some(idx), depth + 1, weight * m.specular, rng, rec);
                 }
             }
             MaterialKind::Mirror => {
-                let r = Ray::new(offset_point(p, n), reflect(ray.dir, n));
+                let d = reflect(ray.dir, n);
+                let r = Ray::new(ctx.spawn(p, n, d), d);
                 l += m.specular * whitted(ctx, &r, Kind::SPECULAR, Some(idx), depth + 1, weight * m.specular, rng, rec);
             }
             MaterialKind::Dielectric => {
@@ -383,12 +440,13 @@ fn whitted(
                 let (eta_i, eta_t) = if front { (1.0, m.ior) } else { (m.ior, 1.0) };
                 let cos_i = n.dot(-ray.dir).clamp(0.0, 1.0);
                 let (f, cos_t) = fresnel(cos_i, eta_i, eta_t);
-                let r = Ray::new(offset_point(p, n), reflect(ray.dir, n));
+                let d = reflect(ray.dir, n);
+                let r = Ray::new(ctx.spawn(p, n, d), d);
                 l += m.specular * f * whitted(ctx, &r, Kind::SPECULAR, Some(idx), depth + 1, weight * f, rng, rec);
                 if f < 1.0 {
                     let eta = eta_i / eta_t;
                     let dir = (ray.dir * eta + n * (eta * cos_i - cos_t)).normalize();
-                    let t = Ray::new(offset_point(p, -n), dir);
+                    let t = Ray::new(ctx.spawn(p, -n, dir), dir);
                     let wt = (1.0 - f) * eta * eta;
                     l += m.specular
                         * wt

@@ -1,4 +1,5 @@
-//! Functions of rays and scene geometry: `ray_point`, `ray_aabb_hit`, `aims_at_light`.
+//! Functions of rays and scene geometry: `ray_point`, `ray_aabb_hit`, `aims_at_light`,
+//! `scene_hit`.
 
 use std::sync::Arc;
 
@@ -92,9 +93,38 @@ pub(super) fn aims_at_light(scene: &Arc<SceneContext>) -> RayScalar {
         Some(lights.lights.iter().any(|t| aims_at(o, d, t)))
     });
     RayScalar::new("aims_at_light", float_signature(6, false), DataType::Boolean, kernel, doc(
-        "Whether the ray's line hits an emitter triangle of the scene (its `lights` table) in front of its origin (Boolean, watertight test), or passes within 1e-5 rad (0.0006°) of a point light: false for a shadow ray that points at no light, the paper's bug.",
+        "Whether the ray's line hits an emitter triangle of the scene (its `lights` table) in front of its origin (Boolean, watertight test; within 2^-19 of the coordinates' magnitude of its edges, the rounding of f32 positions), or passes within 1e-5 rad (0.0006°) of a point light: false for a shadow ray that points at no light, the paper's bug.",
         "aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)",
         &ray_args(&[]),
+    ))
+    .for_scene(scene)
+}
+
+/// `scene_hit(ox, oy, oz, dx, dy, dz, tmin, tmax)`: the closest hit of the ray on the dataset's
+/// triangles (a replay of the recorded ray), in a BVH built at first use.
+pub(super) fn scene_hit(scene: &Arc<SceneContext>) -> RayScalar {
+    let tris = scene.triangles.clone();
+    let fun: Kernel = Arc::new(move |args: &[ColumnarValue]| {
+        let a = arrays(args)?;
+        let c = Floats::<8>::of(&a)?;
+        let bvh = match &tris {
+            Some(t) => t.bvh().map_err(datafusion::error::DataFusionError::Execution)?,
+            None => {
+                return Err(datafusion::error::DataFusionError::Execution(
+                    "scene_hit: the session has no dataset whose triangles it could replay rays against".into(),
+                ));
+            }
+        };
+        let mut out: Vec<Option<f64>> = vec![None; c.len()];
+        c.each_valid(|r, v| {
+            out[r] = bvh.closest([v[0], v[1], v[2]], [v[3], v[4], v[5]], v[6], v[7]).map(|h| h.0);
+        });
+        Ok(ColumnarValue::Array(Arc::new(Float64Array::from(out)) as ArrayRef))
+    });
+    RayScalar::new("scene_hit", float_signature(8, false), DataType::Float64, fun, doc(
+        "The distance to the ray's closest hit on the scene's triangles (the dataset's `triangles` table, in a BVH built at first use) with tmin < t < tmax, by the watertight f64 test; NULL for none. A replay of a recorded ray: a hit closer than the recorded `t` is a surface the renderer passed through.",
+        "scene_hit(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z, 0.001, coalesce(t, 1e30))",
+        &ray_args(&[("tmin", "hits at or before it are ignored"), ("tmax", "hits at or past it are ignored (finite)")]),
     ))
     .for_scene(scene)
 }
@@ -123,15 +153,52 @@ pub(super) fn hits_triangle(o: [f64; 3], d: [f64; 3], tri: &[[f64; 3]; 3]) -> bo
 /// to ~1e-7 rad; a renderer's jitter or a wrong direction is far larger.
 pub(super) const POINT_LIGHT_ANGLE: f64 = 1e-5;
 
-/// Whether the ray from `o` along `d` aims at the light `l`: a triangle it hits, or a point
-/// light (a row whose three vertices coincide) within [`POINT_LIGHT_ANGLE`] of the ray's
-/// direction, in front of its origin.
+/// How far outside a light's edges a ray may cross its plane and still aim at it, relative to
+/// the largest coordinate of the ray's origin and the light: 2^-19, 32 ULPs of f32. A shadow ray
+/// aimed at a point sampled on the light's edge misses the exact triangle by the rounding of its
+/// f32 origin and direction, which is that large 1e6 from the origin (0.02 there, against a
+/// bound of 1.9); a wrong direction misses by a share of the scene.
+pub(super) const LIGHT_EDGE_REL: f64 = 1.0 / 524288.0;
+
+/// Whether the ray from `o` along `d` aims at the light `l`: a triangle it hits (or whose plane
+/// it crosses, in front of its origin, within [`LIGHT_EDGE_REL`] of the coordinates' magnitude
+/// of its edges), or a point light (a row whose three vertices coincide) within
+/// [`POINT_LIGHT_ANGLE`] of the ray's direction, in front of its origin.
 pub(super) fn aims_at(o: [f64; 3], d: [f64; 3], l: &[[f64; 3]; 3]) -> bool {
     if l[0] == l[1] && l[1] == l[2] {
         let to = [l[0][0] - o[0], l[0][1] - o[1], l[0][2] - o[2]];
         return store::geom::angle_between(d, to).is_some_and(|a| a <= POINT_LIGHT_ANGLE);
     }
-    hits_triangle(o, d, l)
+    hits_triangle(o, d, l) || near_edge(o, d, l)
+}
+
+/// Whether the ray crosses the triangle's plane in front of its origin within
+/// [`LIGHT_EDGE_REL`] (of the largest coordinate of `o` and the triangle) of its edges.
+fn near_edge(o: [f64; 3], d: [f64; 3], l: &[[f64; 3]; 3]) -> bool {
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+    let (e1, e2) = (sub(l[1], l[0]), sub(l[2], l[0]));
+    let n = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
+    let dn = dot(d, n);
+    if dn == 0.0 || !dn.is_finite() {
+        return false;
+    }
+    let t = dot(sub(l[0], o), n) / dn;
+    if !(t.is_finite() && t > 0.0) {
+        return false;
+    }
+    let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+    let mag = o.iter().chain(l.iter().flatten()).fold(0.0f64, |m, v| m.max(v.abs()));
+    let tol = LIGHT_EDGE_REL * mag;
+    (0..3).any(|i| {
+        let (a, b) = (l[i], l[(i + 1) % 3]);
+        let ab = sub(b, a);
+        let len2 = dot(ab, ab);
+        let s = if len2 > 0.0 { (dot(sub(p, a), ab) / len2).clamp(0.0, 1.0) } else { 0.0 };
+        let q = [a[0] + s * ab[0], a[1] + s * ab[1], a[2] + s * ab[2]];
+        let r = sub(p, q);
+        dot(r, r).sqrt() <= tol
+    })
 }
 
 /// Slab test: true when the ray (t ≥ 0) enters the box.
@@ -180,6 +247,28 @@ mod tests {
         assert!(!hits_triangle(o, aim(343.0 + 1e-3), &light));
         // Grazing: a ray in the light's plane does not hit it.
         assert!(!hits_triangle([300.0, 548.8, 0.0], [0.0, 0.0, 1.0], &light));
+    }
+
+    #[test]
+    fn aiming_at_a_light_allows_the_rounding_of_f32_positions_and_no_more() {
+        let light = [[343.0, 548.8, 227.0], [343.0, 548.8, 332.0], [213.0, 548.8, 332.0]];
+        let o = [278.0, 0.0, 280.0];
+        let aim = |x: f64| [x - o[0], 548.8 - o[1], 280.0 - o[2]];
+        // At the scene's scale the allowance is ~0.001 (2^-19 of 548.8): 1e-4 outside aims at it,
+        // 0.01 outside (and the wrong side of the box) does not.
+        assert!(!hits_triangle(o, aim(343.0 + 1e-4), &light) && aims_at(o, aim(343.0 + 1e-4), &light));
+        assert!(!aims_at(o, aim(343.0 + 1e-2), &light));
+        assert!(!aims_at(o, [-aim(343.0)[0], 548.8, 0.0], &light));
+        // 1e6 from the origin the light's other half (edge z = 227), missed by 0.02 (a shadow ray recorded in f32 aimed at
+        // a point sampled on its edge, as a far trace had): aimed at; 10 off: not.
+        let other = [[343.0, 548.8, 227.0], [213.0, 548.8, 332.0], [213.0, 548.8, 227.0]];
+        let far = other.map(|v| v.map(|c| c + 1e6));
+        let o = [1000029.06, 1000001.0, 1000339.6];
+        let to = |x: f64, z: f64| [x - o[0], far[0][1] - o[1], z - o[2]];
+        assert!(aims_at(o, to(1000284.4, 1000226.98), &far));
+        assert!(!aims_at(o, to(1000284.4, 1000217.0), &far));
+        // Behind the origin does not count.
+        assert!(!aims_at([o[0], far[0][1] + 10.0, o[2]], [0.0, 1.0, 0.0], &far));
     }
 
     #[test]
