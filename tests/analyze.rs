@@ -47,6 +47,24 @@ fn reports_find_the_bug_and_draw_it() {
     let report = ok(&["analyze", "bvh", g]);
     assert!(report.contains("False-positive leaf tests") && report.contains("| shadow |"), "{report}");
 
+    // What-ifs: the rays replayed against other builds and the recorded tree, every replayed
+    // closest hit the recorded one, the SAH's rank correlation and the subset's prediction.
+    let report = ok(&["analyze", "bvh", g, "--whatif", "--share", "0.1"]);
+    let builds: Vec<&str> =
+        report.lines().filter(|l| l.starts_with("| ") && l.ends_with(" |") && l.contains(" of ")).collect();
+    assert!(builds.len() >= 7, "{report}");
+    assert!(builds.iter().any(|l| l.starts_with("| recorded (bvh_nodes) |")), "{report}");
+    assert!(builds.iter().any(|l| l.starts_with("| binned sah, leaf 4 |")), "{report}");
+    for l in &builds {
+        let cells: Vec<&str> = l.split('|').map(str::trim).collect();
+        let verified: Vec<u64> = cells[cells.len() - 2].split(" of ").map(|n| n.parse().unwrap()).collect();
+        assert!(verified[1] > 0 && verified[0] == verified[1], "{l}");
+    }
+    assert!(report.contains("SAH against measured tests per ray **"), "{report}");
+    assert!(report.contains("predict each build's tests per ray within **"), "{report}");
+    let out = rtvtk(&["analyze", "bvh", g, "--whatif", "--share", "2"]);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("(0, 1]"));
+
     let out = tmp.path().join("diff");
     ok(&["analyze", "diff", g, b, "--tile", "8", "--out", out.to_str().unwrap()]);
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();

@@ -222,7 +222,10 @@ print(json.dumps(out))
     assert_eq!(v["deep"], deep);
     assert_eq!(v["vendor"], "rtvtk");
     let tables: Vec<&str> = v["tables"].as_array().unwrap().iter().map(|t| t.as_str().unwrap()).collect();
-    assert_eq!(tables, ["attributes", "bvh_nodes", "lights", "ray_paths", "rays", "trees", "triangles"]);
+    assert_eq!(
+        tables,
+        ["attributes", "bvh_nodes", "lights", "numerics", "numerics_checks", "ray_paths", "rays", "trees", "triangles"]
+    );
     let drop = v["drop"].as_str().unwrap();
     assert!(drop.contains("DDL not supported"), "{drop}");
 }

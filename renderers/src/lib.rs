@@ -14,6 +14,7 @@ pub mod scene;
 mod scene_tables;
 pub mod tracer;
 pub mod tracers;
+pub mod whatif;
 
 pub use bvh::{Bvh, BvhLayout, Hit, TraversalStats};
 pub use error::{Error, Result};

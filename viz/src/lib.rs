@@ -8,6 +8,7 @@ mod error;
 pub mod gpu;
 pub mod headless;
 pub mod legend;
+pub mod lines;
 pub mod pipeline;
 pub mod registry;
 pub mod sources;

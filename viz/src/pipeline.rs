@@ -109,9 +109,6 @@ pub fn crop_matrix([x, y]: [u32; 2], [w, h]: [u32; 2], size: u32) -> glam::Mat4 
     )
 }
 
-/// Relative depth bias of the composition: a segment ending on a surface stays visible.
-pub(crate) const DEPTH_BIAS: f32 = 2e-3;
-
 /// A pipeline's work finishes before it goes: nothing it submitted still runs on the device
 /// when its buffers are freed or the process exits (lavapipe's exit handlers tear down LLVM
 /// while a queue thread may still be compiling a draw's shader variant).
@@ -378,7 +375,7 @@ impl Pipeline {
             };
             let u = CompUniform {
                 ranges: [l.range[0], l.range[1], orange[0], orange[1]],
-                params: [test, DEPTH_BIAS, 0.0, 0.0],
+                params: [test, crate::draw::DEPTH_BIAS, 0.0, 0.0],
             };
             let ubuf = crate::draw::uniform(gpu, "composite", &u);
             let occ_view = occ.depth.create_view(&Default::default());

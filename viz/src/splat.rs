@@ -349,7 +349,7 @@ impl Splat {
             ranges: [range[0], range[1], occ_range[0], occ_range[1]],
             params: [
                 if density { 2.0 } else { 1.0 },
-                crate::pipeline::DEPTH_BIAS,
+                crate::draw::DEPTH_BIAS,
                 present,
                 if style.scale == DensityScale::Log { 1.0 } else { 0.0 },
             ],

@@ -68,7 +68,7 @@ pub struct BvhBoxes {
     /// Node id of every box, in buffer order (picking).
     nodes: Vec<u64>,
     /// The line pipelines it draws and picks with.
-    lines: crate::draw::Lines,
+    lines: crate::lines::Lines,
     range: Option<(f64, f64)>,
 }
 
@@ -84,7 +84,7 @@ impl BvhBoxes {
             loaded: None,
             boxes: None,
             nodes: Vec::new(),
-            lines: crate::draw::Lines::new(crate::draw::LineShape::Boxes),
+            lines: crate::lines::Lines::new(crate::draw::LineShape::Boxes),
             range: None,
         };
         if !settings.is_null() {

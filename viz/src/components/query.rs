@@ -92,7 +92,7 @@ pub struct Query {
     loaded: Option<(Frame, QuerySettings)>,
     segments: Option<SegmentBuffers>,
     /// The line pipelines it draws and picks with.
-    lines: crate::draw::Lines,
+    lines: crate::lines::Lines,
     legend: Vec<Legend>,
     rows: u64,
     skipped: u64,
@@ -116,7 +116,7 @@ impl Query {
             generation: 0,
             loaded: None,
             segments: None,
-            lines: crate::draw::Lines::new(crate::draw::LineShape::Segments),
+            lines: crate::lines::Lines::new(crate::draw::LineShape::Segments),
             legend: Vec::new(),
             rows: 0,
             skipped: 0,

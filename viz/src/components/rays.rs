@@ -264,7 +264,7 @@ pub struct Rays {
     loaded: Option<(Frame, DataKey)>,
     segments: Option<SegmentBuffers>,
     /// The line pipelines it draws and picks with.
-    lines: crate::draw::Lines,
+    lines: crate::lines::Lines,
     kinds: BTreeMap<String, u64>,
     skipped: u64,
     misses: u64,
@@ -304,7 +304,7 @@ impl Rays {
             generation: 0,
             loaded: None,
             segments: None,
-            lines: crate::draw::Lines::new(crate::draw::LineShape::Segments),
+            lines: crate::lines::Lines::new(crate::draw::LineShape::Segments),
             kinds: BTreeMap::new(),
             skipped: 0,
             misses: 0,
