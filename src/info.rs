@@ -6,6 +6,42 @@ use anyhow::Result;
 use rl::Dataset;
 use serde_json::json;
 
+/// What the dataset does not hold that a recording can, and what needs it: the optional tables,
+/// the payload columns the analyses read, the built-in kinds no ray has.
+fn left_out(ds: &Dataset) -> Vec<(String, &'static str)> {
+    use store::scene::{BVH_NODES_TABLE, LIGHTS_TABLE, RAY_NODES_TABLE, SITES_TABLE, TRIANGLES_TABLE};
+    let tables = ds.table_names();
+    let mut out = Vec::new();
+    for (t, why) in [
+        (TRIANGLES_TABLE, "the scene's triangles (the geometry layer, numerics' leak check, bvh --whatif)"),
+        (LIGHTS_TABLE, "no emitters recorded (numerics' wrong_shadow check, aims_at_light)"),
+        (BVH_NODES_TABLE, "no BVH recorded (the bvh layer, analyze bvh)"),
+        (RAY_NODES_TABLE, "visited nodes not recorded (record --record-visits)"),
+        (SITES_TABLE, "recording sites not recorded (record --sites)"),
+    ] {
+        if !tables.iter().any(|n| n == t) {
+            out.push((format!("table {t}"), why));
+        }
+    }
+    let payload = &ds.manifest().payload;
+    for (c, why) in [
+        ("throughput", "numerics' energy check"),
+        ("radiance", "numerics' firefly check"),
+        ("nodes_visited", "traversal cost per ray (analyze bvh, diff)"),
+    ] {
+        if !payload.iter().any(|p| p.name == c) {
+            out.push((format!("column {c}"), why));
+        }
+    }
+    let used = &ds.manifest().kinds;
+    for (k, _) in store::BUILTIN_KINDS {
+        if !used.contains_key(k) {
+            out.push((format!("kind {k}"), "no ray of it (its tracer path never ran: no glass, mirror or light in the scene, or left out by --record-kinds)"));
+        }
+    }
+    out
+}
+
 fn dataset_bytes(ds: &Dataset) -> u64 {
     ds.manifest().segments.iter().map(|s| s.rays.bytes + s.trees.bytes).sum()
 }
@@ -40,6 +76,7 @@ pub fn run(dir: &Path, as_json: bool) -> Result<()> {
             "bytes_payload": m.bytes_payload,
             "origin_bounds": (!s.origin_bounds.is_empty()).then_some(s.origin_bounds),
             "hit_bounds": (!s.hit_bounds.is_empty()).then_some(s.hit_bounds),
+            "left_out": left_out(&ds).iter().map(|(what, why)| json!({"what": what, "why": why})).collect::<Vec<_>>(),
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
@@ -87,5 +124,14 @@ pub fn run(dir: &Path, as_json: bool) -> Result<()> {
     };
     println!("origin bounds  {}", b(&s.origin_bounds));
     println!("hit bounds     {}", b(&s.hit_bounds));
+    let left = left_out(&ds);
+    if left.is_empty() {
+        println!("left out       nothing");
+    } else {
+        println!("left out");
+        for (what, why) in left {
+            println!("  {what:<22} {why}");
+        }
+    }
     Ok(())
 }

@@ -37,6 +37,16 @@ fn demo_info_tree_check() {
     let payload: Vec<&str> = info["payload"].as_array().unwrap().iter().map(|p| p["name"].as_str().unwrap()).collect();
     assert_eq!(payload, ["throughput", "radiance", "material", "nodes_visited", "box_tests", "tri_tests"]);
     assert!(dir.join("image.png").exists() && dir.join("image.exr").exists());
+    // What the demo's trace left out, and why: no visits or sites recorded, no glass.
+    let left: Vec<&str> = info["left_out"].as_array().unwrap().iter().map(|v| v["what"].as_str().unwrap()).collect();
+    for want in ["table ray_nodes", "table sites", "kind transmission"] {
+        assert!(left.contains(&want), "{left:?}");
+    }
+    for kept in ["table triangles", "table lights", "table bvh_nodes", "column throughput", "kind shadow"] {
+        assert!(!left.contains(&kept), "{left:?}");
+    }
+    let text = String::from_utf8_lossy(&rtvtk(&["info", d]).stdout).to_string();
+    assert!(text.contains("left out") && text.contains("record --record-visits"), "{text}");
 
     let out = rtvtk(&["tree", d, "--pixel", "16,18", "--json"]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
