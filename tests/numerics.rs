@@ -101,4 +101,58 @@ fn clean_traces_report_nothing_on_every_scene_and_scale() {
         record(&dir, &[&SETTINGS[..], args].concat());
         assert_clean(&ok(&["analyze", "numerics", dir.to_str().unwrap()]), name);
     }
+    // A curved closed mesh (a glossy sphere of 256 triangles on a floor, under a lamp), as the
+    // scanned models users bring: tiny, huge and far from the origin.
+    let obj = sphere_obj(tmp.path());
+    for (name, args) in
+        [("obj-tiny", ["--scale", "1e-4"]), ("obj-huge", ["--scale", "1e5"]), ("obj-far", ["--offset", "1e6,-1e6,1e6"])]
+    {
+        let dir = tmp.path().join(name);
+        let camera = ["--camera-pos", "0,1.5,4.5", "--camera-target", "0,1,0", "--fov", "40"];
+        record(&dir, &[&SETTINGS[..], &["--scene", obj.to_str().unwrap()], &camera[..], &args[..]].concat());
+        let report = ok(&["analyze", "numerics", dir.to_str().unwrap()]);
+        assert_clean(&report, name);
+        assert!(count(&report, "wrong_shadow").is_some(), "{name}: the lamp is an emitter\n{report}");
+        let on_sphere =
+            "SELECT count(*) FROM rays r JOIN triangles t ON r.prim = t.prim WHERE t.material_name = 'shiny'";
+        let n: u64 = scalar(&[dir.to_str().unwrap()], on_sphere).parse().unwrap();
+        assert!(n > 100, "{name}: {n} rays hit the sphere");
+    }
+}
+
+/// Writes a UV sphere (16 x 8, radius 1 at y = 1) on a floor under an emissive quad, with its
+/// materials; the OBJ's path.
+fn sphere_obj(dir: &std::path::Path) -> std::path::PathBuf {
+    use std::fmt::Write as _;
+    let mut o = String::from("mtllib s.mtl\n");
+    let (seg, rings) = (16usize, 8usize);
+    let _ = writeln!(o, "v 0 2 0");
+    for r in 1..rings {
+        let th = std::f64::consts::PI * r as f64 / rings as f64;
+        for k in 0..seg {
+            let ph = 2.0 * std::f64::consts::PI * k as f64 / seg as f64;
+            let _ = writeln!(o, "v {} {} {}", th.sin() * ph.cos(), 1.0 + th.cos(), th.sin() * ph.sin());
+        }
+    }
+    let _ = writeln!(o, "v 0 0 0");
+    let south = 2 + (rings - 1) * seg;
+    let at = |r: usize, k: usize| 2 + (r - 1) * seg + k % seg;
+    o.push_str("usemtl shiny\n");
+    for k in 0..seg {
+        let _ = writeln!(o, "f 1 {} {}", at(1, k + 1), at(1, k));
+        let _ = writeln!(o, "f {south} {} {}", at(rings - 1, k), at(rings - 1, k + 1));
+        for r in 1..rings - 1 {
+            let _ = writeln!(o, "f {} {} {}", at(r, k), at(r, k + 1), at(r + 1, k + 1));
+            let _ = writeln!(o, "f {} {} {}", at(r, k), at(r + 1, k + 1), at(r + 1, k));
+        }
+    }
+    let v = south + 1;
+    o.push_str("v -4 -0.001 -4\nv 4 -0.001 -4\nv 4 -0.001 4\nv -4 -0.001 4\nusemtl white\n");
+    let _ = writeln!(o, "f {} {} {}\nf {} {} {}", v, v + 2, v + 1, v, v + 3, v + 2);
+    o.push_str("v -1 4 -1\nv 1 4 -1\nv 1 4 1\nv -1 4 1\nusemtl lamp\n");
+    let _ = writeln!(o, "f {} {} {}\nf {} {} {}", v + 4, v + 5, v + 6, v + 4, v + 6, v + 7);
+    std::fs::write(dir.join("s.mtl"), "newmtl white\nKd 0.7 0.7 0.7\nnewmtl shiny\nKd 0.4 0.3 0.3\nKs 0.4 0.4 0.4\nNs 32\nnewmtl lamp\nKd 0 0 0\nKe 15 15 15\n").unwrap();
+    let path = dir.join("sphere.obj");
+    std::fs::write(&path, o).unwrap();
+    path
 }
