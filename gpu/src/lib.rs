@@ -2,6 +2,9 @@
 
 use std::sync::{Arc, Mutex};
 
+/// The longest [`Gpu::wait`] waits for submitted work before it is an error.
+pub const WAIT_LIMIT: std::time::Duration = std::time::Duration::from_secs(600);
+
 /// What package gives a machine with no GPU adapter one (Debian/Ubuntu names): Mesa's Vulkan
 /// driver on the CPU, or Mesa's EGL for wgpu's GL backend.
 pub const INSTALL_HINT: &str = "install Mesa's software drivers: `apt-get install mesa-vulkan-drivers` (Vulkan, \
@@ -213,9 +216,18 @@ impl Gpu {
         }
     }
 
-    /// Waits for all submitted work.
+    /// Waits for all submitted work. wgpu's GL backend gives up an "indefinite" wait after its
+    /// own timeout while a software rasterizer (llvmpipe) is still drawing millions of lines, so
+    /// a timed-out wait is waited again, for up to `WAIT_LIMIT` in all.
     pub fn wait(&self) -> Result<()> {
-        self.device.poll(wgpu::PollType::wait_indefinitely()).map(|_| ()).map_err(|e| Error::Gpu(e.to_string()))
+        let start = std::time::Instant::now();
+        loop {
+            match self.device.poll(wgpu::PollType::wait_indefinitely()) {
+                Ok(_) => return Ok(()),
+                Err(wgpu::PollError::Timeout) if start.elapsed() < WAIT_LIMIT => continue,
+                Err(e) => return Err(Error::Gpu(format!("{e} (after {:.0} s)", start.elapsed().as_secs_f64()))),
+            }
+        }
     }
 
     /// Maps `buf` (made with `MAP_READ`) after the work submitted so far and copies `keep` out of
