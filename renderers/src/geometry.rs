@@ -90,15 +90,17 @@ pub fn intersect_triangle(ray: &Ray, v0: Vec3A, v1: Vec3A, v2: Vec3A, tmin: f32,
     let cz = ray.sz * c[kz];
     let t_scaled = u * az + v * bz + w * cz;
     let inv = 1.0 / det;
-    let t = t_scaled * inv;
+    let mut t = t_scaled * inv;
     if !(t > tmin && t < tmax) {
         return None;
     }
     // pbrt's conservative bound on t's rounding error (Pharr et al., 4th ed., 6.8.6): a hit no
-    // farther than it may be behind the origin. A ray leaving a floor at y = 0 by 2^-16 (the
-    // offset near the origin) meets the floor's 550 mm vertices with an error of ~5e-5 in t, so
-    // without this its sign could flip into a hit at t = 2e-5 (found by `analyze bvh --whatif`,
-    // whose binned-SAH leaves test the floor where the tracers' do not).
+    // farther than it may be behind the origin, so it is decided again in double precision. A ray
+    // leaving a floor at y = 0 by 2^-16 (the offset near the origin) meets the floor's 550 mm
+    // vertices with an error of ~5e-5 in t: in f32 alone its sign flipped into a hit at t = 2e-5
+    // (found by `analyze bvh --whatif`, whose binned-SAH leaves test the floor where the tracers'
+    // do not); rejecting every hit within the bound instead lost a bounce's real hit on the wall
+    // 0.005 away.
     let max_xt = ax.abs().max(bx.abs()).max(cx.abs());
     let max_yt = ay.abs().max(by.abs()).max(cy.abs());
     let max_zt = az.abs().max(bz.abs()).max(cz.abs());
@@ -109,7 +111,12 @@ pub fn intersect_triangle(ray: &Ray, v0: Vec3A, v1: Vec3A, v2: Vec3A, tmin: f32,
     let max_e = u.abs().max(v.abs()).max(w.abs());
     let delta_t = 3.0 * (gamma(3) * max_e * max_zt + delta_e * max_zt + delta_z * max_e) * inv.abs();
     if t <= delta_t {
-        return None;
+        let d = |p: Vec3A| [f64::from(p.x), f64::from(p.y), f64::from(p.z)];
+        let t64 = store::geom::ray_triangle(d(ray.origin), d(ray.dir), &[d(v0), d(v1), d(v2)])?;
+        t = t64 as f32;
+        if !(t > tmin && t < tmax) {
+            return None;
+        }
     }
     // u weighs v0, v weighs v1, w weighs v2.
     Some(TriHit { t, u: v * inv, v: w * inv })

@@ -457,11 +457,14 @@ pub struct Replay {
 }
 
 /// Whether a replayed closest hit agrees with the recorded one: both miss, or the distances agree
-/// within 1e-4 relative (a float tie between triangles gives the same distance).
-fn agrees(recorded: Option<f32>, replayed: Option<f32>) -> bool {
+/// within 1e-4 relative plus 2^-16 of the origin's magnitude (the f32 error of a distance to
+/// triangles with coordinates that large; a float tie between triangles gives the same distance).
+fn agrees(origin: Vec3A, recorded: Option<f32>, replayed: Option<f32>) -> bool {
     match (recorded, replayed) {
         (None, None) => true,
-        (Some(a), Some(b)) => (a - b).abs() <= 1e-4 * a.abs().max(b.abs()).max(1e-30),
+        (Some(a), Some(b)) => {
+            (a - b).abs() <= 1e-4 * a.abs().max(b.abs()) + origin.abs().max_element().max(1.0) / 65536.0
+        }
         _ => false,
     }
 }
@@ -486,7 +489,7 @@ pub fn replay(tree: &ReplayTree, tris: &[[Vec3A; 3]], rays: &[RecordedRay], thre
                         let hit = tree.closest(tris, &ray, 0.0, tmax, &mut by[r.kind as usize]);
                         if r.closest {
                             checked += 1;
-                            if agrees(r.t, hit.map(|h| h.0)) {
+                            if agrees(r.origin, r.t, hit.map(|h| h.0)) {
                                 agree += 1;
                             } else if disagree.len() < 5 {
                                 disagree.push((c * chunk + i, r.t, hit.map(|h| h.0)));
