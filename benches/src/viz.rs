@@ -27,6 +27,21 @@ fn rss() -> (u64, u64) {
     (field("VmRSS:"), field("VmHWM:"))
 }
 
+/// Renders `c` once into `target` from `camera` (no preview budget, no occluder).
+fn render_once(
+    c: &mut Rays,
+    gpu: &Gpu,
+    sources: &Sources,
+    camera: &rtvtk_viz::ViewCamera,
+    frame: rtvtk_viz::camera::Frame,
+    target: &LayerTarget,
+) -> Result<()> {
+    let progress = rtvtk_viz::component::Progress::default();
+    let mut ctx = RenderCtx { gpu, sources, camera, frame, target, progress: &progress, preview: None, occluder: None };
+    c.render(&mut ctx)?;
+    Ok(())
+}
+
 pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, rounds: usize) -> Result<()> {
     let sources = Sources::open(dataset)?;
     let total = sources.dataset.as_ref().map_or(0, |d| d.ray_count());
@@ -50,19 +65,7 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
             let mut settings = warm.settings();
             settings["style"] = serde_json::json!(style);
             warm.set_settings(&settings)?;
-            let progress = rtvtk_viz::component::Progress::default();
-            let cam = sources.initial_camera();
-            let mut ctx = RenderCtx {
-                gpu: &gpu,
-                sources: &sources,
-                camera: &cam,
-                frame,
-                target: &target,
-                progress: &progress,
-                preview: None,
-                occluder: None,
-            };
-            warm.render(&mut ctx)?;
+            render_once(&mut warm, &gpu, &sources, &sources.initial_camera(), frame, &target)?;
         }
         gpu.wait()?;
     }
@@ -88,21 +91,10 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
             rays.set_settings(&settings)?;
             let mut cam = sources.initial_camera();
             let mut times = Vec::with_capacity(frames);
-            let progress = rtvtk_viz::component::Progress::default();
             for i in 0..frames + 2 {
                 cam.orbit(0.002, 0.0);
                 let t = Instant::now();
-                let mut ctx = RenderCtx {
-                    gpu: &gpu,
-                    sources: &sources,
-                    camera: &cam,
-                    frame,
-                    target: &target,
-                    progress: &progress,
-                    preview: None,
-                    occluder: None,
-                };
-                rays.render(&mut ctx)?;
+                render_once(&mut rays, &gpu, &sources, &cam, frame, &target)?;
                 gpu.wait()?;
                 if i >= 2 {
                     times.push(t.elapsed().as_secs_f64());
