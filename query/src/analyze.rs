@@ -681,7 +681,8 @@ pub async fn numerics(ctx: &Engine) -> Result<Report> {
     for (c, missing) in &checks {
         let n = counts.get(c.name).copied().unwrap_or(0.0);
         if c.name == "wrong_shadow" {
-            wrong_shadow(ctx, &mut rep, missing.is_none(), size).await?;
+            // Its count is the view's, already taken with the others.
+            wrong_shadow(ctx, &mut rep, missing.is_none().then_some(n), size).await?;
             continue;
         }
         if missing.is_some() || n == 0.0 {
@@ -710,14 +711,14 @@ pub async fn numerics(ctx: &Engine) -> Result<Report> {
 }
 
 /// The paper's Figure-1 bug in detail: shadow rays aiming at no light, by depth and by the ray
-/// they leave from, the pixels with the most, and their heatmap.
-async fn wrong_shadow(ctx: &Engine, rep: &mut Report, lights: bool, size: (usize, usize)) -> Result<()> {
+/// they leave from, the pixels with the most, and their heatmap; `wrong` is their count (None:
+/// the trace has no lights).
+async fn wrong_shadow(ctx: &Engine, rep: &mut Report, wrong: Option<f64>, size: (usize, usize)) -> Result<()> {
     rep.heading("Shadow rays aiming at no light (the paper's Figure 1 bug)");
-    if !lights {
+    let Some(n) = wrong else {
         rep.para("*(the trace has no `lights` table: this check needs the emitters)*");
         return Ok(());
-    }
-    let n = scalar(ctx, &format!("SELECT count(*) FROM rays WHERE {WRONG_SHADOW}")).await?;
+    };
     let all = scalar(ctx, "SELECT count(*) FROM rays WHERE kind = 'shadow'").await?;
     rep.para(&format!(
         "**{}** of {} shadow rays ({}%) point at no emitter.",

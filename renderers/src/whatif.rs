@@ -401,7 +401,7 @@ pub fn binned_sah(tris: &[[Vec3A; 3]], leaf: u32) -> ReplayTree {
             tree.prims.extend_from_slice(ids);
             continue;
         };
-        let mut m = itertools_partition(ids, |i| boxes[*i as usize].2[axis] < at);
+        let mut m = partition_front(ids, |i| boxes[*i as usize].2[axis] < at);
         if m == 0 || m == n {
             m = n / 2;
         }
@@ -420,7 +420,7 @@ pub fn binned_sah(tris: &[[Vec3A; 3]], leaf: u32) -> ReplayTree {
 }
 
 /// Moves the elements that satisfy `f` to the front; how many there are.
-fn itertools_partition<T>(v: &mut [T], f: impl Fn(&T) -> bool) -> usize {
+fn partition_front<T>(v: &mut [T], f: impl Fn(&T) -> bool) -> usize {
     let mut m = 0;
     for i in 0..v.len() {
         if f(&v[i]) {
