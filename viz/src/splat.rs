@@ -146,6 +146,9 @@ struct SplatUniform {
     extra: [f32; 4],
 }
 
+/// The WGSL of [`SplatUniform`], prepended to each of the styles' shaders.
+const UNIFORM_WGSL: &str = include_str!("shaders/splat_uniform.wgsl");
+
 /// The accumulation buffers and pipelines of one line layer (made on its first styled draw).
 pub struct Splat {
     layout: wgpu::BindGroupLayout,
@@ -218,7 +221,8 @@ impl Splat {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        let source = format!("{}\n{}", include_str!("shaders/lines.wgsl"), include_str!("shaders/splat.wgsl"));
+        let source =
+            format!("{}\n{UNIFORM_WGSL}{}", include_str!("shaders/lines.wgsl"), include_str!("shaders/splat.wgsl"));
         let module = shader(gpu, "splat", &source);
         let accumulate = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("splat accumulate"),
@@ -249,7 +253,8 @@ impl Splat {
             multiview_mask: None,
             cache: None,
         });
-        let reduce_module = shader(gpu, "splat reduce", include_str!("shaders/splat_reduce.wgsl"));
+        let reduce_source = format!("{UNIFORM_WGSL}{}", include_str!("shaders/splat_reduce.wgsl"));
+        let reduce_module = shader(gpu, "splat reduce", &reduce_source);
         let reduce = gpu.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("splat reduce"),
             layout: None,
@@ -261,7 +266,7 @@ impl Splat {
         let resolve = crate::draw::fullscreen_pipeline(
             gpu,
             "splat resolve",
-            include_str!("shaders/splat_resolve.wgsl"),
+            &format!("{UNIFORM_WGSL}{}", include_str!("shaders/splat_resolve.wgsl")),
             None,
             true,
         );

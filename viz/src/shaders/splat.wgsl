@@ -11,17 +11,6 @@
 // A fragment behind the occluder (the scene's depth) adds nothing: with no depth of its own per
 // pixel, the layer is hidden behind surfaces here, not in the compositor.
 
-struct Splat {
-    // layer near, far; occluder near, far
-    ranges: vec4<f32>,
-    // style (1 alpha, 2 density), relative depth bias, occluder present (> 0.5), log scale (> 0.5)
-    params: vec4<f32>,
-    // width, height, pixels, colour map (1) or the rays' own colours (0)
-    size: vec4<u32>,
-    // opacity, unused x3
-    extra: vec4<f32>,
-};
-
 @group(0) @binding(2) var<storage, read_write> acc: array<atomic<u32>>;
 @group(0) @binding(3) var occ_depth: texture_2d<f32>;
 @group(0) @binding(4) var<uniform> splat: Splat;

@@ -1,14 +1,6 @@
 // The largest ray count of a density accumulation and the pixels any ray reached (`splat.rs`):
 // a workgroup's maximum first, then one atomic per workgroup.
 
-struct Splat {
-    ranges: vec4<f32>,
-    params: vec4<f32>,
-    size: vec4<u32>,
-    // opacity, unused x3
-    extra: vec4<f32>,
-};
-
 @group(0) @binding(0) var<storage, read> acc: array<u32>;
 @group(0) @binding(1) var<storage, read_write> stats: array<atomic<u32>>;
 @group(0) @binding(2) var<uniform> splat: Splat;

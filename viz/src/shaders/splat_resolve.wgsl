@@ -3,16 +3,6 @@
 //   by default, linear n / max when asked; the hue is the mean colour of the rays at the pixel;
 // - alpha: the weighted average colour, covering 1 - exp(-sum of -ln(1 - a)).
 
-struct Splat {
-    ranges: vec4<f32>,
-    // style, bias, occluder present, log scale
-    params: vec4<f32>,
-    // width, height, pixels, colour map (1)
-    size: vec4<u32>,
-    // opacity, unused x3
-    extra: vec4<f32>,
-};
-
 @group(0) @binding(0) var<storage, read> acc: array<u32>;
 @group(0) @binding(1) var<storage, read> stats: array<u32>;
 @group(0) @binding(2) var<uniform> splat: Splat;
