@@ -304,6 +304,14 @@ pub(crate) struct SegmentPlan {
 
 /// Tree-id filters at most this wide read only the tree-table pages that hold those ids.
 const NARROW_TREE_IDS: u64 = 1 << 16;
+/// Pixel filters (on both `pixel_x` and `pixel_y`) covering at most this many pixels read only
+/// the tree-table pages whose pixel statistics can hold them.
+const NARROW_PIXELS: u64 = 1 << 16;
+
+/// How many values inclusive ranges cover.
+fn span(r: &[(u64, u64)]) -> u64 {
+    r.iter().map(|&(lo, hi)| hi.saturating_sub(lo).saturating_add(1)).fold(0u64, u64::saturating_add)
+}
 
 impl Pushdown {
     fn of(filters: &[Expr]) -> Self {
@@ -372,6 +380,13 @@ impl Pushdown {
             if !overlaps(self.ranges.get(col::TREE_ID), seg.tree_id_min, seg.tree_id_max) {
                 continue;
             }
+            let pb = &seg.stats.pixel_bounds;
+            let pixels_may_match = pb.is_empty()
+                || (overlaps(self.ranges.get(col::PIXEL_X), u64::from(pb.min[0]), u64::from(pb.max[0]))
+                    && overlaps(self.ranges.get(col::PIXEL_Y), u64::from(pb.min[1]), u64::from(pb.max[1])));
+            if !pixels_may_match {
+                continue;
+            }
             let by_kind = &seg.stats.rays_by_kind_depth;
             if !by_kind.is_empty() {
                 let any = by_kind.iter().any(|(kind, counts)| {
@@ -395,23 +410,30 @@ impl Pushdown {
             let min_depth = self.min_depth();
             let keep = |e: &TreeEntry| {
                 contains(self.ranges.get(col::TREE_ID), e.info.id.0)
-                    && contains(self.ranges.get("pixel_x"), u64::from(e.info.pixel[0]))
-                    && contains(self.ranges.get("pixel_y"), u64::from(e.info.pixel[1]))
-                    && contains(self.ranges.get("sample"), u64::from(e.info.sample))
+                    && contains(self.ranges.get(col::PIXEL_X), u64::from(e.info.pixel[0]))
+                    && contains(self.ranges.get(col::PIXEL_Y), u64::from(e.info.pixel[1]))
+                    && contains(self.ranges.get(col::SAMPLE), u64::from(e.info.sample))
                     && u64::from(e.info.max_depth) >= min_depth
             };
-            // A narrow tree-id filter reads only its trees (and keeps the kept ones for the scan).
-            let narrow = self.ranges.get(col::TREE_ID).filter(|r| {
-                r.iter().map(|&(lo, hi)| hi.saturating_sub(lo).saturating_add(1)).fold(0u64, u64::saturating_add)
-                    <= NARROW_TREE_IDS
-            });
-            let entries = match narrow {
-                Some(ids) => {
-                    let mut kept = ds.segment_tree_entries_in(i, ids)?;
-                    kept.retain(|e| keep(e));
-                    Arc::new(kept)
-                }
-                None => ds.segment_tree_entries(i)?,
+            // A narrow tree-id or pixel filter reads only the tree-table pages that can hold its
+            // trees (and keeps the kept ones for the scan).
+            let narrow_ids = self.ranges.get(col::TREE_ID).is_some_and(|r| span(r) <= NARROW_TREE_IDS);
+            let narrow_pixels = match (self.ranges.get(col::PIXEL_X), self.ranges.get(col::PIXEL_Y)) {
+                (Some(x), Some(y)) => span(x).saturating_mul(span(y)) <= NARROW_PIXELS,
+                _ => false,
+            };
+            let entries = if narrow_ids || narrow_pixels {
+                let filter = store::TreeFilter {
+                    tree_id: self.ranges.get(col::TREE_ID).cloned(),
+                    pixel_x: self.ranges.get(col::PIXEL_X).cloned(),
+                    pixel_y: self.ranges.get(col::PIXEL_Y).cloned(),
+                    sample: self.ranges.get(col::SAMPLE).cloned(),
+                };
+                let mut kept = ds.segment_tree_entries_where(i, &filter)?;
+                kept.retain(|e| keep(e));
+                Arc::new(kept)
+            } else {
+                ds.segment_tree_entries(i)?
             };
             let mut rows: Vec<Range<u64>> = Vec::new();
             let mut rays = 0u64;
@@ -437,7 +459,13 @@ impl Pushdown {
                 }
                 Some(Arc::new(merged))
             };
-            out.push(SegmentPlan { segment: i, rows, trees, rays, entries: narrow.is_some().then_some(entries) });
+            out.push(SegmentPlan {
+                segment: i,
+                rows,
+                trees,
+                rays,
+                entries: (narrow_ids || narrow_pixels).then_some(entries),
+            });
         }
         Ok(out)
     }

@@ -109,6 +109,13 @@ fn check(ds: &Dataset) -> CheckReport {
                     seg.id, seg.tree_id_min, seg.tree_id_max
                 ));
             }
+            let pb = &seg.stats.pixel_bounds;
+            if !pb.is_empty() && !pb.contains(e.info.pixel) {
+                r.errors.push(format!(
+                    "segment {}: tree {id} at pixel ({}, {}) outside the manifest's pixel bounds {:?}..={:?}",
+                    seg.id, e.info.pixel[0], e.info.pixel[1], pb.min, pb.max
+                ));
+            }
             if !all_ids.insert(id) {
                 r.errors.push(format!("segment {}: tree {id} appears more than once in the dataset", seg.id));
             }

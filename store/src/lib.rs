@@ -19,7 +19,7 @@ mod writer;
 pub use check::CheckReport;
 pub use codec::{Decoder, ENC_T, ENCODED_COLUMNS, Encoding, KIND_CODE, file_schema};
 pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
-pub use dataset::{Dataset, TreeEntry, TreeIter};
+pub use dataset::{Dataset, TreeEntry, TreeFilter, TreeIter};
 pub use error::{Error, Result};
 pub use manifest::{FORMAT_NAME, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, PayloadColumnDecl, SegmentEntry};
 pub use planes::{PLANES_KEY, Planes};
@@ -28,6 +28,6 @@ pub use schema::{
     BUILTIN_KINDS, BytesPayload, CORE_COLUMN_COUNT, CORE_RAY_COLUMNS, Kind, KindTable, PayloadField, PayloadSchema,
     Storage, TREE_COLUMNS, kind_data_type, ray_schema, ray_table_schema, tree_schema,
 };
-pub use stats::{Bounds, Stats};
+pub use stats::{Bounds, PixelBounds, Stats};
 pub use tree::{Ray, Tree, TreeId, TreeInfo, rays_from_batch, validate_tree};
 pub use writer::{CrcWriter, DatasetWriter, SegmentWriter, WriteOptions, export_plain};

@@ -52,6 +52,48 @@ impl Bounds {
     }
 }
 
+/// The pixels a set of trees belongs to: an inclusive rectangle, empty until a tree is added.
+/// Segments carry theirs in the manifest, so a lookup by pixel opens only the segments whose
+/// rectangle holds the pixel (manifests written before it have none: every segment is a candidate).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PixelBounds {
+    pub min: [u32; 2],
+    pub max: [u32; 2],
+}
+
+impl Default for PixelBounds {
+    fn default() -> Self {
+        Self { min: [u32::MAX; 2], max: [0; 2] }
+    }
+}
+
+impl PixelBounds {
+    pub fn is_empty(&self) -> bool {
+        self.min[0] > self.max[0] || self.min[1] > self.max[1]
+    }
+
+    /// Grows the rectangle to hold pixel `p`.
+    #[inline]
+    pub fn add(&mut self, p: [u32; 2]) {
+        for ((lo, hi), c) in self.min.iter_mut().zip(self.max.iter_mut()).zip(p) {
+            *lo = (*lo).min(c);
+            *hi = (*hi).max(c);
+        }
+    }
+
+    pub fn merge(&mut self, other: &PixelBounds) {
+        if !other.is_empty() {
+            self.add(other.min);
+            self.add(other.max);
+        }
+    }
+
+    /// Whether pixel `p` is inside.
+    pub fn contains(&self, p: [u32; 2]) -> bool {
+        (0..2).all(|i| self.min[i] <= p[i] && p[i] <= self.max[i])
+    }
+}
+
 /// Ray and tree counts by kind and depth, and the scene bounds the rays span.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Stats {
@@ -71,6 +113,9 @@ pub struct Stats {
     /// Bounds of the finite hit points (origin + t · direction; absent while empty).
     #[serde(default, skip_serializing_if = "Bounds::is_empty")]
     pub hit_bounds: Bounds,
+    /// The pixels of the trees (absent while empty, and in manifests written before 2026-12-05).
+    #[serde(default, skip_serializing_if = "PixelBounds::is_empty")]
+    pub pixel_bounds: PixelBounds,
 }
 
 /// Whether `v` is finite: its exponent bits are not all ones (a bit test instead of classifying
@@ -166,6 +211,7 @@ impl Stats {
         }
         for t in &cols.trees {
             bump(&mut s.trees_by_max_depth, t.max_depth as usize, 1);
+            s.pixel_bounds.add([t.pixel_x, t.pixel_y]);
         }
         s
     }
@@ -258,6 +304,7 @@ impl Stats {
         }
         self.origin_bounds.merge(&other.origin_bounds);
         self.hit_bounds.merge(&other.hit_bounds);
+        self.pixel_bounds.merge(&other.pixel_bounds);
     }
 
     /// Ray counts per kind.

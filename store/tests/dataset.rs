@@ -385,6 +385,73 @@ fn tree_lookups_by_id_range_read_the_right_pages() {
     }
 }
 
+/// A pixel's trees found from a fresh open (only the segments whose manifest pixel bounds hold
+/// it, and in them only the tree-table pages whose pixel statistics can) are exactly those the
+/// whole index finds, for every pixel, with and without a sample; a pixel no tree has gives none.
+#[test]
+fn pixel_lookups_without_the_index_agree_with_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    let schema = PayloadSchema::default();
+    let w = DatasetWriter::create(&path, schema.clone(), WriteOptions::default()).unwrap();
+    let kinds = KindTable::default();
+    // Three segments, each a band of image rows traced tile by tile with 4 samples per pixel (as
+    // the tracers do), ~50K trees per segment: several pages per tree table.
+    let (width, band, spp) = (256u32, 48u32, 4u32);
+    let mut id = 0u64;
+    for s in 0..3u32 {
+        let mut seg = w.open_segment().unwrap();
+        let mut cols = RayColumns::new(&schema);
+        for ty in (s * band..(s + 1) * band).step_by(16) {
+            for tx in (0..width).step_by(16) {
+                for y in ty..ty + 16 {
+                    for x in tx..tx + 16 {
+                        for sample in 0..spp {
+                            chain(&mut cols, &schema, id, (id % 3 + 1) as u32, [x, y]);
+                            cols.trees.last_mut().unwrap().sample = sample;
+                            id += 1;
+                        }
+                    }
+                }
+            }
+        }
+        seg.write(cols, &schema, &kinds).unwrap();
+        seg.seal(&w, &kinds).unwrap();
+    }
+    w.mark_complete().unwrap();
+    let ds = Dataset::open(&path).unwrap();
+    for (i, seg) in ds.manifest().segments.iter().enumerate() {
+        let pb = seg.stats.pixel_bounds;
+        assert_eq!((pb.min, pb.max), ([0, i as u32 * band], [width - 1, (i as u32 + 1) * band - 1]), "segment {i}");
+    }
+    assert_eq!(ds.manifest().stats.pixel_bounds.max, [width - 1, 3 * band - 1]);
+    let pixels = [[0, 0], [255, 143], [17, 47], [17, 48], [200, 95], [200, 96], [3, 100], [255, 144], [256, 0]];
+    let full = Dataset::open(&path).unwrap();
+    full.tree_entries().unwrap(); // loads the whole index
+    for [x, y] in pixels {
+        for sample in [None, Some(0), Some(3), Some(4)] {
+            let fresh = Dataset::open(&path).unwrap();
+            let got = fresh.tree_entries_at_pixel(x, y, sample).unwrap();
+            let want = full.tree_entries_at_pixel(x, y, sample).unwrap();
+            assert_eq!(got, want, "pixel ({x}, {y}) sample {sample:?}");
+            let expected = if x < width && y < 3 * band { sample.map_or(spp, |s| u32::from(s < spp)) } else { 0 };
+            assert_eq!(got.len() as u32, expected, "pixel ({x}, {y}) sample {sample:?}");
+            assert!(got.iter().all(|e| e.info.pixel == [x, y]));
+        }
+    }
+    assert!(ds.check().errors.is_empty(), "{:?}", ds.check().errors);
+    // Bounds that leave out a tree's pixel are named by `check`.
+    let manifest = path.join("manifest.json");
+    let mut m: serde_json::Value = serde_json::from_str(&fs::read_to_string(&manifest).unwrap()).unwrap();
+    m["segments"][1]["stats"]["pixel_bounds"]["max"][1] = serde_json::json!(60);
+    fs::write(&manifest, serde_json::to_string(&m).unwrap()).unwrap();
+    let errors = Dataset::open(&path).unwrap().check().errors;
+    assert!(
+        errors.iter().any(|e| e.contains("segment 2") && e.contains("outside the manifest's pixel bounds")),
+        "{errors:?}"
+    );
+}
+
 /// Trees written out of id order (as tracing threads end them), more than one block of tree rows
 /// per segment, and a second segment that refills the first one's emptied blocks, its ids
 /// interleaved with the first's: every tree file comes out sorted by id, the index merges them

@@ -34,18 +34,24 @@ impl Dataset {
     /// only the tree-table pages whose id range (the file's page index) overlaps `ranges`, so a
     /// lookup of a few trees does not decode the whole table; uses the table when already loaded.
     pub fn segment_tree_entries_in(&self, i: usize, ranges: &[(u64, u64)]) -> Result<Vec<TreeEntry>> {
-        let wanted = |id: u64| ranges.iter().any(|&(lo, hi)| lo <= id && id <= hi);
+        self.segment_tree_entries_where(i, &TreeFilter { tree_id: Some(ranges.to_vec()), ..Default::default() })
+    }
+
+    /// The trees of segment `i` that `filter` keeps, sorted by id. Reads only the tree-table
+    /// pages whose statistics (the file's page index: min/max of `tree_id`, `pixel_x`, `pixel_y`,
+    /// `sample` per page) can hold a kept tree; uses the table when already loaded.
+    pub fn segment_tree_entries_where(&self, i: usize, filter: &TreeFilter) -> Result<Vec<TreeEntry>> {
         if let Some(all) = self.segment_trees.get(i).and_then(|c| c.get()) {
-            return Ok(all.iter().filter(|e| wanted(e.info.id.0)).copied().collect());
+            return Ok(all.iter().filter(|e| filter.keeps(&e.info)).copied().collect());
         }
         let path = self.dir.join(&self.segment(i).trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
         let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
         let meta = ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path))?;
         check_schema(meta.schema(), &tree_schema(), &path)?;
-        let Some(rows) = tree_id_pages(&meta, ranges) else {
+        let Some(rows) = filter_pages(&meta, filter) else {
             // No page index (not written by this store): the whole table.
-            return Ok(self.segment_tree_entries(i)?.iter().filter(|e| wanted(e.info.id.0)).copied().collect());
+            return Ok(self.segment_tree_entries(i)?.iter().filter(|e| filter.keeps(&e.info)).copied().collect());
         };
         let mut out = Vec::new();
         if rows.is_empty() {
@@ -62,7 +68,7 @@ impl Dataset {
             let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
             push_tree_entries(&b, i, &mut out, &path)?;
         }
-        out.retain(|e| wanted(e.info.id.0));
+        out.retain(|e| filter.keeps(&e.info));
         out.sort_unstable_by_key(|e| e.info.id);
         Ok(out)
     }
@@ -191,9 +197,28 @@ impl Dataset {
     }
 
     /// Where the trees of a pixel are (of one sample, or of all), ordered by sample then id;
-    /// reads no rays.
+    /// reads no rays. With the whole index loaded it is a lookup in it; otherwise only the
+    /// segments whose pixel bounds (manifest) hold the pixel are opened, and in them only the
+    /// tree-table pages whose pixel and sample statistics can hold it, so the first lookup on a
+    /// large trace reads a few pages instead of every tree table.
     pub fn tree_entries_at_pixel(&self, x: u32, y: u32, sample: Option<u32>) -> Result<Vec<TreeEntry>> {
-        let ix = self.index()?;
+        let Some(ix) = self.index.get() else {
+            let filter = TreeFilter {
+                pixel_x: Some(vec![(u64::from(x), u64::from(x))]),
+                pixel_y: Some(vec![(u64::from(y), u64::from(y))]),
+                sample: sample.map(|s| vec![(u64::from(s), u64::from(s))]),
+                ..Default::default()
+            };
+            let mut out = Vec::new();
+            for (i, seg) in self.manifest.segments.iter().enumerate() {
+                let pb = &seg.stats.pixel_bounds;
+                if pb.is_empty() || pb.contains([x, y]) {
+                    out.extend(self.segment_tree_entries_where(i, &filter)?);
+                }
+            }
+            out.sort_unstable_by_key(|e| (e.info.sample, e.info.id));
+            return Ok(out);
+        };
         let key = |k: &u32| {
             let i = &ix.by_id[*k as usize].info;
             (i.pixel[1], i.pixel[0])
@@ -210,6 +235,41 @@ impl Dataset {
             }
         }
         Ok(out)
+    }
+}
+
+/// Which trees a lookup wants: inclusive ranges of each tree-table column (`None`: any value).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct TreeFilter {
+    pub tree_id: Option<Vec<(u64, u64)>>,
+    pub pixel_x: Option<Vec<(u64, u64)>>,
+    pub pixel_y: Option<Vec<(u64, u64)>>,
+    pub sample: Option<Vec<(u64, u64)>>,
+}
+
+impl TreeFilter {
+    /// Whether a tree with this metadata is wanted.
+    pub fn keeps(&self, i: &TreeInfo) -> bool {
+        let inside = |r: &Option<Vec<(u64, u64)>>, v: u64| {
+            r.as_ref().is_none_or(|r| r.iter().any(|&(lo, hi)| lo <= v && v <= hi))
+        };
+        inside(&self.tree_id, i.id.0)
+            && inside(&self.pixel_x, u64::from(i.pixel[0]))
+            && inside(&self.pixel_y, u64::from(i.pixel[1]))
+            && inside(&self.sample, u64::from(i.sample))
+    }
+
+    /// The constrained columns and their ranges.
+    fn columns(&self) -> impl Iterator<Item = (&'static str, &[(u64, u64)])> {
+        use crate::schema::col;
+        [
+            (col::TREE_ID, &self.tree_id),
+            (col::PIXEL_X, &self.pixel_x),
+            (col::PIXEL_Y, &self.pixel_y),
+            (col::SAMPLE, &self.sample),
+        ]
+        .into_iter()
+        .filter_map(|(name, r)| r.as_deref().map(|r| (name, r)))
     }
 }
 
@@ -268,27 +328,71 @@ pub(super) fn push_tree_entries(b: &RecordBatch, segment: usize, out: &mut Vec<T
     Ok(())
 }
 
-/// The rows (file-wide, sorted, merged) of the tree-table pages whose `tree_id` min/max overlaps
-/// `ranges`; None when the file has no page index for the column.
-pub(super) fn tree_id_pages(meta: &ArrowReaderMetadata, ranges: &[(u64, u64)]) -> Option<Vec<std::ops::Range<u64>>> {
+/// The rows (file-wide, sorted, merged) of the tree-table pages that can hold a tree `filter`
+/// keeps: for each constrained column, the pages whose min/max overlaps its ranges, intersected
+/// over the columns (their pages need not line up). None when the file lacks a page index for a
+/// constrained column.
+pub(super) fn filter_pages(meta: &ArrowReaderMetadata, filter: &TreeFilter) -> Option<Vec<std::ops::Range<u64>>> {
+    let total: u64 = meta.metadata().row_groups().iter().map(|g| g.num_rows() as u64).sum();
+    let mut rows: Vec<std::ops::Range<u64>> = std::iter::once(0..total).collect();
+    for (name, ranges) in filter.columns() {
+        let kept = column_pages(meta, name, ranges)?;
+        rows = intersect(&rows, &kept);
+        if rows.is_empty() {
+            break;
+        }
+    }
+    Some(rows)
+}
+
+/// The intersection of two sorted lists of disjoint row ranges.
+fn intersect(a: &[std::ops::Range<u64>], b: &[std::ops::Range<u64>]) -> Vec<std::ops::Range<u64>> {
+    let (mut i, mut j, mut out) = (0, 0, Vec::new());
+    while i < a.len() && j < b.len() {
+        let (lo, hi) = (a[i].start.max(b[j].start), a[i].end.min(b[j].end));
+        if lo < hi {
+            out.push(lo..hi);
+        }
+        if a[i].end < b[j].end {
+            i += 1;
+        } else {
+            j += 1;
+        }
+    }
+    out
+}
+
+/// The rows of the pages of column `name` whose min/max overlaps `ranges` (sorted, merged).
+fn column_pages(meta: &ArrowReaderMetadata, name: &str, ranges: &[(u64, u64)]) -> Option<Vec<std::ops::Range<u64>>> {
     use parquet::file::page_index::column_index::ColumnIndexMetaData;
     let md = meta.metadata();
     let (columns, offsets) = (md.column_index()?, md.offset_index()?);
+    let c = md.file_metadata().schema_descr().columns().iter().position(|c| c.path().parts() == [name])?;
     let mut rows: Vec<std::ops::Range<u64>> = Vec::new();
     let mut group_start = 0u64;
     for (g, rg) in md.row_groups().iter().enumerate() {
         let group_rows = rg.num_rows() as u64;
-        let ColumnIndexMetaData::INT64(index) = columns.get(g)?.first()? else { return None };
-        let pages = offsets.get(g)?.first()?.page_locations();
+        let pages = offsets.get(g)?.get(c)?.page_locations();
+        // Unsigned values are stored as signed bit patterns: below 2^31 (2^63) the orders agree,
+        // outside it the page is kept (no pruning rather than a wrong one).
+        let bounds = |p: usize| -> (u64, u64) {
+            let got = match columns.get(g).and_then(|c2| c2.get(c)) {
+                Some(ColumnIndexMetaData::INT64(ix)) => match (ix.min_value(p), ix.max_value(p)) {
+                    (Some(&lo), Some(&hi)) if lo >= 0 && hi >= lo => Some((lo as u64, hi as u64)),
+                    _ => None,
+                },
+                Some(ColumnIndexMetaData::INT32(ix)) => match (ix.min_value(p), ix.max_value(p)) {
+                    (Some(&lo), Some(&hi)) if lo >= 0 && hi >= lo => Some((lo as u64, hi as u64)),
+                    _ => None,
+                },
+                _ => None,
+            };
+            got.unwrap_or((0, u64::MAX))
+        };
         for (p, loc) in pages.iter().enumerate() {
             let first = loc.first_row_index as u64;
             let end = pages.get(p + 1).map_or(group_rows, |n| n.first_row_index as u64);
-            // Ids are stored as INT64 bit patterns of u64; below 2^63 the orders agree, above it
-            // the page is kept (no pruning rather than a wrong one).
-            let (lo, hi) = match (index.min_value(p), index.max_value(p)) {
-                (Some(&lo), Some(&hi)) if lo >= 0 && hi >= lo => (lo as u64, hi as u64),
-                _ => (0, u64::MAX),
-            };
+            let (lo, hi) = bounds(p);
             if ranges.iter().any(|&(a, b)| a <= hi && lo <= b) {
                 let r = group_start + first..group_start + end;
                 match rows.last_mut() {

@@ -6,8 +6,8 @@ mod index;
 mod read;
 mod scan;
 
-pub use index::TreeEntry;
 use index::TreeIndex;
+pub use index::{TreeEntry, TreeFilter};
 use read::{cores, select_rows};
 pub use scan::TreeIter;
 

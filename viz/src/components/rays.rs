@@ -576,7 +576,15 @@ fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<BTreeMap<us
             Err(e) => return Err(e.into()),
         },
         (None, Some([x, y])) => ds.tree_entries_at_pixel(x, y, s.sample)?,
-        (None, None) => ds.tree_entries()?,
+        (None, None) => {
+            let sample = s.sample.map(|v| vec![(u64::from(v), u64::from(v))]);
+            let filter = store::TreeFilter { sample, ..Default::default() };
+            let mut all = Vec::new();
+            for i in 0..ds.manifest().segments.len() {
+                all.extend(ds.segment_tree_entries_where(i, &filter)?);
+            }
+            all
+        }
     };
     entries.retain(|e| {
         s.pixel.is_none_or(|p| p == e.info.pixel)
