@@ -3,12 +3,24 @@
 use std::path::Path;
 
 use anyhow::Result;
+use indicatif::{ProgressBar, ProgressStyle};
 use rl::Dataset;
 use serde_json::json;
 
 pub fn run(dir: &Path, as_json: bool) -> Result<i32> {
     let ds = Dataset::open(dir)?;
-    let r = ds.check();
+    // A bar in rays (stderr, hidden when it is not a terminal); segments are checked in parallel.
+    let bar = ProgressBar::new(ds.ray_count());
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} checking [{bar:40}] {human_pos}/{human_len} rays {elapsed_precise} eta {eta}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let t0 = std::time::Instant::now();
+    let r = ds.check_with(&|rays| bar.inc(rays));
+    bar.finish_and_clear();
+    let secs = t0.elapsed().as_secs_f64();
     if as_json {
         println!("{}", serde_json::to_string_pretty(&json!({"ok": r.is_ok(), "report": r}))?);
     } else {
@@ -19,11 +31,12 @@ pub fn run(dir: &Path, as_json: bool) -> Result<i32> {
             println!("warning: {w}");
         }
         println!(
-            "{}: {} segments, {} trees, {} rays checked; {} errors, {} warnings",
+            "{}: {} segments, {} trees, {} rays checked in {secs:.2} s ({:.1} Mrays/s); {} errors, {} warnings",
             if r.is_ok() { "ok" } else { "FAILED" },
             r.segments,
             r.trees,
             r.rays,
+            r.rays as f64 / secs.max(1e-9) / 1e6,
             r.errors.len(),
             r.warnings.len()
         );

@@ -10,6 +10,7 @@ use std::path::Path;
 use crate::dataset::Dataset;
 use crate::manifest::Manifest;
 use crate::stats::Stats;
+use crate::tree::TreeValidator;
 
 const MAX_PER_SEGMENT: usize = 20;
 
@@ -54,141 +55,109 @@ fn listed_files(m: &Manifest) -> HashSet<String> {
 impl Dataset {
     /// Verifies every invariant of the dataset; problems are collected, not returned as errors.
     pub fn check(&self) -> CheckReport {
-        check(self)
+        self.check_with(&|_| {})
+    }
+
+    /// [`Dataset::check`], calling `progress` with the rays of each segment once it is checked.
+    /// Segments are checked on up to all cores at once; memory holds a few segments' tree tables
+    /// (plus the tree ids of segments whose id ranges overlap), whatever the trace's length.
+    pub fn check_with(&self, progress: &(dyn Fn(u64) + Sync)) -> CheckReport {
+        check(self, progress)
     }
 }
 
-fn check(ds: &Dataset) -> CheckReport {
+/// What checking one segment found.
+#[derive(Default)]
+struct SegmentCheck {
+    errors: Vec<String>,
+    trees: u64,
+    rays: u64,
+    /// The segment's tree ids, sorted, when its id range overlaps another segment's (for the
+    /// dataset-wide uniqueness check).
+    ids: Option<Vec<u64>>,
+}
+
+/// Segments whose manifest id ranges overlap another segment's: only their ids can collide.
+fn overlapping_segments(m: &Manifest) -> HashSet<usize> {
+    let mut order: Vec<usize> = (0..m.segments.len()).collect();
+    order.sort_unstable_by_key(|&i| (m.segments[i].tree_id_min, m.segments[i].tree_id_max));
+    let mut out = HashSet::new();
+    let mut reach: Option<(u64, usize)> = None; // the greatest max so far and its segment
+    for &i in &order {
+        let s = &m.segments[i];
+        if let Some((hi, j)) = reach
+            && s.tree_id_min <= hi
+        {
+            out.insert(i);
+            out.insert(j);
+        }
+        if reach.is_none_or(|(hi, _)| s.tree_id_max > hi) {
+            reach = Some((s.tree_id_max, i));
+        }
+    }
+    out
+}
+
+fn check(ds: &Dataset, progress: &(dyn Fn(u64) + Sync)) -> CheckReport {
     let m = ds.manifest();
     let mut r = CheckReport { segments: m.segments.len(), ..Default::default() };
-    let mut all_ids: HashSet<u64> = HashSet::new();
     let mut total = Stats::default();
-    for (i, seg) in m.segments.iter().enumerate() {
+    for seg in &m.segments {
         total.merge(&seg.stats);
-        let before = r.errors.len();
-        // Files: present, same size and checksum as the manifest says.
-        for f in [&seg.rays, &seg.trees] {
-            let path = ds.dir().join(&f.path);
-            match crc_of(&path) {
-                Ok((_, n)) if n != f.bytes => r.errors.push(format!(
-                    "segment {}: expected {} bytes, found {n} ({})",
-                    seg.id,
-                    f.bytes,
-                    path.display()
-                )),
-                Ok((crc, _)) if crc != f.crc32 => r.errors.push(format!(
-                    "segment {}: expected CRC32 {:08x}, computed {crc:08x}: file is corrupted ({})",
-                    seg.id,
-                    f.crc32,
-                    path.display()
-                )),
-                Ok(_) => {}
-                Err(e) => r.errors.push(format!("segment {}: cannot read: {e} ({})", seg.id, path.display())),
-            }
-        }
-        if r.errors.len() > before {
+    }
+    let overlapping = overlapping_segments(m);
+    // Segments on up to all cores (each segment decodes on one); results kept in segment order.
+    let n = m.segments.len();
+    let threads = crate::dataset::cores().clamp(1, 8).min(n.max(1));
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let mut results: Vec<Option<SegmentCheck>> = (0..n).map(|_| None).collect();
+    let done: Vec<Vec<(usize, SegmentCheck)>> = std::thread::scope(|sc| {
+        let handles: Vec<_> = (0..threads)
+            .map(|_| {
+                sc.spawn(|| {
+                    let mut mine = Vec::new();
+                    loop {
+                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        if i >= n {
+                            break;
+                        }
+                        let c = check_segment(ds, i, overlapping.contains(&i));
+                        progress(m.segments[i].rays.rows);
+                        mine.push((i, c));
+                    }
+                    mine
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap_or_default()).collect()
+    });
+    for (i, c) in done.into_iter().flatten() {
+        results[i] = Some(c);
+    }
+    let mut shared_ids: Vec<Vec<(u64, u32)>> = Vec::new();
+    for (i, c) in results.into_iter().enumerate() {
+        let Some(c) = c else {
+            r.errors.push(format!("segment {}: the thread checking it failed", m.segments[i].id));
             continue;
-        }
-        if let Err(e) = ds.segment_meta_checked(i) {
-            r.errors.push(format!("segment {}: {e}", seg.id));
-            continue;
-        }
-        // Tree table: ids in range and unique, rows tiling the ray file exactly.
-        let mut entries = match ds.segment_entries(i) {
-            Ok(e) => e,
-            Err(e) => {
-                r.errors.push(format!("segment {}: {e}", seg.id));
-                continue;
-            }
         };
-        for e in &entries {
-            let id = e.info.id.0;
-            if id < seg.tree_id_min || id > seg.tree_id_max {
-                r.errors.push(format!(
-                    "segment {}: tree {id} outside the manifest's id range {}..={}",
-                    seg.id, seg.tree_id_min, seg.tree_id_max
-                ));
-            }
-            let pb = &seg.stats.pixel_bounds;
-            if !pb.is_empty() && !pb.contains(e.info.pixel) {
-                r.errors.push(format!(
-                    "segment {}: tree {id} at pixel ({}, {}) outside the manifest's pixel bounds {:?}..={:?}",
-                    seg.id, e.info.pixel[0], e.info.pixel[1], pb.min, pb.max
-                ));
-            }
-            if !all_ids.insert(id) {
-                r.errors.push(format!("segment {}: tree {id} appears more than once in the dataset", seg.id));
-            }
+        r.errors.extend(c.errors);
+        r.trees += c.trees;
+        r.rays += c.rays;
+        if let Some(ids) = c.ids {
+            shared_ids.push(ids.into_iter().map(|id| (id, m.segments[i].id)).collect());
         }
-        entries.sort_unstable_by_key(|e| e.first_row);
-        let mut row = 0u64;
-        for e in &entries {
-            if e.first_row != row {
-                r.errors.push(format!(
-                    "segment {}: tree {} starts at row {}, expected row {row} (trees must tile the ray file)",
-                    seg.id, e.info.id, e.first_row
-                ));
-                break;
+    }
+    // Tree ids unique across segments: only segments with overlapping id ranges can share one;
+    // their sorted ids are merged.
+    if shared_ids.len() > 1 {
+        let mut last: Option<u64> = None;
+        let mut reported = 0;
+        for &(id, seg) in crate::columns::RunMerge::new(&shared_ids, |t: &(u64, u32)| t.0) {
+            if last == Some(id) && reported < MAX_PER_SEGMENT {
+                r.errors.push(format!("segment {seg}: tree {id} appears more than once in the dataset"));
+                reported += 1;
             }
-            row += u64::from(e.info.ray_count);
-        }
-        if row != seg.rays.rows {
-            r.errors.push(format!(
-                "segment {}: tree table covers {row} rays, the ray file holds {}",
-                seg.id, seg.rays.rows
-            ));
-        }
-        // Version 2: every row group starts with a whole tree (so each decodes on its own).
-        if m.format_version >= 2 && m.encoding != crate::Encoding::Plain {
-            match ds.row_group_starts(i) {
-                Ok(starts) => {
-                    let tree_starts: HashSet<u64> = entries.iter().map(|e| e.first_row).collect();
-                    if let Some(bad) = starts.iter().find(|s| !tree_starts.contains(s)) {
-                        r.errors.push(format!(
-                            "segment {}: a row group starts at row {bad}, inside a tree (row groups must start at trees)",
-                            seg.id
-                        ));
-                    }
-                }
-                Err(e) => r.errors.push(format!("segment {}: {e}", seg.id)),
-            }
-        }
-        if r.errors.len() > before {
-            continue;
-        }
-        // Rays: every tree whole and well formed; kinds as counted.
-        let mut by_kind: BTreeMap<String, u64> = BTreeMap::new();
-        let mut trees = ds.trees_of_segment(i, entries);
-        let mut seg_errors = 0;
-        while let Some(t) = trees.next() {
-            match t {
-                Ok(t) => {
-                    r.trees += 1;
-                    r.rays += t.rays.len() as u64;
-                    for ray in &t.rays {
-                        let name = ds.kinds().name(ray.kind).unwrap_or("?").to_string();
-                        *by_kind.entry(name).or_default() += 1;
-                    }
-                }
-                Err(e) => {
-                    seg_errors += 1;
-                    r.errors.push(format!("segment {}: {e}", seg.id));
-                    if seg_errors >= MAX_PER_SEGMENT {
-                        r.errors.push(format!("segment {}: more errors not shown", seg.id));
-                        break;
-                    }
-                    if trees.is_broken() {
-                        break;
-                    }
-                }
-            }
-        }
-        if seg_errors == 0 && by_kind != seg.stats.rays_by_kind() {
-            r.errors.push(format!(
-                "segment {}: rays by kind in the file {by_kind:?} differ from the manifest's {:?}",
-                seg.id,
-                seg.stats.rays_by_kind()
-            ));
+            last = Some(id);
         }
     }
     if total.rays != m.stats.rays || total.trees != m.stats.trees {
@@ -237,4 +206,236 @@ fn check(ds: &Dataset) -> CheckReport {
         );
     }
     r
+}
+
+/// Every invariant of segment `i`: its files' sizes and checksums, its tree table (ids in the
+/// manifest's range and unique, pixels in its bounds, trees tiling the ray file, row groups
+/// starting at trees), and every ray decoded and checked against its tree, straight from the
+/// decoded columns (no per-tree batches).
+fn check_segment(ds: &Dataset, i: usize, keep_ids: bool) -> SegmentCheck {
+    let m = ds.manifest();
+    let seg = &m.segments[i];
+    let mut c = SegmentCheck::default();
+    let r = &mut c.errors;
+    // Files: present, same size and checksum as the manifest says.
+    for f in [&seg.rays, &seg.trees] {
+        let path = ds.dir().join(&f.path);
+        match crc_of(&path) {
+            Ok((_, n)) if n != f.bytes => {
+                r.push(format!("segment {}: expected {} bytes, found {n} ({})", seg.id, f.bytes, path.display()))
+            }
+            Ok((crc, _)) if crc != f.crc32 => r.push(format!(
+                "segment {}: expected CRC32 {:08x}, computed {crc:08x}: file is corrupted ({})",
+                seg.id,
+                f.crc32,
+                path.display()
+            )),
+            Ok(_) => {}
+            Err(e) => r.push(format!("segment {}: cannot read: {e} ({})", seg.id, path.display())),
+        }
+    }
+    if !r.is_empty() {
+        return c;
+    }
+    if let Err(e) = ds.segment_meta_checked(i) {
+        r.push(format!("segment {}: {e}", seg.id));
+        return c;
+    }
+    // Tree table (sorted by id): ids in range and unique, pixels in bounds.
+    let mut entries = match ds.segment_entries(i) {
+        Ok(e) => e,
+        Err(e) => {
+            r.push(format!("segment {}: {e}", seg.id));
+            return c;
+        }
+    };
+    let pb = &seg.stats.pixel_bounds;
+    let mut last: Option<u64> = None;
+    for e in &entries {
+        let id = e.info.id.0;
+        if id < seg.tree_id_min || id > seg.tree_id_max {
+            r.push(format!(
+                "segment {}: tree {id} outside the manifest's id range {}..={}",
+                seg.id, seg.tree_id_min, seg.tree_id_max
+            ));
+        }
+        if !pb.is_empty() && !pb.contains(e.info.pixel) {
+            r.push(format!(
+                "segment {}: tree {id} at pixel ({}, {}) outside the manifest's pixel bounds {:?}..={:?}",
+                seg.id, e.info.pixel[0], e.info.pixel[1], pb.min, pb.max
+            ));
+        }
+        if last == Some(id) {
+            r.push(format!("segment {}: tree {id} appears more than once in the dataset", seg.id));
+        }
+        last = Some(id);
+        if r.len() >= MAX_PER_SEGMENT {
+            r.push(format!("segment {}: more errors not shown", seg.id));
+            return c;
+        }
+    }
+    if keep_ids {
+        c.ids = Some(entries.iter().map(|e| e.info.id.0).collect());
+    }
+    // Rows tiling the ray file exactly.
+    entries.sort_unstable_by_key(|e| e.first_row);
+    let mut row = 0u64;
+    for e in &entries {
+        if e.first_row != row {
+            r.push(format!(
+                "segment {}: tree {} starts at row {}, expected row {row} (trees must tile the ray file)",
+                seg.id, e.info.id, e.first_row
+            ));
+            break;
+        }
+        row += u64::from(e.info.ray_count);
+    }
+    if row != seg.rays.rows {
+        r.push(format!("segment {}: tree table covers {row} rays, the ray file holds {}", seg.id, seg.rays.rows));
+    }
+    // Version 2: every row group starts with a whole tree (so each decodes on its own).
+    if m.format_version >= 2 && m.encoding != crate::Encoding::Plain {
+        match ds.row_group_starts(i) {
+            Ok(starts) => {
+                let mut k = 0;
+                for &s in &starts {
+                    while k < entries.len() && entries[k].first_row < s {
+                        k += 1;
+                    }
+                    if entries.get(k).is_none_or(|e| e.first_row != s) {
+                        r.push(format!(
+                            "segment {}: a row group starts at row {s}, inside a tree (row groups must start at trees)",
+                            seg.id
+                        ));
+                        break;
+                    }
+                }
+            }
+            Err(e) => r.push(format!("segment {}: {e}", seg.id)),
+        }
+    }
+    if !r.is_empty() {
+        return c;
+    }
+    // Rays: every row decoded, every tree whole and well formed; kinds as counted.
+    match check_rays(ds, i, &entries, &mut c) {
+        Ok(by_kind) => {
+            if c.errors.is_empty() && by_kind != seg.stats.rays_by_kind() {
+                c.errors.push(format!(
+                    "segment {}: rays by kind in the file {by_kind:?} differ from the manifest's {:?}",
+                    seg.id,
+                    seg.stats.rays_by_kind()
+                ));
+            }
+        }
+        Err(e) => c.errors.push(format!("segment {}: {e}", seg.id)),
+    }
+    c
+}
+
+/// Decodes every column of segment `i`'s ray file and checks each tree of `entries` (sorted by
+/// first row, tiling the file) row by row; counts trees and rays into `c`, tree problems into its
+/// errors. Returns the rays counted by kind name.
+fn check_rays(
+    ds: &Dataset,
+    i: usize,
+    entries: &[crate::TreeEntry],
+    c: &mut SegmentCheck,
+) -> crate::Result<BTreeMap<String, u64>> {
+    use crate::schema::col;
+    use arrow::array::{Array, AsArray};
+    use arrow::datatypes::{UInt8Type, UInt16Type, UInt32Type, UInt64Type};
+    let seg = &ds.manifest().segments[i];
+    let path = ds.dir().join(&seg.rays.path);
+    let corrupt =
+        |what: &str, message: String| crate::Error::Corrupt { path: path.clone(), what: what.into(), message };
+    let mut by_code: BTreeMap<String, u64> = BTreeMap::new();
+    let mut v = TreeValidator::default();
+    let mut k = 0usize; // the current tree in `entries`
+    let mut reported = 0usize;
+    let finish = |v: &mut TreeValidator, c: &mut SegmentCheck, reported: &mut usize| {
+        c.trees += 1;
+        if let Err(message) = v.finish() {
+            if *reported < MAX_PER_SEGMENT {
+                c.errors.push(format!("segment {}: {}", seg.id, corrupt("ray file", message)));
+            } else if *reported == MAX_PER_SEGMENT {
+                c.errors.push(format!("segment {}: more errors not shown", seg.id));
+            }
+            *reported += 1;
+        }
+    };
+    // Trees without rays come first in their place; start the first tree.
+    let begin = |k: &mut usize, v: &mut TreeValidator, c: &mut SegmentCheck, reported: &mut usize| -> u64 {
+        while let Some(e) = entries.get(*k) {
+            v.start(e.info);
+            if e.info.ray_count > 0 {
+                return u64::from(e.info.ray_count);
+            }
+            finish(v, c, reported);
+            *k += 1;
+        }
+        0
+    };
+    let mut left = begin(&mut k, &mut v, c, &mut reported); // rows of tree `k` still to come
+    for b in ds.segment_batches(i)? {
+        let b = b?;
+        let get = |name: &str| {
+            b.column_by_name(name).ok_or_else(|| corrupt("ray file", format!("no column {name} after decoding")))
+        };
+        let ids = get(col::TREE_ID)?
+            .as_primitive_opt::<UInt64Type>()
+            .ok_or_else(|| corrupt("column `tree_id`", "not UInt64".into()))?;
+        let ray = get(col::RAY)?
+            .as_primitive_opt::<UInt32Type>()
+            .ok_or_else(|| corrupt("column `ray`", "not UInt32".into()))?;
+        let parent = get(col::PARENT)?
+            .as_primitive_opt::<UInt32Type>()
+            .ok_or_else(|| corrupt("column `parent`", "not UInt32".into()))?;
+        let depth = get(col::DEPTH)?
+            .as_primitive_opt::<UInt16Type>()
+            .ok_or_else(|| corrupt("column `depth`", "not UInt16".into()))?;
+        let kind = get(col::KIND)?
+            .as_dictionary_opt::<UInt8Type>()
+            .ok_or_else(|| corrupt("column `kind`", "not Dictionary(UInt8, Utf8)".into()))?;
+        let names =
+            kind.values().as_string_opt::<i32>().ok_or_else(|| corrupt("column `kind`", "values not Utf8".into()))?;
+        let mut counts = vec![0u64; names.len()];
+        for (&key, n) in kind.keys().values().iter().zip(0..b.num_rows()) {
+            let key = key as usize;
+            if key >= counts.len() || kind.keys().is_null(n) {
+                return Err(corrupt("column `kind`", format!("dictionary key {key} out of range")));
+            }
+            counts[key] += 1;
+        }
+        for (key, &n) in counts.iter().enumerate() {
+            if n > 0 {
+                let name = names.value(key);
+                if !ds.manifest().kinds.contains_key(name) {
+                    return Err(corrupt("column `kind`", format!("kind {name:?} is not declared in the manifest")));
+                }
+                *by_code.entry(name.to_string()).or_default() += n;
+            }
+        }
+        let (ids, ray, depth) = (ids.values(), ray.values(), depth.values());
+        for row in 0..b.num_rows() {
+            if left == 0 {
+                return Err(corrupt("ray file", format!("row {} is past the last tree of the tree table", c.rays)));
+            }
+            v.push(ids[row], ray[row], parent.is_valid(row).then(|| parent.value(row)), depth[row]);
+            c.rays += 1;
+            left -= 1;
+            if left == 0 {
+                finish(&mut v, c, &mut reported);
+                k += 1;
+                left = begin(&mut k, &mut v, c, &mut reported);
+            }
+        }
+    }
+    if left > 0 || k < entries.len() {
+        return Err(corrupt(
+            "ray file",
+            format!("the file ends inside tree {} of the tree table", entries.get(k).map_or(0, |e| e.info.id.0)),
+        ));
+    }
+    Ok(by_code)
 }

@@ -29,5 +29,5 @@ pub use schema::{
     Storage, TREE_COLUMNS, kind_data_type, ray_schema, ray_table_schema, tree_schema,
 };
 pub use stats::{Bounds, PixelBounds, Stats};
-pub use tree::{Ray, Tree, TreeId, TreeInfo, rays_from_batch, validate_tree};
+pub use tree::{Ray, Tree, TreeId, TreeInfo, TreeValidator, rays_from_batch, validate_tree};
 pub use writer::{CrcWriter, DatasetWriter, SegmentWriter, WriteOptions, export_plain};

@@ -183,36 +183,84 @@ pub fn tree_ids_of(batch: &RecordBatch, path: &Path) -> Result<Vec<u64>> {
 
 /// Checks that `rays` form the tree `info`: ids, order, parents one level up.
 pub fn validate_tree(info: &TreeInfo, tree_ids: &[u64], rays: &[Ray]) -> std::result::Result<(), String> {
-    if rays.len() != info.ray_count as usize {
-        return Err(format!("tree {} lists {} rays, found {}", info.id, info.ray_count, rays.len()));
+    let mut v = TreeValidator::default();
+    v.start(*info);
+    for (r, &id) in rays.iter().zip(tree_ids) {
+        v.push(id, r.index, r.parent, r.depth);
     }
-    let mut max_depth = 0;
-    for (i, r) in rays.iter().enumerate() {
-        if tree_ids[i] != info.id.0 {
-            return Err(format!("tree {}: row {i} belongs to tree {}", info.id, tree_ids[i]));
-        }
-        if r.index as usize != i {
-            return Err(format!("tree {}: ray at position {i} has index {}", info.id, r.index));
-        }
-        match r.parent {
-            None if r.depth != 0 => {
-                return Err(format!("tree {}: root ray {i} has depth {}, expected 0", info.id, r.depth));
-            }
-            Some(p) if p as usize >= i => {
-                return Err(format!("tree {}: ray {i} has parent {p}, expected an earlier ray", info.id));
-            }
-            Some(p) if rays[p as usize].depth + 1 != r.depth => {
-                return Err(format!(
-                    "tree {}: ray {i} at depth {} has parent {p} at depth {}, expected one level up",
-                    info.id, r.depth, rays[p as usize].depth
-                ));
-            }
-            _ => {}
-        }
-        max_depth = max_depth.max(r.depth);
+    if tree_ids.len() < rays.len() {
+        return Err(format!("tree {}: {} tree ids for {} rays", info.id, tree_ids.len(), rays.len()));
     }
-    if !rays.is_empty() && max_depth != info.max_depth {
-        return Err(format!("tree {}: tree table says max depth {}, rays reach {max_depth}", info.id, info.max_depth));
+    v.finish()
+}
+
+/// [`validate_tree`] one row at a time, so a scan can check trees straight from decoded columns
+/// (trees may span batches) without building [`Ray`]s. The first problem of a tree is kept.
+#[derive(Debug, Default)]
+pub struct TreeValidator {
+    info: Option<TreeInfo>,
+    /// Depths of the tree's rows so far.
+    depths: Vec<u16>,
+    max_depth: u16,
+    error: Option<String>,
+}
+
+impl TreeValidator {
+    /// Begins tree `info` (forgetting the previous one).
+    pub fn start(&mut self, info: TreeInfo) {
+        self.info = Some(info);
+        self.depths.clear();
+        self.max_depth = 0;
+        self.error = None;
     }
-    Ok(())
+
+    /// The tree's next row.
+    #[inline]
+    pub fn push(&mut self, tree_id: u64, index: u32, parent: Option<u32>, depth: u16) {
+        let i = self.depths.len();
+        self.depths.push(depth);
+        if self.error.is_some() {
+            return;
+        }
+        let Some(info) = &self.info else { return };
+        let id = info.id;
+        let problem = if tree_id != id.0 {
+            Some(format!("tree {id}: row {i} belongs to tree {tree_id}"))
+        } else if index as usize != i {
+            Some(format!("tree {id}: ray at position {i} has index {index}"))
+        } else {
+            match parent {
+                None if depth != 0 => Some(format!("tree {id}: root ray {i} has depth {depth}, expected 0")),
+                Some(p) if p as usize >= i => {
+                    Some(format!("tree {id}: ray {i} has parent {p}, expected an earlier ray"))
+                }
+                Some(p) if self.depths[p as usize].checked_add(1) != Some(depth) => Some(format!(
+                    "tree {id}: ray {i} at depth {depth} has parent {p} at depth {}, expected one level up",
+                    self.depths[p as usize]
+                )),
+                _ => None,
+            }
+        };
+        self.error = problem;
+        self.max_depth = self.max_depth.max(depth);
+    }
+
+    /// The verdict on the tree begun last: its rows' count and deepest ray against its metadata.
+    pub fn finish(&mut self) -> std::result::Result<(), String> {
+        let Some(info) = self.info.take() else { return Ok(()) };
+        let n = self.depths.len();
+        if n != info.ray_count as usize {
+            return Err(format!("tree {} lists {} rays, found {n}", info.id, info.ray_count));
+        }
+        if let Some(e) = self.error.take() {
+            return Err(e);
+        }
+        if n > 0 && self.max_depth != info.max_depth {
+            return Err(format!(
+                "tree {}: tree table says max depth {}, rays reach {}",
+                info.id, info.max_depth, self.max_depth
+            ));
+        }
+        Ok(())
+    }
 }

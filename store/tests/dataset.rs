@@ -524,3 +524,54 @@ fn a_known_table_that_does_not_match_its_schema_is_refused_on_write_and_on_read(
     let e = ds.table("lights").unwrap_err().to_string();
     assert!(e.contains("`lights`") && e.contains("`v1_y` is missing"), "{e}");
 }
+
+/// `check` verifies each tree's rows against the tree table from the decoded columns: a ray whose
+/// depth is not its parent's plus one, a tree table that claims another depth, and a tree id
+/// written in two segments whose id ranges overlap are each named, in plain and lossless files;
+/// segments whose id ranges do not overlap are not compared, and a sound trace has no error.
+#[test]
+fn check_names_malformed_trees_and_ids_shared_across_segments() {
+    for encoding in [store::Encoding::Plain, store::Encoding::Lossless] {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("ds");
+        let schema = PayloadSchema::default();
+        let options = WriteOptions { encoding, ..WriteOptions::default() };
+        let w = DatasetWriter::create(&path, schema.clone(), options).unwrap();
+        let kinds = KindTable::default();
+        // Segment 1: trees 0..1000 (tree 500's third ray one level too deep, tree 700's table row
+        // claiming depth 9); segment 2: tree 990 again, then 1000..1999; segment 3: 5000..5100.
+        let segments: [Vec<u64>; 3] =
+            [(0..1000).collect(), std::iter::once(990).chain(1000..1999).collect(), (5000..5100).collect()];
+        for (s, ids) in segments.into_iter().enumerate() {
+            let mut seg = w.open_segment().unwrap();
+            let mut cols = RayColumns::new(&schema);
+            for id in ids {
+                chain(&mut cols, &schema, id, 4, [(id % 64) as u32, (id / 64) as u32]);
+                if s == 0 && id == 500 {
+                    let row = cols.len() - 2;
+                    cols.depth[row] = 3;
+                }
+                if s == 0 && id == 700 {
+                    cols.trees.last_mut().unwrap().max_depth = 9;
+                }
+            }
+            seg.write(cols, &schema, &kinds).unwrap();
+            seg.seal(&w, &kinds).unwrap();
+        }
+        w.mark_complete().unwrap();
+        let report = Dataset::open(&path).unwrap().check();
+        let has = |needle: &str| report.errors.iter().any(|e| e.contains(needle));
+        assert!(
+            has("tree 500: ray 2 at depth 3 has parent 1 at depth 1, expected one level up"),
+            "{:?}",
+            report.errors
+        );
+        assert!(has("tree 700: tree table says max depth 9, rays reach 3"), "{:?}", report.errors);
+        assert!(has("tree 990 appears more than once in the dataset"), "{:?}", report.errors);
+        assert_eq!(report.errors.len(), 3, "{encoding:?}: {:?}", report.errors);
+        assert_eq!((report.trees, report.rays), (2100, 8400));
+    }
+    let (_d, path) = sample_dataset();
+    let report = Dataset::open(&path).unwrap().check();
+    assert!(report.is_ok(), "{:?}", report.errors);
+}

@@ -8,7 +8,8 @@ mod scan;
 
 use index::TreeIndex;
 pub use index::{TreeEntry, TreeFilter};
-use read::{cores, select_rows};
+pub(crate) use read::cores;
+use read::select_rows;
 pub use scan::TreeIter;
 
 use std::collections::{BTreeSet, HashMap};

@@ -254,7 +254,7 @@ impl Dataset {
 pub(super) const PARALLEL_READ_ROWS: u64 = 64 * 1024;
 
 /// Cores this process may use (asked once).
-pub(super) fn cores() -> usize {
+pub(crate) fn cores() -> usize {
     static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
     *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
