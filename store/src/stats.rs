@@ -159,11 +159,12 @@ fn lane_pick(c: &[f32], init: f32, better: impl Fn(f32, f32) -> bool + Copy) -> 
     acc.iter().chain(rest).fold(init, |m, &v| if better(v, m) { v } else { m })
 }
 
+/// Adds `by` to count `i` (saturating: counts read from a manifest are not trusted).
 fn bump(v: &mut Vec<u64>, i: usize, by: u64) {
     if v.len() <= i {
         v.resize(i + 1, 0);
     }
-    v[i] += by;
+    v[i] = v[i].saturating_add(by);
 }
 
 impl Stats {
@@ -287,12 +288,13 @@ impl Stats {
         }
     }
 
-    /// Adds another set of statistics into this one.
+    /// Adds another set of statistics into this one (saturating: a manifest's counts are not
+    /// trusted, and `check` compares the sums with what the files hold).
     pub fn merge(&mut self, other: &Stats) {
-        self.rays += other.rays;
-        self.trees += other.trees;
-        self.misses += other.misses;
-        self.non_finite += other.non_finite;
+        self.rays = self.rays.saturating_add(other.rays);
+        self.trees = self.trees.saturating_add(other.trees);
+        self.misses = self.misses.saturating_add(other.misses);
+        self.non_finite = self.non_finite.saturating_add(other.non_finite);
         for (k, v) in &other.rays_by_kind_depth {
             let mine = self.rays_by_kind_depth.entry(k.clone()).or_default();
             for (d, c) in v.iter().enumerate() {
@@ -309,7 +311,10 @@ impl Stats {
 
     /// Ray counts per kind.
     pub fn rays_by_kind(&self) -> BTreeMap<String, u64> {
-        self.rays_by_kind_depth.iter().map(|(k, v)| (k.clone(), v.iter().sum())).collect()
+        self.rays_by_kind_depth
+            .iter()
+            .map(|(k, v)| (k.clone(), v.iter().fold(0u64, |a, &c| a.saturating_add(c))))
+            .collect()
     }
 
     /// Ray counts per depth.

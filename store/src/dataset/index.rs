@@ -9,12 +9,12 @@ impl Dataset {
         let seg = self.segment(i);
         let path = self.dir.join(&seg.trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
-        let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path))?;
+        let builder = guard(&path, || ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path)))?;
         check_schema(builder.schema(), &tree_schema(), &path)?;
-        let reader = builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?;
-        let mut out = Vec::with_capacity(seg.trees.rows as usize);
+        let reader = Guarded::new(builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?, &path);
+        let mut out = Vec::with_capacity((seg.trees.rows as usize).min(1 << 22));
         for batch in reader {
-            let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+            let b = batch?;
             push_tree_entries(&b, i, &mut out, &path)?;
         }
         if out.len() as u64 != seg.trees.rows {
@@ -47,7 +47,7 @@ impl Dataset {
         let path = self.dir.join(&self.segment(i).trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
         let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
-        let meta = ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path))?;
+        let meta = guard(&path, || ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path)))?;
         check_schema(meta.schema(), &tree_schema(), &path)?;
         let Some(rows) = filter_pages(&meta, filter) else {
             // No page index (not written by this store): the whole table.
@@ -64,8 +64,8 @@ impl Dataset {
             .with_batch_size(64 * 1024)
             .build()
             .map_err(pq_err(&path))?;
-        for batch in reader {
-            let b = batch.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+        for batch in Guarded::new(reader, &path) {
+            let b = batch?;
             push_tree_entries(&b, i, &mut out, &path)?;
         }
         out.retain(|e| filter.keeps(&e.info));
@@ -333,7 +333,8 @@ pub(super) fn push_tree_entries(b: &RecordBatch, segment: usize, out: &mut Vec<T
 /// over the columns (their pages need not line up). None when the file lacks a page index for a
 /// constrained column.
 pub(super) fn filter_pages(meta: &ArrowReaderMetadata, filter: &TreeFilter) -> Option<Vec<std::ops::Range<u64>>> {
-    let total: u64 = meta.metadata().row_groups().iter().map(|g| g.num_rows() as u64).sum();
+    let total: u64 =
+        meta.metadata().row_groups().iter().fold(0u64, |a, g| a.saturating_add(g.num_rows().max(0) as u64));
     let mut rows: Vec<std::ops::Range<u64>> = std::iter::once(0..total).collect();
     for (name, ranges) in filter.columns() {
         let kept = column_pages(meta, name, ranges)?;

@@ -167,8 +167,8 @@ impl Dataset {
         let Some((path, reader)) = self.table_reader(name)? else { return Ok(None) };
         let schema = reader.schema().clone();
         let mut batches = Vec::new();
-        for b in reader.build().map_err(pq_err(&path))? {
-            batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
+        for b in Guarded::new(reader.build().map_err(pq_err(&path))?, &path) {
+            batches.push(b?);
         }
         concat_batches(&schema, &batches).map(Some).map_err(arrow_err(path.display().to_string()))
     }
@@ -178,7 +178,7 @@ impl Dataset {
     fn table_reader(&self, name: &str) -> Result<Option<(PathBuf, ParquetRecordBatchReaderBuilder<File>)>> {
         let Some(path) = self.table_file(name)? else { return Ok(None) };
         let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
-        let builder = ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))?;
+        let builder = guard(&path, || ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path)))?;
         if let Err(message) = crate::scene::check_table(name, builder.schema()) {
             return Err(Error::Table { name: name.into(), path, message });
         }
@@ -219,14 +219,17 @@ impl Dataset {
         }
         let path = self.dir.join(&self.segment(i).rays.path);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let meta = ArrowReaderMetadata::load(
-            &file,
-            ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required),
-        )
-        .map_err(pq_err(&path))?;
+        let meta = guard(&path, || {
+            ArrowReaderMetadata::load(
+                &file,
+                ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required),
+            )
+            .map_err(pq_err(&path))
+        })?;
         check_schema(meta.schema(), &self.file_schema, &path)?;
         let starts = row_group_starts(&meta);
-        let row: u64 = meta.metadata().row_groups().iter().map(|g| g.num_rows() as u64).sum();
+        let row: u64 =
+            meta.metadata().row_groups().iter().fold(0u64, |a, g| a.saturating_add(g.num_rows().max(0) as u64));
         if row != self.segment(i).rays.rows {
             return Err(Error::Corrupt {
                 path,
@@ -284,6 +287,73 @@ impl Dataset {
     pub(crate) fn row_group_starts(&self, i: usize) -> Result<Vec<u64>> {
         Ok(self.segment_meta(i)?.row_group_starts.clone())
     }
+}
+
+/// A Parquet batch reader whose errors and panics name the file, and which ends after its first
+/// error. arrow-rs asserts on some corrupt pages (found by the fuzz harness: a fixed-size binary
+/// page whose length disagrees with its values' count, and a definition-level bitmap of the wrong
+/// length, panic in `parquet` 59.3); such a panic becomes an error naming the file. After a
+/// decode error arrow-rs's reader can return the same error forever (a consumer collecting
+/// errors never ended: the harness ran out of memory).
+pub(crate) struct Guarded {
+    inner: parquet::arrow::arrow_reader::ParquetRecordBatchReader,
+    path: PathBuf,
+    done: bool,
+}
+
+impl Guarded {
+    pub(crate) fn new(inner: parquet::arrow::arrow_reader::ParquetRecordBatchReader, path: &Path) -> Self {
+        Self { inner, path: path.to_path_buf(), done: false }
+    }
+
+    pub(crate) fn schema(&self) -> SchemaRef {
+        arrow::record_batch::RecordBatchReader::schema(&self.inner)
+    }
+}
+
+impl Iterator for Guarded {
+    type Item = Result<RecordBatch>;
+
+    fn next(&mut self) -> Option<Result<RecordBatch>> {
+        if self.done {
+            return None;
+        }
+        match std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.inner.next())) {
+            Ok(None) => None,
+            Ok(Some(Ok(b))) => Some(Ok(b)),
+            Ok(Some(Err(e))) => {
+                // arrow-rs's reader may repeat an error forever: the first one ends it.
+                self.done = true;
+                Some(Err(Error::Parquet { path: self.path.clone(), source: e.into() }))
+            }
+            Err(panic) => {
+                self.done = true;
+                Some(Err(rejected(&self.path, "Parquet page", panic.as_ref())))
+            }
+        }
+    }
+}
+
+/// The error for a panic of arrow-rs on corrupt input, naming the file.
+fn rejected(path: &Path, what: &str, panic: &(dyn std::any::Any + Send)) -> Error {
+    let text = panic
+        .downcast_ref::<String>()
+        .map(String::as_str)
+        .or_else(|| panic.downcast_ref::<&str>().copied())
+        .unwrap_or("no message");
+    Error::Corrupt {
+        path: path.to_path_buf(),
+        what: what.into(),
+        message: format!("the Parquet decoder rejected corrupt data ({text})"),
+    }
+}
+
+/// Runs arrow-rs's reading of a file's footer, its panics on corrupt input (an embedded Arrow
+/// schema with a 28704-bit integer panics in `arrow-ipc` 59.3, found by the fuzz harness) made
+/// errors naming the file.
+pub(crate) fn guard<T>(path: &Path, f: impl FnOnce() -> Result<T>) -> Result<T> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f))
+        .unwrap_or_else(|panic| Err(rejected(path, "Parquet footer", panic.as_ref())))
 }
 
 fn check_schema(found: &SchemaRef, expected: &SchemaRef, path: &Path) -> Result<()> {

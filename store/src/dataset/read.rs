@@ -32,7 +32,7 @@ impl Dataset {
         roots: Option<Vec<usize>>,
         rows: Option<&[std::ops::Range<u64>]>,
         batch_size: usize,
-    ) -> Result<(PathBuf, parquet::arrow::arrow_reader::ParquetRecordBatchReader)> {
+    ) -> Result<(PathBuf, Guarded)> {
         let meta = self.segment_meta(i)?;
         let path = self.dir.join(&self.segment(i).rays.path);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
@@ -46,7 +46,7 @@ impl Dataset {
             let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, rows);
             builder = builder.with_row_groups(groups).with_row_selection(selection);
         }
-        let reader = builder.build().map_err(pq_err(&path))?;
+        let reader = Guarded::new(builder.build().map_err(pq_err(&path))?, &path);
         Ok((path, reader))
     }
 
@@ -107,10 +107,10 @@ impl Dataset {
         count: u64,
     ) -> Result<RecordBatch> {
         let (path, reader) = self.ray_reader(i, roots, Some(rows), count.max(1) as usize)?;
-        let schema = arrow::record_batch::RecordBatchReader::schema(&reader);
+        let schema = reader.schema();
         let mut batches = Vec::new();
         for b in reader {
-            batches.push(b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?);
+            batches.push(b?);
         }
         if batches.len() == 1 {
             Ok(batches.pop().unwrap_or_else(|| RecordBatch::new_empty(schema)))
@@ -134,7 +134,7 @@ impl Dataset {
         let (path, reader) = self.ray_reader(i, None, rows, 64 * 1024)?;
         let mut decoder = self.decoder(i)?;
         Ok(reader.map(move |b| {
-            let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+            let b = b?;
             decoder.decode(b, &path)
         }))
     }
@@ -223,7 +223,7 @@ impl Dataset {
         let kinds = self.kinds.clone();
         let mut decoder = self.decoder(i)?;
         Ok(Box::new(reader.map(move |b| {
-            let b = b.map_err(|e| Error::Parquet { path: path.clone(), source: e.into() })?;
+            let b = b?;
             let mut fields: Vec<arrow::datatypes::FieldRef> = b.schema().fields().iter().cloned().collect();
             let mut cols = b.columns().to_vec();
             if want_geometry {
