@@ -283,6 +283,14 @@ impl Dataset {
         self.segment_meta(i).map(|_| ())
     }
 
+    /// The rows of each row group of segment `i`'s ray file, in order. Row groups of encoded
+    /// files start at trees, so each decodes on its own.
+    pub fn segment_row_groups(&self, i: usize) -> Result<Vec<std::ops::Range<u64>>> {
+        let starts = self.row_group_starts(i)?;
+        let rows = self.segment(i).rays.rows;
+        Ok(starts.iter().enumerate().map(|(k, &a)| a..starts.get(k + 1).copied().unwrap_or(rows)).collect())
+    }
+
     /// First row of each row group of segment `i`'s ray file.
     pub(crate) fn row_group_starts(&self, i: usize) -> Result<Vec<u64>> {
         Ok(self.segment_meta(i)?.row_group_starts.clone())

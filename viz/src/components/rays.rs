@@ -289,6 +289,8 @@ pub struct Rays {
     /// that was a sample.
     matched: u64,
     sampled: Option<u64>,
+    /// When the sample was drawn from some row groups only (a large trace): (read, of all).
+    groups_read: Option<(usize, usize)>,
     /// The budget of a refining layer's next load (`None`: `max_rays`).
     budget: Option<u64>,
 }
@@ -320,6 +322,7 @@ impl Rays {
             drawn: Drawn::default(),
             matched: 0,
             sampled: None,
+            groups_read: None,
             budget: None,
         };
         if !settings.is_null() {
@@ -472,10 +475,25 @@ impl Rays {
                 let total = rows.as_ref().map_or(ds.ray_count(), |per| {
                     per.values().flat_map(|r| r.iter().map(|r| r.end - r.start)).sum::<u64>()
                 });
+                let mut rows = rows;
+                let mut total = total;
+                self.groups_read = None;
                 if let Some(b) = budget.filter(|b| total > *b) {
                     let m = matching_rows(ds, &s, rows.as_ref(), total)?;
                     known = Some(m);
                     p = (b as f64 / m.max(1) as f64).min(1.0);
+                    // A large trace: read only some of its row groups (each starts at a tree),
+                    // spread evenly over the trace (which lies in pixel order), and sample those.
+                    if rows.is_none()
+                        && total > SUBSET_ABOVE
+                        && let Some((subset, read, groups)) = row_group_subset(ds, p)?
+                    {
+                        let read_rows: u64 = subset.values().flatten().map(|r| r.end - r.start).sum();
+                        p = (p * total as f64 / read_rows.max(1) as f64).min(1.0);
+                        rows = Some(subset);
+                        total = read_rows;
+                        self.groups_read = Some((read, groups));
+                    }
                 }
                 progress.start("loading rays", total);
                 'segments: for i in 0..ds.manifest().segments.len() {
@@ -607,6 +625,47 @@ fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<BTreeMap<us
     Ok(Some(out))
 }
 
+/// Traces of more rays than this load a sample from some of their row groups only (see
+/// [`row_group_subset`]); smaller ones are read whole and sampled ray by ray.
+const SUBSET_ABOVE: u64 = 32_000_000;
+/// A subset reads this many times the rays a sample keeps ...
+const SUBSET_OVERSAMPLE: f64 = 16.0;
+/// ... and at least this many row groups (about 4M rays: patches spread over the image).
+const SUBSET_MIN_GROUPS: usize = 32;
+
+/// The row groups a sample keeping share `p` of a large trace reads: evenly spaced over every
+/// segment's row groups in trace order, `SUBSET_OVERSAMPLE` times `p` of them (at least
+/// `SUBSET_MIN_GROUPS`). Row groups of encoded files start at trees, so each decodes alone.
+/// Returns the rows per segment, the row groups read and their total; `None` when that is all.
+#[allow(clippy::type_complexity)]
+fn row_group_subset(
+    ds: &store::Dataset,
+    p: f64,
+) -> Result<Option<(BTreeMap<usize, Vec<std::ops::Range<u64>>>, usize, usize)>> {
+    let mut groups: Vec<(usize, std::ops::Range<u64>)> = Vec::new();
+    for i in 0..ds.manifest().segments.len() {
+        groups.extend(ds.segment_row_groups(i)?.into_iter().map(|r| (i, r)));
+    }
+    let all = groups.len();
+    let want = ((p * SUBSET_OVERSAMPLE * all as f64).ceil() as usize).max(SUBSET_MIN_GROUPS);
+    if want >= all {
+        return Ok(None);
+    }
+    let mut out: BTreeMap<usize, Vec<std::ops::Range<u64>>> = BTreeMap::new();
+    // Group k of `want` is the one at (k + 1/2) * all / want: evenly spread, ends included.
+    for k in 0..want {
+        let g = (((k as f64 + 0.5) * all as f64 / want as f64) as usize).min(all - 1);
+        let (i, r) = &groups[g];
+        let v = out.entry(*i).or_default();
+        match v.last_mut() {
+            Some(last) if last.end == r.start => last.end = r.end,
+            Some(last) if last.start == r.start => {}
+            _ => v.push(r.clone()),
+        }
+    }
+    Ok(Some((out, want, all)))
+}
+
 /// The colour bar of a density draw: rays per pixel from 1 to the most on one pixel, in the
 /// style's scale and map (a brightness ramp when the rays keep their own colours).
 pub fn density_legend(style: &StyleParams, stats: Option<DensityStats>) -> Option<Legend> {
@@ -631,6 +690,17 @@ fn matching_rows(
 ) -> Result<u64> {
     if s.kinds.is_none() && s.depth.is_none() && s.ray_upto.is_none() {
         return Ok(total);
+    }
+    // Kind and depth filters over the whole trace: the manifest's counts say it.
+    let counts = &ds.manifest().stats.rays_by_kind_depth;
+    if rows.is_none() && s.ray_upto.is_none() && !counts.is_empty() {
+        return Ok(counts
+            .iter()
+            .filter(|(k, _)| s.kinds.as_ref().is_none_or(|w| w.iter().any(|w| w == *k)))
+            .flat_map(|(_, v)| v.iter().enumerate())
+            .filter(|(d, _)| s.depth.is_none_or(|[a, z]| (a..=z).contains(&(*d as u32))))
+            .map(|(_, &n)| n)
+            .sum());
     }
     use store::scene::col;
     let names: Vec<String> = [col::KIND, col::DEPTH, col::RAY].map(String::from).to_vec();
@@ -875,9 +945,13 @@ impl Layer for Rays {
         )];
         if let Some(n) = self.sampled {
             r.push(format!(
-                "rays: {n} of the {} matching rays drawn ({:.2}%), a sample stratified by kind and depth, spread over the pixels{}",
+                "rays: {n} of the {} matching rays drawn ({:.2}%), a sample stratified by kind and depth, spread over the pixels{}{}",
                 self.matched,
                 100.0 * n as f64 / self.matched.max(1) as f64,
+                match self.groups_read {
+                    Some((read, all)) => format!(" of {read} of the trace's {all} row groups (evenly spaced)"),
+                    None => String::new(),
+                },
                 if self.settings.refine { "; refining while idle" } else { "" }
             ));
         }
@@ -889,5 +963,88 @@ impl Layer for Rays {
             r.push(format!("rays: loading was cancelled after {n} segments; change a filter to load again"));
         }
         r
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use store::{DatasetWriter, KindTable, PayloadSchema, RayColumns, RayFields, TreeRow, WriteOptions};
+
+    /// A lossless dataset of 3 segments with row groups of ~64 rays (trees of 1..=5 rays).
+    fn dataset(dir: &std::path::Path) -> store::Dataset {
+        let schema = PayloadSchema::default();
+        let options = WriteOptions { row_group_rows: 64, page_rows: 16, ..WriteOptions::default() };
+        let w = DatasetWriter::create(dir, schema.clone(), options).unwrap();
+        let kinds = KindTable::default();
+        let mut id = 0u64;
+        for _ in 0..3 {
+            let mut seg = w.open_segment().unwrap();
+            let mut cols = RayColumns::new(&schema);
+            for _ in 0..1500 {
+                let first = cols.len() as u64;
+                let n = (id % 5 + 1) as u32;
+                for r in 0..n {
+                    let f = RayFields {
+                        origin: [r as f32, id as f32, 0.5],
+                        direction: [0.0, 0.0, -1.0],
+                        t: Some(1.0),
+                        kind: if r == 0 { store::Kind::CAMERA } else { store::Kind::DIFFUSE },
+                        prim: Some(1),
+                    };
+                    cols.push_core(id, r, if r == 0 { store::NONE_U32 } else { r - 1 }, r as u16, &f);
+                }
+                cols.trees.push(TreeRow {
+                    tree_id: id,
+                    pixel_x: (id % 64) as u32,
+                    pixel_y: (id / 64) as u32,
+                    sample: 0,
+                    ray_count: n,
+                    max_depth: n as u16 - 1,
+                    first_row: first,
+                });
+                id += 1;
+            }
+            seg.write(cols, &schema, &kinds).unwrap();
+            seg.seal(&w, &kinds).unwrap();
+        }
+        w.mark_complete().unwrap();
+        store::Dataset::open(dir).unwrap()
+    }
+
+    /// The subset of a large trace's row groups is as many as asked (at least the minimum),
+    /// spread evenly from the first segment to the last, made of whole row groups that start at
+    /// trees; asking for most of the trace reads it whole.
+    #[test]
+    fn row_group_subsets_are_evenly_spread_whole_row_groups() {
+        let dir = tempfile::tempdir().unwrap();
+        let ds = dataset(&dir.path().join("ds"));
+        let groups: Vec<(usize, std::ops::Range<u64>)> =
+            (0..3).flat_map(|i| ds.segment_row_groups(i).unwrap().into_iter().map(move |r| (i, r))).collect();
+        let all = groups.len();
+        assert!(all > 4 * SUBSET_MIN_GROUPS, "{all} row groups");
+        for p in [0.0001, 0.01] {
+            let (rows, read, total) = row_group_subset(&ds, p).unwrap().unwrap();
+            let want = ((p * SUBSET_OVERSAMPLE * all as f64).ceil() as usize).max(SUBSET_MIN_GROUPS);
+            assert_eq!((read, total), (want, all));
+            let chosen: Vec<(usize, std::ops::Range<u64>)> = groups
+                .iter()
+                .filter(|(i, g)| rows.get(i).is_some_and(|v| v.iter().any(|r| r.start <= g.start && g.end <= r.end)))
+                .cloned()
+                .collect();
+            assert_eq!(chosen.len(), want, "p = {p}");
+            assert_eq!(rows.keys().copied().collect::<Vec<_>>(), vec![0, 1, 2], "every segment is sampled");
+            // Each range starts at a tree.
+            for (i, v) in &rows {
+                let starts: std::collections::HashSet<u64> =
+                    ds.segment_tree_entries(*i).unwrap().iter().map(|e| e.first_row).collect();
+                assert!(v.iter().all(|r| starts.contains(&r.start)), "segment {i}: {v:?}");
+            }
+            // Gaps between chosen groups differ by at most one group.
+            let pos: Vec<usize> = chosen.iter().map(|c| groups.iter().position(|g| g == c).unwrap()).collect();
+            let gaps: Vec<usize> = pos.windows(2).map(|w| w[1] - w[0]).collect();
+            assert!(gaps.iter().max().unwrap() - gaps.iter().min().unwrap() <= 1, "{gaps:?}");
+        }
+        assert!(row_group_subset(&ds, 0.5).unwrap().is_none(), "most of the trace: read whole");
     }
 }
