@@ -278,7 +278,9 @@ fn check_segment(ds: &Dataset, i: usize, keep_ids: bool) -> SegmentCheck {
         c.ids = Some(entries.iter().map(|e| e.info.id.0).collect());
     }
     // Rows tiling the ray file exactly.
-    entries.sort_unstable_by_key(|e| e.first_row);
+    // A tree without rays starts where the next one does: it comes first (ties in any other
+    // order broke the tiling check; found by the C ABI fuzz harness).
+    entries.sort_unstable_by_key(|e| (e.first_row, e.info.ray_count));
     let mut row = 0u64;
     for e in &entries {
         if e.first_row != row {

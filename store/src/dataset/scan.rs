@@ -32,7 +32,7 @@ impl Dataset {
     /// Every tree of segment `i` in file order: a sequential scan of that segment alone.
     pub fn segment_trees(&self, i: usize) -> Result<TreeIter<'_>> {
         let mut entries = self.read_tree_table(i)?;
-        entries.sort_unstable_by_key(|e| e.first_row);
+        entries.sort_unstable_by_key(|e| (e.first_row, e.info.ray_count));
         Ok(self.trees_of_segment(i, entries))
     }
 }
@@ -62,7 +62,7 @@ impl TreeIter<'_> {
                     Some(e) => e,
                     None => self.ds.read_tree_table(self.segment)?,
                 };
-                entries.sort_unstable_by_key(|e| e.first_row);
+                entries.sort_unstable_by_key(|e| (e.first_row, e.info.ray_count));
                 self.entries = entries;
                 self.next_entry = 0;
                 self.batches = Some(Box::new(self.ds.segment_batches(self.segment)?));
