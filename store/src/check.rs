@@ -345,6 +345,7 @@ fn check_rays(
     c: &mut SegmentCheck,
 ) -> crate::Result<BTreeMap<String, u64>> {
     use crate::schema::col;
+    use crate::tree::primitive;
     use arrow::array::{Array, AsArray};
     use arrow::datatypes::{UInt8Type, UInt16Type, UInt32Type, UInt64Type};
     let seg = &ds.manifest().segments[i];
@@ -381,23 +382,13 @@ fn check_rays(
     let mut left = begin(&mut k, &mut v, c, &mut reported); // rows of tree `k` still to come
     for b in ds.segment_batches(i)? {
         let b = b?;
-        let get = |name: &str| {
-            b.column_by_name(name).ok_or_else(|| corrupt("ray file", format!("no column {name} after decoding")))
-        };
-        let ids = get(col::TREE_ID)?
-            .as_primitive_opt::<UInt64Type>()
-            .ok_or_else(|| corrupt("column `tree_id`", "not UInt64".into()))?;
-        let ray = get(col::RAY)?
-            .as_primitive_opt::<UInt32Type>()
-            .ok_or_else(|| corrupt("column `ray`", "not UInt32".into()))?;
-        let parent = get(col::PARENT)?
-            .as_primitive_opt::<UInt32Type>()
-            .ok_or_else(|| corrupt("column `parent`", "not UInt32".into()))?;
-        let depth = get(col::DEPTH)?
-            .as_primitive_opt::<UInt16Type>()
-            .ok_or_else(|| corrupt("column `depth`", "not UInt16".into()))?;
-        let kind = get(col::KIND)?
-            .as_dictionary_opt::<UInt8Type>()
+        let ids = primitive::<UInt64Type>(&b, col::TREE_ID, &path)?;
+        let ray = primitive::<UInt32Type>(&b, col::RAY, &path)?;
+        let parent = primitive::<UInt32Type>(&b, col::PARENT, &path)?;
+        let depth = primitive::<UInt16Type>(&b, col::DEPTH, &path)?;
+        let kind = b
+            .column_by_name(col::KIND)
+            .and_then(|c| c.as_dictionary_opt::<UInt8Type>())
             .ok_or_else(|| corrupt("column `kind`", "not Dictionary(UInt8, Utf8)".into()))?;
         let names =
             kind.values().as_string_opt::<i32>().ok_or_else(|| corrupt("column `kind`", "values not Utf8".into()))?;

@@ -4,8 +4,8 @@ use std::collections::HashMap;
 use std::fmt;
 use std::path::Path;
 
-use arrow::array::{Array, ArrayRef, AsArray, RecordBatch};
-use arrow::datatypes::{DataType, Float32Type, UInt8Type, UInt16Type, UInt32Type, UInt64Type};
+use arrow::array::{Array, ArrayRef, AsArray, PrimitiveArray, RecordBatch};
+use arrow::datatypes::{ArrowPrimitiveType, Float32Type, UInt8Type, UInt16Type, UInt32Type, UInt64Type};
 
 use crate::{Error, Kind, Result};
 
@@ -98,39 +98,37 @@ impl Tree {
     }
 }
 
-fn col<'a>(batch: &'a RecordBatch, name: &str, path: &Path) -> Result<&'a ArrayRef> {
-    batch.column_by_name(name).ok_or_else(|| Error::Schema {
+/// Column `name` of `batch` as a `T` array; `Error::Schema` naming the file and the column when
+/// it is missing or of another type.
+pub(crate) fn primitive<'a, T: ArrowPrimitiveType>(
+    batch: &'a RecordBatch,
+    name: &str,
+    path: &Path,
+) -> Result<&'a PrimitiveArray<T>> {
+    batch.column_by_name(name).and_then(|c| c.as_primitive_opt::<T>()).ok_or_else(|| Error::Schema {
         path: path.to_path_buf(),
         field: name.into(),
-        expected: "a column of the ray table".into(),
-        found: "no such column".into(),
+        expected: format!("a {} column", T::DATA_TYPE),
+        found: batch.column_by_name(name).map_or("no such column".into(), |c| c.data_type().to_string()),
     })
-}
-
-macro_rules! typed {
-    ($batch:expr, $name:expr, $path:expr, $t:ty, $dt:expr) => {{
-        let c = col($batch, $name, $path)?;
-        c.as_primitive_opt::<$t>().ok_or_else(|| Error::Schema {
-            path: $path.to_path_buf(),
-            field: $name.into(),
-            expected: format!("{}", $dt),
-            found: format!("{}", c.data_type()),
-        })?
-    }};
 }
 
 /// Decodes the core columns of ray-table rows into [`Ray`]s (kinds mapped through `kinds`).
 pub fn rays_from_batch(batch: &RecordBatch, kinds: &HashMap<String, Kind>, path: &Path) -> Result<Vec<Ray>> {
-    let ray = typed!(batch, "ray", path, UInt32Type, DataType::UInt32);
-    let parent = typed!(batch, "parent", path, UInt32Type, DataType::UInt32);
-    let depth = typed!(batch, "depth", path, UInt16Type, DataType::UInt16);
-    let f =
-        |n: &str| -> Result<&arrow::array::Float32Array> { Ok(typed!(batch, n, path, Float32Type, DataType::Float32)) };
+    let ray = primitive::<UInt32Type>(batch, "ray", path)?;
+    let parent = primitive::<UInt32Type>(batch, "parent", path)?;
+    let depth = primitive::<UInt16Type>(batch, "depth", path)?;
+    let f = |n: &str| primitive::<Float32Type>(batch, n, path);
     let (ox, oy, oz) = (f("origin_x")?, f("origin_y")?, f("origin_z")?);
     let (dx, dy, dz) = (f("dir_x")?, f("dir_y")?, f("dir_z")?);
     let t = f("t")?;
-    let prim = typed!(batch, "prim", path, UInt32Type, DataType::UInt32);
-    let kind_col = col(batch, "kind", path)?;
+    let prim = primitive::<UInt32Type>(batch, "prim", path)?;
+    let kind_col = batch.column_by_name("kind").ok_or_else(|| Error::Schema {
+        path: path.to_path_buf(),
+        field: "kind".into(),
+        expected: "Dictionary(UInt8, Utf8)".into(),
+        found: "no such column".into(),
+    })?;
     let kind_dict = kind_col.as_dictionary_opt::<UInt8Type>().ok_or_else(|| Error::Schema {
         path: path.to_path_buf(),
         field: "kind".into(),
@@ -178,7 +176,7 @@ pub fn rays_from_batch(batch: &RecordBatch, kinds: &HashMap<String, Kind>, path:
 
 /// Tree ids of ray-table rows.
 pub fn tree_ids_of(batch: &RecordBatch, path: &Path) -> Result<Vec<u64>> {
-    Ok(typed!(batch, crate::schema::col::TREE_ID, path, UInt64Type, DataType::UInt64).values().to_vec())
+    Ok(primitive::<UInt64Type>(batch, crate::schema::col::TREE_ID, path)?.values().to_vec())
 }
 
 /// Checks that `rays` form the tree `info`: ids, order, parents one level up.

@@ -45,7 +45,11 @@ fn chain(cols: &mut RayColumns, schema: &PayloadSchema, id: u64, n: u32, pixel: 
 }
 
 fn write_dataset(dir: &Path, schema: PayloadSchema, trees_per_segment: &[u64]) {
-    let w = DatasetWriter::create(dir, schema.clone(), WriteOptions::default()).unwrap();
+    write_dataset_with(dir, schema, trees_per_segment, WriteOptions::default());
+}
+
+fn write_dataset_with(dir: &Path, schema: PayloadSchema, trees_per_segment: &[u64], options: WriteOptions) {
+    let w = DatasetWriter::create(dir, schema.clone(), options).unwrap();
     let kinds = KindTable::default();
     let mut id = 0;
     for &n in trees_per_segment {
@@ -377,10 +381,11 @@ fn tree_lookups_by_id_range_read_the_right_pages() {
             .collect();
         // A fresh open: nothing cached, so the page-index path is taken.
         let ds = Dataset::open(&path).unwrap();
-        let got: Vec<_> = (0..2).flat_map(|i| ds.segment_tree_entries_in(i, ranges).unwrap()).collect();
+        let filter = store::TreeFilter { tree_id: Some(ranges.to_vec()), ..Default::default() };
+        let got: Vec<_> = (0..2).flat_map(|i| ds.segment_tree_entries_where(i, &filter).unwrap()).collect();
         assert_eq!(got, want, "{ranges:?}");
         // And the cached path agrees.
-        let got: Vec<_> = (0..2).flat_map(|i| full.segment_tree_entries_in(i, ranges).unwrap()).collect();
+        let got: Vec<_> = (0..2).flat_map(|i| full.segment_tree_entries_where(i, &filter).unwrap()).collect();
         assert_eq!(got, want, "{ranges:?} (cached)");
     }
 }
@@ -596,22 +601,8 @@ mod fuzz {
         let (_, path) = BASE.get_or_init(|| {
             let dir = tempfile::tempdir().unwrap();
             let path = dir.path().join("ds");
-            let schema = payload_schema();
             let options = WriteOptions { row_group_rows: 64, page_rows: 16, ..WriteOptions::default() };
-            let w = DatasetWriter::create(&path, schema.clone(), options).unwrap();
-            let kinds = KindTable::default();
-            let mut id = 0;
-            for n in [60u64, 45] {
-                let mut seg = w.open_segment().unwrap();
-                let mut cols = RayColumns::new(&schema);
-                for _ in 0..n {
-                    chain(&mut cols, &schema, id, (id % 5 + 1) as u32, [(id % 7) as u32, (id % 3) as u32]);
-                    id += 1;
-                }
-                seg.write(cols, &schema, &kinds).unwrap();
-                seg.seal(&w, &kinds).unwrap();
-            }
-            w.mark_complete().unwrap();
+            write_dataset_with(&path, payload_schema(), &[60, 45], options);
             (dir, path)
         });
         path

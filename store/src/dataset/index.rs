@@ -30,13 +30,6 @@ impl Dataset {
         Ok(out)
     }
 
-    /// The trees of segment `i` whose ids fall in `ranges` (inclusive bounds), sorted by id. Reads
-    /// only the tree-table pages whose id range (the file's page index) overlaps `ranges`, so a
-    /// lookup of a few trees does not decode the whole table; uses the table when already loaded.
-    pub fn segment_tree_entries_in(&self, i: usize, ranges: &[(u64, u64)]) -> Result<Vec<TreeEntry>> {
-        self.segment_tree_entries_where(i, &TreeFilter { tree_id: Some(ranges.to_vec()), ..Default::default() })
-    }
-
     /// The trees of segment `i` that `filter` keeps, sorted by id. Reads only the tree-table
     /// pages whose statistics (the file's page index: min/max of `tree_id`, `pixel_x`, `pixel_y`,
     /// `sample` per page) can hold a kept tree; uses the table when already loaded.
@@ -196,6 +189,26 @@ impl Dataset {
         self.tree_entries_at_pixel(x, y, sample)?.iter().map(|e| self.load_tree(e)).collect()
     }
 
+    /// The trees `filter` keeps, segment by segment (each sorted by id): segments whose id range
+    /// or pixel bounds (manifest) rule the filter out are not opened, and in the others only the
+    /// tree-table pages whose statistics can hold a kept tree are read.
+    pub fn tree_entries_where(&self, filter: &TreeFilter) -> Result<Vec<TreeEntry>> {
+        let overlaps = |r: &Option<Vec<(u64, u64)>>, lo: u64, hi: u64| {
+            r.as_ref().is_none_or(|r| r.iter().any(|&(a, b)| a <= hi && lo <= b))
+        };
+        let mut out = Vec::new();
+        for (i, seg) in self.manifest.segments.iter().enumerate() {
+            let pb = &seg.stats.pixel_bounds;
+            let pixels = pb.is_empty()
+                || (overlaps(&filter.pixel_x, u64::from(pb.min[0]), u64::from(pb.max[0]))
+                    && overlaps(&filter.pixel_y, u64::from(pb.min[1]), u64::from(pb.max[1])));
+            if pixels && overlaps(&filter.tree_id, seg.tree_id_min, seg.tree_id_max) {
+                out.extend(self.segment_tree_entries_where(i, filter)?);
+            }
+        }
+        Ok(out)
+    }
+
     /// Where the trees of a pixel are (of one sample, or of all), ordered by sample then id;
     /// reads no rays. With the whole index loaded it is a lookup in it; otherwise only the
     /// segments whose pixel bounds (manifest) hold the pixel are opened, and in them only the
@@ -203,19 +216,10 @@ impl Dataset {
     /// large trace reads a few pages instead of every tree table.
     pub fn tree_entries_at_pixel(&self, x: u32, y: u32, sample: Option<u32>) -> Result<Vec<TreeEntry>> {
         let Some(ix) = self.index.get() else {
-            let filter = TreeFilter {
-                pixel_x: Some(vec![(u64::from(x), u64::from(x))]),
-                pixel_y: Some(vec![(u64::from(y), u64::from(y))]),
-                sample: sample.map(|s| vec![(u64::from(s), u64::from(s))]),
-                ..Default::default()
-            };
-            let mut out = Vec::new();
-            for (i, seg) in self.manifest.segments.iter().enumerate() {
-                let pb = &seg.stats.pixel_bounds;
-                if pb.is_empty() || pb.contains([x, y]) {
-                    out.extend(self.segment_tree_entries_where(i, &filter)?);
-                }
-            }
+            let one = |v: u32| Some(vec![(u64::from(v), u64::from(v))]);
+            let filter =
+                TreeFilter { pixel_x: one(x), pixel_y: one(y), sample: sample.and_then(one), ..Default::default() };
+            let mut out = self.tree_entries_where(&filter)?;
             out.sort_unstable_by_key(|e| (e.info.sample, e.info.id));
             return Ok(out);
         };
@@ -294,18 +298,7 @@ pub(super) struct TreeIndex {
 /// table lacks one, or holds it with another type, is corrupt: named in the error).
 pub(super) fn push_tree_entries(b: &RecordBatch, segment: usize, out: &mut Vec<TreeEntry>, path: &Path) -> Result<()> {
     use crate::schema::col;
-    pub(super) fn get<'a, T: arrow::datatypes::ArrowPrimitiveType>(
-        b: &'a RecordBatch,
-        name: &str,
-        path: &Path,
-    ) -> Result<&'a arrow::array::PrimitiveArray<T>> {
-        b.column_by_name(name).and_then(|c| c.as_primitive_opt::<T>()).ok_or_else(|| Error::Schema {
-            path: path.to_path_buf(),
-            field: name.to_string(),
-            expected: format!("a {} column of the tree table", T::DATA_TYPE),
-            found: b.column_by_name(name).map_or("no such column".into(), |c| c.data_type().to_string()),
-        })
-    }
+    use crate::tree::primitive as get;
     let id = get::<UInt64Type>(b, col::TREE_ID, path)?;
     let (px, py) = (get::<UInt32Type>(b, col::PIXEL_X, path)?, get::<UInt32Type>(b, col::PIXEL_Y, path)?);
     let s = get::<UInt32Type>(b, col::SAMPLE, path)?;

@@ -581,9 +581,12 @@ fn read_ahead(
     }
 }
 
+/// Row ranges to read, sorted and disjoint, by segment index.
+type RowsBySegment = BTreeMap<usize, Vec<std::ops::Range<u64>>>;
+
 /// The rows the tree-level filters (tree, pixel, sample) keep, as sorted disjoint ranges of whole
 /// trees per segment, from the tree index; `None` when they keep every row.
-fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<BTreeMap<usize, Vec<std::ops::Range<u64>>>>> {
+fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<RowsBySegment>> {
     if s.tree.is_none() && s.pixel.is_none() && s.sample.is_none() {
         return Ok(None);
     }
@@ -596,12 +599,7 @@ fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<BTreeMap<us
         (None, Some([x, y])) => ds.tree_entries_at_pixel(x, y, s.sample)?,
         (None, None) => {
             let sample = s.sample.map(|v| vec![(u64::from(v), u64::from(v))]);
-            let filter = store::TreeFilter { sample, ..Default::default() };
-            let mut all = Vec::new();
-            for i in 0..ds.manifest().segments.len() {
-                all.extend(ds.segment_tree_entries_where(i, &filter)?);
-            }
-            all
+            ds.tree_entries_where(&store::TreeFilter { sample, ..Default::default() })?
         }
     };
     entries.retain(|e| {
@@ -610,7 +608,7 @@ fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<BTreeMap<us
             && s.tree.is_none_or(|t| t == e.info.id.0)
     });
     entries.sort_by_key(|e| (e.segment, e.first_row));
-    let mut out: BTreeMap<usize, Vec<std::ops::Range<u64>>> = BTreeMap::new();
+    let mut out = RowsBySegment::new();
     for e in entries {
         let r = e.first_row..e.first_row + u64::from(e.info.ray_count);
         if r.is_empty() {
@@ -637,11 +635,7 @@ const SUBSET_MIN_GROUPS: usize = 32;
 /// segment's row groups in trace order, `SUBSET_OVERSAMPLE` times `p` of them (at least
 /// `SUBSET_MIN_GROUPS`). Row groups of encoded files start at trees, so each decodes alone.
 /// Returns the rows per segment, the row groups read and their total; `None` when that is all.
-#[allow(clippy::type_complexity)]
-fn row_group_subset(
-    ds: &store::Dataset,
-    p: f64,
-) -> Result<Option<(BTreeMap<usize, Vec<std::ops::Range<u64>>>, usize, usize)>> {
+fn row_group_subset(ds: &store::Dataset, p: f64) -> Result<Option<(RowsBySegment, usize, usize)>> {
     let mut groups: Vec<(usize, std::ops::Range<u64>)> = Vec::new();
     for i in 0..ds.manifest().segments.len() {
         groups.extend(ds.segment_row_groups(i)?.into_iter().map(|r| (i, r)));
@@ -651,7 +645,7 @@ fn row_group_subset(
     if want >= all {
         return Ok(None);
     }
-    let mut out: BTreeMap<usize, Vec<std::ops::Range<u64>>> = BTreeMap::new();
+    let mut out = RowsBySegment::new();
     // Group k of `want` is the one at (k + 1/2) * all / want: evenly spread, ends included.
     for k in 0..want {
         let g = (((k as f64 + 0.5) * all as f64 / want as f64) as usize).min(all - 1);
@@ -682,12 +676,7 @@ pub fn density_legend(style: &StyleParams, stats: Option<DensityStats>) -> Optio
 
 /// How many rows of `rows` (whole segments where `None`; `total` rows) pass the kind, depth and
 /// `ray_upto` filters: `total` without such filters, else a scan of those three columns.
-fn matching_rows(
-    ds: &store::Dataset,
-    s: &RaysSettings,
-    rows: Option<&BTreeMap<usize, Vec<std::ops::Range<u64>>>>,
-    total: u64,
-) -> Result<u64> {
+fn matching_rows(ds: &store::Dataset, s: &RaysSettings, rows: Option<&RowsBySegment>, total: u64) -> Result<u64> {
     if s.kinds.is_none() && s.depth.is_none() && s.ray_upto.is_none() {
         return Ok(total);
     }
