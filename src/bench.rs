@@ -141,6 +141,10 @@ pub enum BenchCommand {
         /// Timed frames per ray count.
         #[arg(long, default_value_t = 20)]
         frames: usize,
+        /// Untimed frames drawn first in each style (0 for counts whose frames take minutes on a
+        /// CPU adapter).
+        #[arg(long, default_value_t = 2)]
+        warmup: usize,
         /// Load rounds (the baseline scan and our load alternate).
         #[arg(long, default_value_t = 3)]
         rounds: usize,
@@ -189,8 +193,8 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             let o = bench::serve::ServeBench { connect, token, clients, seconds, over_limit };
             bench::serve::run(&dataset, &o)
         }
-        BenchCommand::Viz { dataset, rays, size, frames, rounds } => {
-            bench::viz::run(&dataset, &rays, size, frames.max(1), rounds.max(1))
+        BenchCommand::Viz { dataset, rays, size, frames, warmup, rounds } => {
+            bench::viz::run(&dataset, &rays, size, (frames.max(1), warmup), rounds.max(1))
         }
         BenchCommand::Gpu { scene, subdivide, size, rounds, spp, no_cpu, record } => {
             let o = bench::gpu::GpuBench { rounds: rounds.max(1), spp: spp.max(1), cpu: !no_cpu, record };

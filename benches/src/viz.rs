@@ -42,7 +42,14 @@ fn render_once(
     Ok(())
 }
 
-pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, rounds: usize) -> Result<()> {
+/// `frames`: timed frames per style and ray count, each after `warmup` untimed ones.
+pub fn run(
+    dataset: &Path,
+    counts: &[u64],
+    (w, h): (u32, u32),
+    (frames, warmup): (usize, usize),
+    rounds: usize,
+) -> Result<()> {
     let sources = Sources::open(dataset)?;
     let total = sources.dataset.as_ref().map_or(0, |d| d.ray_count());
     let gpu = Gpu::shared()?;
@@ -83,6 +90,7 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
         let (before, _) = rss();
         rays.load(&gpu, &sources, frame)?;
         gpu.wait()?;
+        let mut steps = vec![("load", rss().0)];
         // Frames in each style: orbit the camera a little each frame so every frame really draws.
         let mut per_style = Vec::new();
         for style in ["lines", "alpha", "density"] {
@@ -91,16 +99,17 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
             rays.set_settings(&settings)?;
             let mut cam = sources.initial_camera();
             let mut times = Vec::with_capacity(frames);
-            for i in 0..frames + 2 {
+            for i in 0..frames + warmup {
                 cam.orbit(0.002, 0.0);
                 let t = Instant::now();
                 render_once(&mut rays, &gpu, &sources, &cam, frame, &target)?;
                 gpu.wait()?;
-                if i >= 2 {
+                if i >= warmup {
                     times.push(t.elapsed().as_secs_f64());
                 }
             }
             per_style.push(median(&mut times));
+            steps.push((style, rss().0));
         }
         let (after, _) = rss();
         for _ in 0..rounds {
@@ -137,6 +146,17 @@ pub fn run(dataset: &Path, counts: &[u64], (w, h): (u32, u32), frames: usize, ro
             seg_mib,
             growth / seg_mib.max(1e-9),
         );
+        let mib = |b: u64| b as f64 / f64::from(1 << 20);
+        let mut last = before;
+        let parts: Vec<String> = steps
+            .iter()
+            .map(|&(step, at)| {
+                let d = mib(at) - mib(last);
+                last = at;
+                format!("{step} {d:+.0}")
+            })
+            .collect();
+        println!("  resident growth by step (MiB): {}", parts.join(", "));
         for r in rays.report() {
             println!("  {r}");
         }

@@ -189,6 +189,14 @@ impl LineShape {
         }
     }
 
+    /// The compute entry of `splat.wgsl` that rasterizes an item in the accumulating styles.
+    pub fn compute_entry(self) -> &'static str {
+        match self {
+            LineShape::Segments => "cs_seg",
+            LineShape::Boxes => "cs_box",
+        }
+    }
+
     /// Vertices per item (a segment's quad, a box's twelve edges).
     pub fn per_item(self) -> u32 {
         match self {
@@ -282,8 +290,13 @@ pub struct GpuSegment {
 /// on a surface stays visible.
 pub(crate) const DEPTH_BIAS: f32 = 2e-3;
 
-/// Items (segments, boxes) per submission of a line draw.
-pub const DRAW_BATCH: u32 = 1 << 18;
+/// Items (segments, boxes) per submission of a line draw: a software rasterizer (lavapipe,
+/// llvmpipe) bins a whole submission's triangles before drawing them (on lavapipe, drawing 1M
+/// segments grew the process by 230 MB in batches of 2^18, 43 MB in batches of 2^15 and 18 MB in
+/// batches of 2^12, no slower), so it gets small batches; a GPU gets large ones.
+fn draw_batch(gpu: &Gpu) -> u32 {
+    if gpu.adapter.device_type == wgpu::DeviceType::Cpu { 1 << 12 } else { 1 << 18 }
+}
 
 /// Bytes of GPU memory per segment.
 pub const SEGMENT_BYTES: u64 = std::mem::size_of::<GpuSegment>() as u64;
@@ -306,14 +319,15 @@ pub struct SegmentBuffers {
 
 impl SegmentBuffers {
     pub fn new(gpu: &Gpu) -> SegmentBuffers {
-        let chunk = (gpu.max_storage_binding() / SEGMENT_BYTES).clamp(1024, 1 << 20) as usize;
+        // Buffers of at most 2^18 segments (8 MiB): the staging copy on the CPU is one buffer's.
+        let chunk = (gpu.max_storage_binding() / SEGMENT_BYTES).clamp(1024, 1 << 18) as usize;
         SegmentBuffers { chunk, buffers: Vec::new(), staged: Vec::new(), count: 0 }
     }
 
     /// Queues a segment; a full chunk goes to the GPU.
     pub fn push(&mut self, gpu: &Gpu, s: GpuSegment) {
         if self.staged.capacity() == 0 {
-            self.staged.reserve_exact(self.chunk.min(1 << 16));
+            self.staged.reserve_exact(self.chunk);
         }
         self.staged.push(s);
         if self.staged.len() >= self.chunk {
@@ -321,17 +335,25 @@ impl SegmentBuffers {
         }
     }
 
-    /// Writes the staged segments into a new GPU buffer of their size.
+    /// Writes the staged segments into a new GPU buffer of their size, and waits for the copy:
+    /// a buffer made mapped would be filled through a staging buffer of its size that wgpu's
+    /// allocator keeps once freed (on lavapipe it doubled the layer's memory), while the queue's
+    /// staging for one chunk is reused by the next.
     pub fn flush(&mut self, gpu: &Gpu) {
         if self.staged.is_empty() {
             return;
         }
-        use wgpu::util::DeviceExt;
-        let buf = gpu.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+        let bytes: &[u8] = bytemuck::cast_slice(&self.staged);
+        let buf = gpu.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("segments"),
-            contents: bytemuck::cast_slice(&self.staged),
-            usage: wgpu::BufferUsages::STORAGE,
+            size: bytes.len() as u64,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
         });
+        gpu.queue.write_buffer(&buf, 0, bytes);
+        gpu.queue.submit([]);
+        // A failed wait shows at the next draw, which checks the device.
+        let _ = gpu.wait();
         let n = self.staged.len() as u64;
         self.buffers.push((buf, n));
         self.count += n;
@@ -450,15 +472,16 @@ impl SegmentBuffers {
         view.params[1] = stride as f32;
         let ubuf = uniform(gpu, "view", &view);
         let groups = self.bind_groups(gpu, pipeline, &ubuf, 0);
-        // Submissions of at most DRAW_BATCH items, each waited for before the next: a software
+        // Submissions of at most `draw_batch` items, each waited for before the next: a software
         // rasterizer (lavapipe, llvmpipe) bins a whole submission's triangles before drawing
         // them, so millions of segments in one would hold gigabytes of bins.
+        let batch = draw_batch(gpu);
         let mut first = true;
         let batches: Vec<(&wgpu::BindGroup, u32, u32)> = groups
             .iter()
             .flat_map(|(g, n, _)| {
                 let items = n.div_ceil(stride);
-                (0..items.div_ceil(DRAW_BATCH)).map(move |b| (g, b * DRAW_BATCH, ((b + 1) * DRAW_BATCH).min(items)))
+                (0..items.div_ceil(batch)).map(move |b| (g, b * batch, ((b + 1) * batch).min(items)))
             })
             .collect();
         for (g, a, b) in &batches {

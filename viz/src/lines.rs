@@ -38,7 +38,7 @@ impl Lines {
         }
         let splat = match &mut self.splat {
             Some(s) => s,
-            None => self.splat.insert(crate::splat::Splat::new(ctx.gpu, self.shape.vertex_entry())?),
+            None => self.splat.insert(crate::splat::Splat::new(ctx.gpu, self.shape)?),
         };
         // Density counts rays per pixel: lines one pixel wide, whatever the layer's width.
         let mut view = *view;
@@ -50,7 +50,7 @@ impl Lines {
             .enumerate()
             .filter_map(|(i, s)| s.map(|s| (s, if preview && i == 0 { s.stride_for(ctx.preview) } else { 1 })))
             .collect();
-        splat.draw(ctx, &view, &strided, self.shape.per_item(), style)
+        splat.draw(ctx, &view, &strided, style)
     }
 
     /// Draws `sets` into the layer (the first clears it; with `preview`, the first is thinned to

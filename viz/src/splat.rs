@@ -1,19 +1,20 @@
 //! Ray styles for many rays: `lines` (opaque, depth-tested, the last drawn on top), `alpha`
 //! (order-independent transparency) and `density` (rays per pixel). The two accumulating styles
-//! rasterize the same segments as the line layers, but every fragment adds into a per-pixel
-//! buffer of `u32` words with atomics (`shaders/splat.wgsl`), then one full-screen pass turns the
-//! sums into the layer's colour (`shaders/splat_resolve.wgsl`). Fixed-point atomics make the
-//! result independent of draw order and need no float blending, which wgpu's GL backend lacks on
-//! many drivers.
+//! rasterize the line layers' segments in a compute pass (`shaders/splat.wgsl`: one invocation per
+//! segment walks its pixels, as Schütz et al. 2021 rasterize points) that adds into a per-pixel
+//! buffer of `u32` words with atomics, then one full-screen pass turns the sums into the layer's
+//! colour (`shaders/splat_resolve.wgsl`). Fixed-point atomics make the result independent of draw
+//! order and need no float blending, which wgpu's GL backend lacks on many drivers; a compute pass
+//! bins nothing, so a software rasterizer (lavapipe, llvmpipe) holds no memory per segment.
 //!
 //! These layers have no depth of their own per pixel, so the occluder (the scene's depth) hides
-//! their fragments as they are accumulated, with the compositor's relative depth bias.
+//! their pixels as they are accumulated, with the compositor's relative depth bias.
 
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
 use crate::component::RenderCtx;
-use crate::draw::{DRAW_BATCH, SegmentBuffers, shader, uniform};
+use crate::draw::{LineShape, SegmentBuffers, shader, uniform};
 use crate::gpu::{DEPTH_FORMAT, Gpu};
 use crate::{Error, Result};
 
@@ -137,6 +138,27 @@ pub fn style_report(layer: &str, style: &StyleParams, drawn: &Drawn) -> Option<S
 /// Words of the accumulation buffer per pixel.
 const WORDS: u64 = 5;
 
+/// Buckets of the histogram of rays per covered pixel (`splat_reduce.wgsl`; the last holds more).
+const HIST: usize = 4096;
+
+/// The 90th percentile of rays per covered pixel, from the histogram of `splat_reduce.wgsl`
+/// (`hist[n]` pixels under `n` rays, the last bucket under at least that many).
+fn percentile_90(hist: &[u32]) -> Option<u32> {
+    let covered: u64 = hist.iter().skip(1).map(|&c| u64::from(c)).sum();
+    if covered == 0 {
+        return None;
+    }
+    let k = covered * 9 / 10;
+    let mut seen = 0u64;
+    for (n, &c) in hist.iter().enumerate().skip(1) {
+        seen += u64::from(c);
+        if seen > k {
+            return Some(n as u32);
+        }
+    }
+    None
+}
+
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
 struct SplatUniform {
@@ -152,7 +174,7 @@ const UNIFORM_WGSL: &str = include_str!("shaders/splat_uniform.wgsl");
 /// The accumulation buffers and pipelines of one line layer (made on its first styled draw).
 pub struct Splat {
     layout: wgpu::BindGroupLayout,
-    accumulate: wgpu::RenderPipeline,
+    accumulate: wgpu::ComputePipeline,
     reduce: wgpu::ComputePipeline,
     resolve: wgpu::RenderPipeline,
     acc: Option<(wgpu::Buffer, u64)>,
@@ -171,20 +193,16 @@ pub struct Splat {
 type AutoKey = (u64, u32, u32, u32);
 
 impl Splat {
-    /// The pipelines of the accumulating styles for segments drawn by `vertex` of `lines.wgsl`;
-    /// an error naming what the adapter lacks when it cannot run them.
-    pub fn new(gpu: &Gpu, vertex: &str) -> Result<Splat> {
-        if !gpu.downlevel.flags.contains(wgpu::DownlevelFlags::FRAGMENT_WRITABLE_STORAGE) {
-            return Err(Error::Layer {
-                layer: "rays".into(),
-                message: format!(
-                    "the alpha and density styles need storage buffers written by fragment shaders, which {} lacks; use --style lines",
-                    gpu.describe()
-                ),
-            });
-        }
+    /// The pipelines of the accumulating styles for items of `shape`; an error naming what the
+    /// adapter lacks when it cannot run them.
+    pub fn new(gpu: &Gpu, shape: LineShape) -> Result<Splat> {
         gpu.compute_support(2)?;
-        let entry = |binding, visibility, ty| wgpu::BindGroupLayoutEntry { binding, visibility, ty, count: None };
+        let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty,
+            count: None,
+        };
         let storage = |read_only| wgpu::BindingType::Buffer {
             ty: wgpu::BufferBindingType::Storage { read_only },
             has_dynamic_offset: false,
@@ -195,25 +213,23 @@ impl Splat {
             has_dynamic_offset: false,
             min_binding_size: None,
         };
-        use wgpu::ShaderStages as S;
         let layout = gpu.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("splat"),
             entries: &[
-                entry(0, S::VERTEX | S::FRAGMENT, uniform_ty),
-                entry(1, S::VERTEX, storage(true)),
-                entry(2, S::FRAGMENT, storage(false)),
+                entry(0, uniform_ty),
+                entry(1, storage(true)),
+                entry(2, storage(false)),
                 // The occluder's Depth32Float as an unfilterable float texture (as the compositor
                 // binds it: GLSL has no texel load of a depth texture).
                 entry(
                     3,
-                    S::FRAGMENT,
                     wgpu::BindingType::Texture {
                         sample_type: wgpu::TextureSampleType::Float { filterable: false },
                         view_dimension: wgpu::TextureViewDimension::D2,
                         multisampled: false,
                     },
                 ),
-                entry(4, S::FRAGMENT, uniform_ty),
+                entry(4, uniform_ty),
             ],
         });
         let pipeline_layout = gpu.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -224,33 +240,12 @@ impl Splat {
         let source =
             format!("{}\n{UNIFORM_WGSL}{}", include_str!("shaders/lines.wgsl"), include_str!("shaders/splat.wgsl"));
         let module = shader(gpu, "splat", &source);
-        let accumulate = gpu.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+        let accumulate = gpu.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("splat accumulate"),
             layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &module,
-                entry_point: Some(vertex),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: wgpu::PrimitiveState { cull_mode: None, ..Default::default() },
-            // The layer's depth attachment, neither tested nor written (a pass needs an
-            // attachment; the occluder test is the shader's).
-            depth_stencil: Some(wgpu::DepthStencilState {
-                format: DEPTH_FORMAT,
-                depth_write_enabled: Some(false),
-                depth_compare: Some(wgpu::CompareFunction::Always),
-                stencil: Default::default(),
-                bias: Default::default(),
-            }),
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &module,
-                entry_point: Some("fs_accum"),
-                compilation_options: Default::default(),
-                targets: &[],
-            }),
-            multiview_mask: None,
+            module: &module,
+            entry_point: Some(shape.compute_entry()),
+            compilation_options: Default::default(),
             cache: None,
         });
         let reduce_source = format!("{UNIFORM_WGSL}{}", include_str!("shaders/splat_reduce.wgsl"));
@@ -286,7 +281,7 @@ impl Splat {
             reduce,
             resolve,
             acc: None,
-            stats: buffer("splat stats", 16, B::STORAGE | B::COPY_SRC | B::COPY_DST),
+            stats: buffer("splat stats", (2 + HIST as u64) * 4, B::STORAGE | B::COPY_SRC | B::COPY_DST),
             lut: buffer("splat colour map", 256 * 4, B::STORAGE | B::COPY_DST),
             lut_map: None,
             no_occluder,
@@ -294,15 +289,13 @@ impl Splat {
         })
     }
 
-    /// Accumulates `sets` (each with the stride its preview draws at; `per` vertices per item)
-    /// into the layer in `style`, resolving into the layer's colour; the density statistics when
-    /// the style is density.
+    /// Accumulates `sets` (each with the stride its preview draws at) into the layer in `style`,
+    /// resolving into the layer's colour; the density statistics when the style is density.
     pub fn draw(
         &mut self,
         ctx: &RenderCtx,
         view: &ViewUniform,
         sets: &[(&SegmentBuffers, u32)],
-        per: u32,
         style: &StyleParams,
     ) -> Result<Drawn> {
         let gpu = ctx.gpu;
@@ -362,11 +355,14 @@ impl Splat {
             extra: [style.opacity, 0.0, 0.0, 0.0],
         };
         // Clears the sums and accumulates every set into them with `u` (the style) and the rays'
-        // opacity `opacity`, in submissions of at most `DRAW_BATCH` items waited for one by one
-        // (as `SegmentBuffers::draw_strided` does, for software rasterizers' bins).
+        // opacity `opacity`: one dispatch per buffer of segments, one invocation per item.
         let accumulate = |u: &SplatUniform, opacity: f32| -> Result<wgpu::Buffer> {
             let ubuf = uniform(gpu, "splat", u);
-            let mut batches = Vec::new();
+            let mut enc = gpu.device.create_command_encoder(&Default::default());
+            enc.clear_buffer(acc, 0, None);
+            enc.clear_buffer(&self.stats, 0, None);
+            // The layer's depth cleared: these styles leave the scene's depth to the occluder.
+            drop(crate::draw::pass_into(&mut enc, ctx.target, false, true));
             for (set, stride) in sets {
                 let mut v = *view;
                 v.params[1] = (*stride).max(1) as f32;
@@ -384,62 +380,20 @@ impl Splat {
                             wgpu::BindGroupEntry { binding: 4, resource: ubuf.as_entire_binding() },
                         ],
                     });
-                    let items = n.div_ceil((*stride).max(1));
-                    let g = std::sync::Arc::new(g);
-                    for b in 0..items.div_ceil(DRAW_BATCH) {
-                        batches.push((g.clone(), b * DRAW_BATCH * per, ((b + 1) * DRAW_BATCH).min(items) * per));
-                    }
-                }
-            }
-            let mut enc = gpu.device.create_command_encoder(&Default::default());
-            enc.clear_buffer(acc, 0, None);
-            enc.clear_buffer(&self.stats, 0, None);
-            drop(crate::draw::pass_into(&mut enc, ctx.target, false, true));
-            gpu.queue.submit([enc.finish()]);
-            for (g, a, b) in &batches {
-                let mut enc = gpu.device.create_command_encoder(&Default::default());
-                {
-                    let mut pass = crate::draw::pass_into(&mut enc, ctx.target, false, false);
+                    let groups = n.div_ceil((*stride).max(1)).div_ceil(64);
+                    let x = groups.min(65_535);
+                    let mut pass = enc.begin_compute_pass(&Default::default());
                     pass.set_pipeline(&self.accumulate);
-                    pass.set_bind_group(0, g.as_ref(), &[]);
-                    pass.draw(*a..*b, 0..1);
-                }
-                gpu.queue.submit([enc.finish()]);
-                if batches.len() > 1 {
-                    gpu.wait()?;
+                    pass.set_bind_group(0, &g, &[]);
+                    pass.dispatch_workgroups(x, groups.div_ceil(x.max(1)), 1);
                 }
             }
+            gpu.queue.submit([enc.finish()]);
             Ok(ubuf)
         };
-        let mut opacity = style.opacity;
-        let items: u64 = sets.iter().map(|(s, stride)| s.count.div_ceil(u64::from((*stride).max(1)))).sum();
-        let auto_key = (items, w, h, style.opacity.to_bits());
-        if style.style == RayStyle::Alpha
-            && style.auto_opacity
-            && let Some((key, o, n)) = self.auto
-            && key == auto_key
-        {
-            // Chosen already for these rays at this size (not again at every camera move).
-            opacity = o;
-            p90 = Some(n);
-        } else if style.style == RayStyle::Alpha && style.auto_opacity {
-            // Count the rays per pixel first: the rays' opacity leaves nine in ten covered pixels
-            // at most half covered, so what lies under them shows.
-            let counting = SplatUniform { params: [2.0, u.params[1], u.params[2], u.params[3]], ..u };
-            accumulate(&counting, 1.0)?;
-            let words: Vec<u32> = gpu.read_values(acc, bytes)?;
-            let mut counts: Vec<u32> = words.iter().step_by(WORDS as usize).copied().filter(|&n| n > 0).collect();
-            if !counts.is_empty() {
-                let k = (counts.len() * 9 / 10).min(counts.len() - 1);
-                let n = *counts.select_nth_unstable(k).1;
-                opacity = opacity.min(1.0 - 0.5f32.powf(1.0 / n.max(1) as f32));
-                p90 = Some(n);
-                self.auto = Some((auto_key, opacity, n));
-            }
-        }
-        let ubuf = accumulate(&u, opacity)?;
-        let mut enc = gpu.device.create_command_encoder(&Default::default());
-        if density {
+        // The density statistics and the histogram of rays per covered pixel (`stats`, cleared
+        // by `accumulate`) of what `accumulate` left.
+        let reduce = |enc: &mut wgpu::CommandEncoder, ubuf: &wgpu::Buffer| {
             let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("splat reduce"),
                 layout: &self.reduce.get_bind_group_layout(0),
@@ -456,6 +410,37 @@ impl Splat {
             pass.set_pipeline(&self.reduce);
             pass.set_bind_group(0, &group, &[]);
             pass.dispatch_workgroups(x, y, 1);
+        };
+        let mut opacity = style.opacity;
+        let items: u64 = sets.iter().map(|(s, stride)| s.count.div_ceil(u64::from((*stride).max(1)))).sum();
+        let auto_key = (items, w, h, style.opacity.to_bits());
+        if style.style == RayStyle::Alpha
+            && style.auto_opacity
+            && let Some((key, o, n)) = self.auto
+            && key == auto_key
+        {
+            // Chosen already for these rays at this size (not again at every camera move).
+            opacity = o;
+            p90 = Some(n);
+        } else if style.style == RayStyle::Alpha && style.auto_opacity {
+            // Count the rays per pixel first: the rays' opacity leaves nine in ten covered pixels
+            // at most half covered, so what lies under them shows.
+            let counting = SplatUniform { params: [2.0, u.params[1], u.params[2], u.params[3]], ..u };
+            let ubuf = accumulate(&counting, 1.0)?;
+            let mut enc = gpu.device.create_command_encoder(&Default::default());
+            reduce(&mut enc, &ubuf);
+            gpu.queue.submit([enc.finish()]);
+            let stats: Vec<u32> = gpu.read_values(&self.stats, (2 + HIST as u64) * 4)?;
+            if let Some(n) = percentile_90(stats.get(2..).unwrap_or_default()) {
+                opacity = opacity.min(1.0 - 0.5f32.powf(1.0 / n.max(1) as f32));
+                p90 = Some(n);
+                self.auto = Some((auto_key, opacity, n));
+            }
+        }
+        let ubuf = accumulate(&u, opacity)?;
+        let mut enc = gpu.device.create_command_encoder(&Default::default());
+        if density {
+            reduce(&mut enc, &ubuf);
         }
         let group = gpu.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("splat resolve"),
@@ -481,5 +466,28 @@ impl Splat {
         let stats =
             DensityStats { max: s.first().copied().unwrap_or(0), covered: s.get(1).copied().map_or(0, u64::from) };
         Ok(Drawn { density: Some(stats), opacity, p90 })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The alpha style's 90th percentile from the histogram is the sorted counts' element at nine
+    /// tenths, as it was when the counts were read back and sorted.
+    #[test]
+    fn percentile_of_the_histogram_is_that_of_the_sorted_counts() {
+        let counts: Vec<u32> = (0..1000u32).map(|i| (i * 7919) % 97 + 1).chain([5000, 9000]).collect();
+        let mut hist = vec![0u32; HIST];
+        for &n in &counts {
+            hist[(n as usize).min(HIST - 1)] += 1;
+        }
+        let mut sorted = counts.clone();
+        sorted.sort_unstable();
+        assert_eq!(percentile_90(&hist), Some(sorted[sorted.len() * 9 / 10]));
+        assert_eq!(percentile_90(&vec![0; HIST]), None);
+        let mut one = vec![0u32; HIST];
+        one[HIST - 1] = 3;
+        assert_eq!(percentile_90(&one), Some(HIST as u32 - 1), "the last bucket holds the densest");
     }
 }

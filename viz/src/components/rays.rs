@@ -274,8 +274,7 @@ pub struct Rays {
     traced: Option<SegmentBuffers>,
     traced_kinds: BTreeMap<String, u64>,
     /// Tree and ray index of every loaded segment, in buffer order (picking).
-    pick_trees: Vec<u64>,
-    pick_rays: Vec<u32>,
+    picks: PickIds,
     /// Pixel, tree and ray index of every traced segment.
     traced_ids: Vec<([u32; 2], u64, u32)>,
     bvh: Option<std::sync::Arc<renderers::Bvh>>,
@@ -313,8 +312,7 @@ impl Rays {
             load_secs: 0.0,
             traced: None,
             traced_kinds: BTreeMap::new(),
-            pick_trees: Vec::new(),
-            pick_rays: Vec::new(),
+            picks: PickIds::default(),
             traced_ids: Vec::new(),
             bvh: None,
             tracer: None,
@@ -365,7 +363,7 @@ impl Rays {
         let mut bufs = SegmentBuffers::new(gpu);
         let mut builder = SegmentBuilder::new(sources.bounds, frame);
         let mut kinds: BTreeMap<String, u64> = BTreeMap::new();
-        let (mut pick_trees, mut pick_rays) = (Vec::new(), Vec::new());
+        let mut picks = PickIds::default();
         if !sources.has_rays() {
             // Immediate mode only: nothing recorded to load.
             self.segments = Some(bufs);
@@ -391,7 +389,8 @@ impl Rays {
         // 1/p-th of its rays (systematic sampling; rows arrive tree by tree, in pixel order, so
         // the kept rays spread over the image too). `p` is set once the matching rows are known.
         let mut p = 1.0f64;
-        let mut strata: std::collections::HashMap<(usize, u32), f64> = std::collections::HashMap::new();
+        // Each stratum's accumulator, by kind id and then depth (a lookup per row: no hashing).
+        let mut strata: Vec<Vec<f64>> = Vec::new();
         let mut kind_ids: Vec<String> = Vec::new();
         let mut matched = 0u64;
         let mut known: Option<u64> = None;
@@ -399,7 +398,7 @@ impl Rays {
         // wanted (cancelled, or `max_rays` reached).
         let mut consume = |b: &RecordBatch, p: f64| -> Result<bool> {
             if !progress.advance(b.num_rows() as u64) {
-                self.cancelled_after = Some(pick_trees.len() as u64);
+                self.cancelled_after = Some(picks.len() as u64);
                 return Ok(false);
             }
             let [ox, oy, oz, dx, dy, dz, t] = f32_columns(b, [ox, oy, oz, dx, dy, dz, col::T])?;
@@ -437,7 +436,15 @@ impl Rays {
                 }
                 matched += 1;
                 if p < 1.0 {
-                    let acc = strata.entry((stratum, depth.value(r))).or_insert(0.5);
+                    let d = depth.value(r) as usize;
+                    if strata.len() <= stratum {
+                        strata.resize_with(stratum + 1, Vec::new);
+                    }
+                    let by_depth = &mut strata[stratum];
+                    if by_depth.len() <= d {
+                        by_depth.resize(d + 1, 0.5);
+                    }
+                    let acc = &mut by_depth[d];
                     *acc += p;
                     if *acc < 1.0 {
                         continue;
@@ -459,8 +466,7 @@ impl Rays {
                 };
                 let flags = u32::from(s.selected_tree == Some(tree.value(r)));
                 bufs.push(gpu, builder.segment(a, e, colour, flags));
-                pick_trees.push(tree.value(r));
-                pick_rays.push(ray.value(r));
+                picks.push(tree.value(r), ray.value(r));
             }
             for (k, n) in per_count.iter().enumerate() {
                 if *n > 0 {
@@ -542,18 +548,52 @@ impl Rays {
         }
         bufs.finish(gpu);
         self.matched = known.unwrap_or(matched);
-        self.sampled = (p < 1.0).then_some(pick_trees.len() as u64);
+        self.sampled = (p < 1.0).then_some(picks.len() as u64);
         self.skipped = builder.skipped;
         self.misses = builder.misses;
         self.kinds = kinds;
         self.segments = Some(bufs);
-        self.pick_trees = pick_trees;
-        self.pick_rays = pick_rays;
+        picks.shrink();
+        self.picks = picks;
         let mut key = self.settings.data_key();
         key.5 = budget;
         self.loaded = Some((frame, key));
         self.load_secs = t0.elapsed().as_secs_f64();
         Ok(())
+    }
+}
+
+/// The tree and ray index of each loaded segment, in buffer order: a tree's segments arrive
+/// together, so tree ids are kept once per run of segments (about 6 bytes a segment instead of
+/// 12; the segment buffer is 32).
+#[derive(Debug, Default)]
+struct PickIds {
+    /// (first segment, tree id) of each run of segments of one tree.
+    runs: Vec<(u32, u64)>,
+    rays: Vec<u32>,
+}
+
+impl PickIds {
+    fn push(&mut self, tree: u64, ray: u32) {
+        if self.runs.last().is_none_or(|&(_, t)| t != tree) {
+            self.runs.push((self.rays.len() as u32, tree));
+        }
+        self.rays.push(ray);
+    }
+
+    fn len(&self) -> usize {
+        self.rays.len()
+    }
+
+    fn get(&self, i: usize) -> Option<(u64, u32)> {
+        let ray = *self.rays.get(i)?;
+        let run = self.runs.partition_point(|&(first, _)| first as usize <= i).checked_sub(1)?;
+        Some((self.runs[run].1, ray))
+    }
+
+    fn shrink(&mut self) {
+        self.runs.shrink_to_fit();
+        self.rays.shrink_to_fit();
     }
 }
 
@@ -887,10 +927,10 @@ impl Layer for Rays {
     }
     fn picked(&self, index: u32) -> Option<crate::component::Picked> {
         let i = index as usize;
-        if let (Some(&tree), Some(&ray)) = (self.pick_trees.get(i), self.pick_rays.get(i)) {
+        if let Some((tree, ray)) = self.picks.get(i) {
             return Some(crate::component::Picked::Ray { tree, ray });
         }
-        let j = i.checked_sub(self.pick_trees.len())?;
+        let j = i.checked_sub(self.picks.len())?;
         let (pixel, tree, ray) = *self.traced_ids.get(j)?;
         Some(crate::component::Picked::Traced { pixel, tree, ray })
     }
@@ -999,6 +1039,25 @@ mod tests {
         }
         w.mark_complete().unwrap();
         store::Dataset::open(dir).unwrap()
+    }
+
+    /// Picked segments name their tree and ray through runs of tree ids, the same answer as one
+    /// id per segment, including a tree seen again after another and the ends.
+    #[test]
+    fn pick_ids_give_each_segments_tree_and_ray() {
+        let rows: Vec<(u64, u32)> = vec![(7, 0), (7, 1), (7, 4), (3, 0), (9, 2), (9, 3), (7, 9), (u64::MAX, u32::MAX)];
+        let mut p = PickIds::default();
+        for &(t, r) in &rows {
+            p.push(t, r);
+        }
+        p.shrink();
+        assert_eq!(p.len(), rows.len());
+        assert_eq!(p.runs.len(), 5);
+        for (i, want) in rows.iter().enumerate() {
+            assert_eq!(p.get(i), Some(*want), "segment {i}");
+        }
+        assert_eq!(p.get(rows.len()), None);
+        assert_eq!(PickIds::default().get(0), None);
     }
 
     /// The subset of a large trace's row groups is as many as asked (at least the minimum),

@@ -1,9 +1,13 @@
 // The largest ray count of a density accumulation and the pixels any ray reached (`splat.rs`):
-// a workgroup's maximum first, then one atomic per workgroup.
+// a workgroup's maximum first, then one atomic per workgroup; and a histogram of the covered
+// pixels' counts (stats[2 + n] for n < HIST - 1, the last bucket for more), from which the alpha
+// style picks its opacity without reading the accumulation back.
 
 @group(0) @binding(0) var<storage, read> acc: array<u32>;
 @group(0) @binding(1) var<storage, read_write> stats: array<atomic<u32>>;
 @group(0) @binding(2) var<uniform> splat: Splat;
+
+const HIST: u32 = 4096u;
 
 var<workgroup> wmax: atomic<u32>;
 var<workgroup> wcov: atomic<u32>;
@@ -25,6 +29,7 @@ fn reduce(
         if n > 0u {
             atomicMax(&wmax, n);
             atomicAdd(&wcov, 1u);
+            atomicAdd(&stats[2u + min(n, HIST - 1u)], 1u);
         }
     }
     workgroupBarrier();
