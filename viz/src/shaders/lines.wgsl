@@ -24,28 +24,49 @@ struct LOut {
     @location(2) @interpolate(flat) id: u32,
 };
 
+// A line's ends in clip space, clipped against the near plane (z >= 0 in wgpu's clip space,
+// linearly in clip space), with their positions along the line (0 at its start, 1 at its end);
+// `visible` is false when the whole line lies behind the near plane. Shared with `splat.wgsl`.
+struct Clipped {
+    ca: vec4<f32>,
+    cb: vec4<f32>,
+    sa: f32,
+    sb: f32,
+    visible: bool,
+};
+
+fn clip_line(pa: vec3<f32>, pb: vec3<f32>) -> Clipped {
+    var c: Clipped;
+    c.ca = view.view_proj * vec4<f32>(pa, 1.0);
+    c.cb = view.view_proj * vec4<f32>(pb, 1.0);
+    c.sa = 0.0;
+    c.sb = 1.0;
+    c.visible = !(c.ca.z < 0.0 && c.cb.z < 0.0);
+    if c.ca.z < 0.0 {
+        let f = c.ca.z / (c.ca.z - c.cb.z);
+        c.ca = mix(c.ca, c.cb, f);
+        c.sa = f;
+    } else if c.cb.z < 0.0 {
+        let f = c.cb.z / (c.cb.z - c.ca.z);
+        c.cb = mix(c.cb, c.ca, f);
+        c.sb = 1.0 - f;
+    }
+    return c;
+}
+
 fn line_vertex(pa: vec3<f32>, pb: vec3<f32>, corner: u32, width: f32, color: vec4<f32>) -> LOut {
     var o: LOut;
     o.color = color;
-    var ca = view.view_proj * vec4<f32>(pa, 1.0);
-    var cb = view.view_proj * vec4<f32>(pb, 1.0);
-    var sa = 0.0;
-    var sb = 1.0;
-    // Clip against the near plane (z >= 0 in wgpu's clip space), linear in clip space.
-    if ca.z < 0.0 && cb.z < 0.0 {
+    let clipped = clip_line(pa, pb);
+    if !clipped.visible {
         o.pos = vec4<f32>(2.0, 2.0, 2.0, 1.0);
         o.s = 0.0;
         return o;
     }
-    if ca.z < 0.0 {
-        let f = ca.z / (ca.z - cb.z);
-        ca = mix(ca, cb, f);
-        sa = f;
-    } else if cb.z < 0.0 {
-        let f = cb.z / (cb.z - ca.z);
-        cb = mix(cb, ca, f);
-        sb = 1.0 - f;
-    }
+    let ca = clipped.ca;
+    let cb = clipped.cb;
+    let sa = clipped.sa;
+    let sb = clipped.sb;
     let na = ca.xy / ca.w;
     let nb = cb.xy / cb.w;
     let half = view.viewport.xy * 0.5;

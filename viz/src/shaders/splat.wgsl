@@ -10,7 +10,7 @@
 //   point): [sum of w, red, green, blue sums of colour*w, sum of -ln(1 - a)] (the weight w in
 //   1/255: the ray colour's own alpha times a depth weight; the log transmittance in 1/4096).
 //
-// The geometry is `lines.wgsl`'s (prepended): near-plane clipping in clip space, lines
+// The geometry is `lines.wgsl`'s (prepended): near-plane clipping (`clip_line`), lines
 // `view.viewport.z` pixels wide, the colour gradient of mode 1. A pixel covered behind the
 // occluder (the scene's depth) adds nothing: with no depth of its own per pixel, the layer is
 // hidden behind surfaces here, not in the compositor.
@@ -85,22 +85,14 @@ fn splat_pixel(p: vec2<i32>, z: f32, s: f32, color: vec4<f32>) {
 // affine in screen space; `s` is interpolated perspective-correctly (boxes' edges, `edge`, have
 // s = 1 throughout, as `vs_box` draws them).
 fn splat_line(pa: vec3<f32>, pb: vec3<f32>, width: f32, color: vec4<f32>, edge: bool) {
-    var ca = view.view_proj * vec4<f32>(pa, 1.0);
-    var cb = view.view_proj * vec4<f32>(pb, 1.0);
-    var sa = 0.0;
-    var sb = 1.0;
-    if ca.z < 0.0 && cb.z < 0.0 {
+    let clipped = clip_line(pa, pb);
+    if !clipped.visible {
         return;
     }
-    if ca.z < 0.0 {
-        let f = ca.z / (ca.z - cb.z);
-        ca = mix(ca, cb, f);
-        sa = f;
-    } else if cb.z < 0.0 {
-        let f = cb.z / (cb.z - ca.z);
-        cb = mix(cb, ca, f);
-        sb = 1.0 - f;
-    }
+    let ca = clipped.ca;
+    let cb = clipped.cb;
+    let sa = clipped.sa;
+    let sb = clipped.sb;
     if ca.w <= 0.0 || cb.w <= 0.0 {
         return;
     }
