@@ -138,6 +138,13 @@ pub fn style_report(layer: &str, style: &StyleParams, drawn: &Drawn) -> Option<S
 /// Words of the accumulation buffer per pixel.
 const WORDS: u64 = 5;
 
+/// A dispatch of `groups` workgroups, split over two dimensions where one would exceed the
+/// 65,535 a dimension allows (the shaders number the groups row by row).
+fn dispatch_2d(pass: &mut wgpu::ComputePass, groups: u64) {
+    let x = groups.clamp(1, 65_535);
+    pass.dispatch_workgroups(x as u32, groups.div_ceil(x) as u32, 1);
+}
+
 /// Buckets of the histogram of rays per covered pixel (`splat_reduce.wgsl`; the last holds more).
 const HIST: usize = 4096;
 
@@ -380,12 +387,10 @@ impl Splat {
                             wgpu::BindGroupEntry { binding: 4, resource: ubuf.as_entire_binding() },
                         ],
                     });
-                    let groups = n.div_ceil((*stride).max(1)).div_ceil(64);
-                    let x = groups.min(65_535);
                     let mut pass = enc.begin_compute_pass(&Default::default());
                     pass.set_pipeline(&self.accumulate);
                     pass.set_bind_group(0, &g, &[]);
-                    pass.dispatch_workgroups(x, groups.div_ceil(x.max(1)), 1);
+                    dispatch_2d(&mut pass, u64::from(n.div_ceil((*stride).max(1))).div_ceil(64));
                 }
             }
             gpu.queue.submit([enc.finish()]);
@@ -403,13 +408,10 @@ impl Splat {
                     wgpu::BindGroupEntry { binding: 2, resource: ubuf.as_entire_binding() },
                 ],
             });
-            let groups = pixels.div_ceil(256);
-            let x = groups.min(65_535) as u32;
-            let y = groups.div_ceil(65_535) as u32;
             let mut pass = enc.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.reduce);
             pass.set_bind_group(0, &group, &[]);
-            pass.dispatch_workgroups(x, y, 1);
+            dispatch_2d(&mut pass, pixels.div_ceil(256));
         };
         let mut opacity = style.opacity;
         let items: u64 = sets.iter().map(|(s, stride)| s.count.div_ceil(u64::from((*stride).max(1)))).sum();

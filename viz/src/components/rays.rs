@@ -477,12 +477,10 @@ impl Rays {
         };
         match &sources.dataset {
             Some(ds) => {
-                let rows = tree_rows(ds, &s)?;
-                let total = rows.as_ref().map_or(ds.ray_count(), |per| {
+                let mut rows = tree_rows(ds, &s)?;
+                let mut total = rows.as_ref().map_or(ds.ray_count(), |per| {
                     per.values().flat_map(|r| r.iter().map(|r| r.end - r.start)).sum::<u64>()
                 });
-                let mut rows = rows;
-                let mut total = total;
                 self.groups_read = None;
                 if let Some(b) = budget.filter(|b| total > *b) {
                     let m = matching_rows(ds, &s, rows.as_ref(), total)?;

@@ -185,16 +185,15 @@ fn splat_line(pa: vec3<f32>, pb: vec3<f32>, width: f32, color: vec4<f32>, edge: 
 }
 
 // The index of the invocation's item: workgroups of 64, dispatched in two dimensions where one
-// would exceed the per-dimension limit.
+// would exceed the per-dimension limit (`dispatch_2d`), every view.params.y-th item in a preview.
 fn item_index(wg: vec3<u32>, nwg: vec3<u32>, local: u32) -> u32 {
-    return (wg.y * nwg.x + wg.x) * 64u + local;
+    return ((wg.y * nwg.x + wg.x) * 64u + local) * max(u32(view.params.y), 1u);
 }
 
 // Segments: view.params.y is the stride of a preview (every stride-th segment is drawn).
 @compute @workgroup_size(64)
 fn cs_seg(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_index) li: u32) {
-    let stride = max(u32(view.params.y), 1u);
-    let k = item_index(wg, nwg, li) * stride;
+    let k = item_index(wg, nwg, li);
     if k >= arrayLength(&segs) {
         return;
     }
@@ -209,8 +208,7 @@ fn cs_seg(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: ve
 // Boxes: `a` is the minimum corner, `b` the maximum; their twelve edges.
 @compute @workgroup_size(64)
 fn cs_box(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_index) li: u32) {
-    let stride = max(u32(view.params.y), 1u);
-    let k = item_index(wg, nwg, li) * stride;
+    let k = item_index(wg, nwg, li);
     if k >= arrayLength(&segs) {
         return;
     }
