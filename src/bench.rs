@@ -107,6 +107,28 @@ pub enum BenchCommand {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true, required = true)]
         args: Vec<String>,
     },
+    /// How time and memory grow with the trace: record a Cornell-box trace of about N rays per
+    /// step, then time `record`, `info`, `check`, one pixel's tree, SQL at one pixel, a per-pixel
+    /// group-by and the first ray picture, each in a fresh process with its peak memory.
+    Scale {
+        /// Ray counts, one trace each (e.g. 10M,100M; K, M and B suffixes).
+        #[arg(long, value_delimiter = ',', default_value = "10M,100M", value_parser = bench::scale::parse_count)]
+        steps: Vec<u64>,
+        #[arg(long, default_value_t = 32)]
+        spp: u32,
+        /// Where to write the traces (default: a temporary directory).
+        #[arg(long)]
+        dir: Option<PathBuf>,
+        /// Keep each step's trace (default: removed after its step).
+        #[arg(long)]
+        keep: bool,
+        /// Skip the first-picture step (it needs a GPU adapter; lavapipe will do).
+        #[arg(long)]
+        no_render: bool,
+        /// `--memory-limit` of the SQL steps, e.g. 2GiB.
+        #[arg(long)]
+        memory_limit: Option<String>,
+    },
     /// The query service under load: N Flight SQL clients for S seconds (queries per second,
     /// p50/p99 latency per query type, every answer checked), beside the same queries alone
     /// in-process.
@@ -148,6 +170,9 @@ pub enum BenchCommand {
         /// Load rounds (the baseline scan and our load alternate).
         #[arg(long, default_value_t = 3)]
         rounds: usize,
+        /// Styles to draw (comma separated; `none` for the load alone).
+        #[arg(long, value_delimiter = ',', default_value = "lines,alpha,density")]
+        styles: Vec<String>,
     },
     /// The GPU tracer beside the CPU in the same run: primary rays per second (same rays, hits
     /// compared), path-traced samples and rays per second by kind, frames of one sample per
@@ -193,8 +218,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             let o = bench::serve::ServeBench { connect, token, clients, seconds, over_limit };
             bench::serve::run(&dataset, &o)
         }
-        BenchCommand::Viz { dataset, rays, size, frames, warmup, rounds } => {
-            bench::viz::run(&dataset, &rays, size, (frames.max(1), warmup), rounds.max(1))
+        BenchCommand::Viz { dataset, rays, size, frames, warmup, rounds, styles } => {
+            let styles: Vec<String> = styles.into_iter().filter(|s| s != "none").collect();
+            bench::viz::run(&dataset, &rays, size, (frames.max(1), warmup), rounds.max(1), &styles)
         }
         BenchCommand::Gpu { scene, subdivide, size, rounds, spp, no_cpu, record } => {
             let o = bench::gpu::GpuBench { rounds: rounds.max(1), spp: spp.max(1), cpu: !no_cpu, record };
@@ -202,6 +228,12 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         }
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => bench::fetch_bench(&dataset, fetches, !no_duckdb),
         BenchCommand::Record { runs, args } => bench::record::run(runs, &args),
+        BenchCommand::Scale { steps, spp, dir, keep, no_render, memory_limit } => {
+            if let Some(m) = &memory_limit {
+                crate::sql::parse_bytes(m).map_err(anyhow::Error::msg)?;
+            }
+            bench::scale::run(&bench::scale::ScaleArgs { steps, spp, dir, keep, render: !no_render, memory_limit })
+        }
         BenchCommand::Query { dataset, plain, runs, memory_limit, no_duckdb, cluster, executor_cores } => {
             if let Some(m) = &memory_limit {
                 crate::sql::parse_bytes(m).map_err(anyhow::Error::msg)?;

@@ -28,7 +28,7 @@ pub struct ServeArgs {
     /// the environment variable RTVTK_TOKEN is the alternative.
     #[arg(long)]
     token_file: Option<PathBuf>,
-    /// Memory all queries together may hold, e.g. `8GiB` (unlimited by default).
+    /// Memory all queries together may hold, e.g. `8GiB` (default: 80% of this machine's memory).
     #[arg(long, value_parser = crate::sql::parse_bytes)]
     memory_limit: Option<usize>,
     /// Memory one query may hold, e.g. `1GiB` (within --memory-limit).

@@ -30,7 +30,8 @@ pub struct SqlArgs {
     /// Print the plan (logical and physical, with pushed-down filters) instead of running.
     #[arg(long)]
     explain: bool,
-    /// Memory the query's operators may hold, e.g. `2GiB` or `512MiB` (unlimited by default).
+    /// Memory the query's operators may hold, e.g. `2GiB` or `512MiB` (default: 80% of this
+    /// machine's memory; beyond it sorts and joins spill to disk, group-bys fail with an error).
     #[arg(long, value_parser = parse_bytes)]
     memory_limit: Option<usize>,
     /// Print the query's wall time (seconds, after the session is open) to stderr.

@@ -276,6 +276,37 @@ fn bench_record_reports_the_recording_overhead() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("failed"), "{}", String::from_utf8_lossy(&o.stderr));
 }
 
+/// `rtvtk bench scale` records a trace per step and times every whole-trace command on each in
+/// its own process, then says how each grew; a bad step count is refused by name.
+#[test]
+fn bench_scale_times_every_command_at_every_step() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("scale");
+    let d = dir.to_str().unwrap();
+    let out = rtvtk(&["bench", "scale", "--steps", "3K,12K", "--spp", "2", "--no-render", "--dir", d]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let s = String::from_utf8_lossy(&out.stdout);
+    for row in
+        ["| record |", "| info |", "| check |", "| one pixel's tree", "| SQL at one pixel |", "| per-pixel group-by"]
+    {
+        assert!(s.contains(row), "{row}: {s}");
+    }
+    assert!(s.contains("time growth") && s.contains("rays grew"), "{s}");
+    // Each step's trace is about the rays asked for (the image size comes from a calibration).
+    let rays: Vec<f64> = s.lines().filter_map(|l| l.split_once(" rays: ")?.0.trim().parse().ok()).collect();
+    assert_eq!(rays.len(), 2, "{s}");
+    assert!((rays[0] / 3e3 - 1.0).abs() < 0.5 && (rays[1] / 12e3 - 1.0).abs() < 0.3, "{rays:?}");
+    // Traces are removed after their step unless --keep.
+    assert!(std::fs::read_dir(&dir).unwrap().all(|e| !e.unwrap().file_name().to_string_lossy().starts_with("trace-")));
+    let o = rtvtk(&["bench", "scale", "--steps", "lots"]);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("expected a ray count"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+}
+
 #[test]
 fn demo_draws_a_picture_and_render_draws_layers() {
     let tmp = tempfile::tempdir().unwrap();

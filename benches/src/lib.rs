@@ -7,6 +7,7 @@
 //! - [`store_bench`], [`fetch_bench`]: recording throughput, bytes per ray and one-tree fetches
 //!   beside Parquet and DuckDB (`bench store`, `bench fetch`)
 //! - [`record`]: `rtvtk record` against `record --no-record`, end to end (`bench record`)
+//! - [`scale`]: time and memory of every whole-trace command as the trace grows (`bench scale`)
 //! - [`query`]: the SQL suite beside DuckDB and on Ballista clusters (`bench query`)
 //! - [`serve`]: many Flight SQL clients against one service (`bench serve`)
 //! - [`trace`]: BVH traversal beside obvhs (and Embree) (`bench trace`)
@@ -18,6 +19,7 @@ mod embree;
 pub mod gpu;
 pub mod query;
 pub mod record;
+pub mod scale;
 pub mod serve;
 pub mod trace;
 pub mod viz;

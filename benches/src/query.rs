@@ -159,7 +159,7 @@ pub fn same_answer(a: &[Vec<String>], b: &[Vec<String>]) -> bool {
 
 /// Runs `cmd`, returning its output and peak resident set size.
 #[cfg(unix)]
-fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
+pub(crate) fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
     use std::os::unix::process::ExitStatusExt;
     let mut child = cmd.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn()?;
     let pid = child.id() as libc::pid_t;
@@ -189,7 +189,7 @@ fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
 }
 
 #[cfg(not(unix))]
-fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
+pub(crate) fn run_measured(cmd: &mut Command) -> Result<(std::process::Output, u64)> {
     Ok((cmd.output()?, 0))
 }
 

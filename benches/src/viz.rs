@@ -15,7 +15,7 @@ fn median(v: &mut [f64]) -> f64 {
 }
 
 /// Resident and peak resident memory of this process (bytes), from /proc (zero elsewhere).
-fn rss() -> (u64, u64) {
+pub(crate) fn rss() -> (u64, u64) {
     let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     let field = |name: &str| {
         status
@@ -42,14 +42,22 @@ fn render_once(
     Ok(())
 }
 
-/// `frames`: timed frames per style and ray count, each after `warmup` untimed ones.
+/// The ray styles `bench viz` draws, in its table's order.
+pub const STYLES: [&str; 3] = ["lines", "alpha", "density"];
+
+/// `frames`: timed frames per style and ray count, each after `warmup` untimed ones; `styles`:
+/// those of [`STYLES`] to draw (the others' columns say "-"; none: the load alone).
 pub fn run(
     dataset: &Path,
     counts: &[u64],
     (w, h): (u32, u32),
     (frames, warmup): (usize, usize),
     rounds: usize,
+    styles: &[String],
 ) -> Result<()> {
+    if let Some(bad) = styles.iter().find(|s| !STYLES.contains(&s.as_str())) {
+        bail!("unknown style {bad:?}: expected some of {}", STYLES.join(", "));
+    }
     let sources = Sources::open(dataset)?;
     let total = sources.dataset.as_ref().map_or(0, |d| d.ray_count());
     let gpu = Gpu::shared()?;
@@ -93,7 +101,11 @@ pub fn run(
         let mut steps = vec![("load", rss().0)];
         // Frames in each style: orbit the camera a little each frame so every frame really draws.
         let mut per_style = Vec::new();
-        for style in ["lines", "alpha", "density"] {
+        for style in STYLES {
+            if !styles.iter().any(|s| s == style) {
+                per_style.push(None);
+                continue;
+            }
             let mut settings = rays.settings();
             settings["style"] = serde_json::json!(style);
             rays.set_settings(&settings)?;
@@ -108,7 +120,7 @@ pub fn run(
                     times.push(t.elapsed().as_secs_f64());
                 }
             }
-            per_style.push(median(&mut times));
+            per_style.push(Some(median(&mut times)));
             steps.push((style, rss().0));
         }
         let (after, _) = rss();
@@ -128,19 +140,20 @@ pub fn run(
                 bail!("the scan returned {rows} rows, expected {total}");
             }
         }
+        let ms = |t: Option<f64>| t.map_or("-".to_string(), |t| format!("{:.1}", t * 1e3));
         let segs = rays.segment_count().max(1);
         let (s, l) = (median(&mut scan), median(&mut load));
         let growth = after.saturating_sub(before) as f64 / f64::from(1 << 20);
         let seg_mib = rays.gpu_bytes() as f64 / f64::from(1 << 20);
         println!(
-            "| {} | {:.3} | {:.3} | {:.2}x | {:.1} | {:.1} | {:.1} | {:.1} | {:.0} | {:.0} | {:.2}x |",
+            "| {} | {:.3} | {:.3} | {:.2}x | {} | {} | {} | {:.1} | {:.0} | {:.0} | {:.2}x |",
             n,
             s,
             l,
             l / s,
-            per_style[0] * 1e3,
-            per_style[1] * 1e3,
-            per_style[2] * 1e3,
+            ms(per_style[0]),
+            ms(per_style[1]),
+            ms(per_style[2]),
             rays.gpu_bytes() as f64 / segs as f64,
             growth,
             seg_mib,
@@ -161,6 +174,9 @@ pub fn run(
             println!("  {r}");
         }
         drop(rays);
+    }
+    if styles.is_empty() {
+        return Ok(());
     }
     whole_frames(sources, gpu, counts.first().copied().unwrap_or(0), (w, h), frames)
 }

@@ -87,7 +87,7 @@ pub async fn session(sources: &[TraceSource]) -> Result<SessionContext> {
 #[derive(Clone, Debug, Default)]
 pub struct SessionOptions {
     /// Bytes the operators may hold (sorts, joins and aggregations spill or fail beyond it);
-    /// unlimited when None.
+    /// when None, [`default_memory_limit`]: a share of this machine's memory.
     pub memory_limit: Option<usize>,
     /// DataFusion's own aggregation for every group-by: rtvtk's [`CountByKey`] and [`SmallGroups`]
     /// rules left out (to compare the two on the same query).
@@ -118,11 +118,36 @@ pub fn session_config() -> SessionConfig {
         .set_bool("datafusion.execution.parquet.pushdown_filters", true)
 }
 
+/// The memory a session's operators may hold when none is given: 80% of this machine's memory
+/// (or of the control group's limit, when lower), as DuckDB's default is; beyond it a sort, join
+/// or DataFusion aggregation spills to the temporary directory, and rtvtk's own group-bys fail
+/// with a resources-exhausted error naming the limit, instead of the process being killed for
+/// memory. None (unlimited) where the machine's memory is not known (outside Linux).
+pub fn default_memory_limit() -> Option<usize> {
+    let total = std::fs::read_to_string("/proc/meminfo").ok().and_then(|m| {
+        let kb = m
+            .lines()
+            .find_map(|l| l.strip_prefix("MemTotal:"))?
+            .trim()
+            .strip_suffix("kB")?
+            .trim()
+            .parse::<u64>()
+            .ok()?;
+        Some(kb * 1024)
+    })?;
+    // cgroup v2, then v1 ("max" or a huge number where unlimited).
+    let group = ["/sys/fs/cgroup/memory.max", "/sys/fs/cgroup/memory/memory.limit_in_bytes"]
+        .iter()
+        .find_map(|p| std::fs::read_to_string(p).ok()?.trim().parse::<u64>().ok());
+    let bytes = group.map_or(total, |g| g.min(total));
+    usize::try_from(bytes / 5 * 4).ok()
+}
+
 /// A session state with rtvtk's settings and physical operators, no tables or ray functions yet
 /// (see [`register_datasets`]).
 pub fn session_state(options: &SessionOptions) -> Result<datafusion::execution::SessionState> {
     let mut runtime = datafusion::execution::runtime_env::RuntimeEnvBuilder::new();
-    if let Some(limit) = options.memory_limit {
+    if let Some(limit) = options.memory_limit.or_else(default_memory_limit) {
         runtime = runtime.with_memory_limit(limit, 1.0);
     }
     Ok(SessionStateBuilder::new()

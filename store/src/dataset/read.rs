@@ -44,7 +44,12 @@ impl Dataset {
         }
         if let Some(rows) = rows {
             let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, rows);
-            builder = builder.with_row_groups(groups).with_row_selection(selection);
+            builder = builder.with_row_groups(groups);
+            // Whole row groups need no selection (the viewer's loads read row group by row
+            // group): arrow-rs then reads their pages straight through.
+            if selection.iter().any(|s| s.skip) {
+                builder = builder.with_row_selection(selection);
+            }
         }
         let reader = Guarded::new(builder.build().map_err(pq_err(&path))?, &path);
         Ok((path, reader))
