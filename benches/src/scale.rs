@@ -130,19 +130,14 @@ pub fn run(a: &ScaleArgs) -> Result<()> {
     let side = 48u32;
     let args = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<String>>();
     let path = |p: &Path| p.to_string_lossy().into_owned();
-    measured(
-        &exe,
-        &args(&[
-            "record",
-            "--size",
-            &format!("{side}x{side}"),
-            "--spp",
-            &spp.to_string(),
-            "--out",
-            &path(&calib),
-            "--quiet",
-        ]),
-    )?;
+    // A recording of side² pixels into `out` (its pictures beside the traces, not counted).
+    let record = |side: u32, out: &Path| -> Result<Cost> {
+        let size = format!("{side}x{side}");
+        let (image, exr) = (path(&root.join("image.png")), path(&root.join("image.exr")));
+        let v = args(&["record", "--size", &size, "--spp", &spp.to_string(), "--out", &path(out), "--quiet"]);
+        Ok(measured(&exe, &[v, args(&["--image", &image, "--exr", &exr])].concat())?.0)
+    };
+    record(side, &calib)?;
     let ds = rl::Dataset::open(&calib)?;
     let per_sample = ds.ray_count() as f64 / (f64::from(side * side) * f64::from(spp));
     let per_ray_bytes = dir_bytes(&calib) as f64 / ds.ray_count().max(1) as f64;
@@ -178,23 +173,7 @@ pub fn run(a: &ScaleArgs) -> Result<()> {
         }
         let d = path(&dir);
         let mut costs: Vec<(&'static str, Cost)> = Vec::new();
-        let (c, _) = measured(
-            &exe,
-            &args(&[
-                "record",
-                "--size",
-                &format!("{side}x{side}"),
-                "--spp",
-                &spp.to_string(),
-                "--out",
-                &d,
-                "--quiet",
-                "--image",
-                &path(&root.join("image.png")),
-                "--exr",
-                &path(&root.join("image.exr")),
-            ]),
-        )?;
+        let c = record(side, &dir)?;
         costs.push(("record", c));
         let ds = rl::Dataset::open(&dir)?;
         let rays = ds.ray_count();
