@@ -361,7 +361,8 @@ impl Rays {
         let s = self.settings.clone();
         s.predicate()?;
         let mut bufs = SegmentBuffers::new(gpu);
-        let mut builder = SegmentBuilder::new(sources.bounds, frame);
+        // Rows that could not be drawn, and misses clipped to the scene, over every piece.
+        let (mut skipped, mut misses) = (0u64, 0u64);
         let mut kinds: BTreeMap<String, u64> = BTreeMap::new();
         let mut picks = PickIds::default();
         if !sources.has_rays() {
@@ -395,8 +396,8 @@ impl Rays {
                 return Ok(false);
             }
             matched += k.matched;
-            builder.skipped += k.skipped;
-            builder.misses += k.misses;
+            skipped += k.skipped;
+            misses += k.misses;
             let more = (k.segments.len() as u64) < left;
             if !more {
                 k.truncate(left as usize);
@@ -472,8 +473,8 @@ impl Rays {
         bufs.finish(gpu);
         self.matched = known.unwrap_or(matched);
         self.sampled = (p < 1.0).then_some(picks.len() as u64);
-        self.skipped = builder.skipped;
-        self.misses = builder.misses;
+        self.skipped = skipped;
+        self.misses = misses;
         self.kinds = kinds;
         self.segments = Some(bufs);
         picks.shrink();
