@@ -108,8 +108,9 @@ pub enum BenchCommand {
         args: Vec<String>,
     },
     /// How time and memory grow with the trace: record a Cornell-box trace of about N rays per
-    /// step, then time `record`, `info`, `check`, one pixel's tree, SQL at one pixel, a per-pixel
-    /// group-by and the first ray picture, each in a fresh process with its peak memory.
+    /// step, then time `record`, `info`, `check`, one pixel's tree, one tree by id, 2000 random
+    /// tree fetches, SQL at one pixel, a per-pixel group-by and the first ray picture, each in a
+    /// fresh process with its peak memory.
     Scale {
         /// Ray counts, one trace each (e.g. 10M,100M; K, M and B suffixes).
         #[arg(long, value_delimiter = ',', default_value = "10M,100M", value_parser = bench::scale::parse_count)]
@@ -198,7 +199,8 @@ pub enum BenchCommand {
         #[arg(long)]
         record: bool,
     },
-    /// One-tree fetch latency on an existing dataset (by id and by pixel), beside DuckDB.
+    /// One-tree fetch latency on an existing dataset (by id, first touch and warm, and by
+    /// pixel), beside DuckDB; reads only the pages of the trees fetched, whatever the trace's size.
     Fetch {
         dataset: PathBuf,
         #[arg(long, default_value_t = 2000)]

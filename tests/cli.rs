@@ -286,11 +286,20 @@ fn bench_scale_times_every_command_at_every_step() {
     let out = rtvtk(&["bench", "scale", "--steps", "3K,12K", "--spp", "2", "--no-render", "--dir", d]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let s = String::from_utf8_lossy(&out.stdout);
-    for row in
-        ["| record |", "| info |", "| check |", "| one pixel's tree", "| SQL at one pixel |", "| per-pixel group-by"]
-    {
+    for row in [
+        "| record |",
+        "| info |",
+        "| check |",
+        "| one pixel's tree",
+        "| one tree by id",
+        "| 2000 random tree fetches",
+        "| SQL at one pixel |",
+        "| per-pixel group-by",
+    ] {
         assert!(s.contains(row), "{row}: {s}");
     }
+    // Each step's fetch latencies, from `bench fetch` on its trace.
+    assert_eq!(s.lines().filter(|l| l.contains(": one-tree fetch (lossless")).count(), 2, "{s}");
     assert!(s.contains("time growth") && s.contains("rays grew"), "{s}");
     // Each step's trace is about the rays asked for (the image size comes from a calibration).
     let rays: Vec<f64> = s.lines().filter_map(|l| l.split_once(" rays: ")?.0.trim().parse().ok()).collect();

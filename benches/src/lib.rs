@@ -504,59 +504,81 @@ pub fn store_bench(
     fetch_bench(&fetch_path, args.fetches, args.duckdb)
 }
 
-/// One-tree fetch latency on an existing dataset, by id and by (pixel, sample), warm, beside
-/// DuckDB's `WHERE tree_id = k` on the same files.
+/// One-tree fetch latency on an existing dataset: by id, first touch (the tree's tree-table page
+/// and ray pages read for the first time in this process: from the page cache or the disk) and
+/// again (warm), and by (pixel, sample), warm; beside DuckDB's `WHERE tree_id = k` on the same
+/// files. Nothing is loaded whole (no tree index, no page-cache warming), so memory stays that
+/// of a few pages whatever the trace's length.
 pub fn fetch_bench(fetch_path: &std::path::Path, fetches: usize, duckdb: bool) -> Result<()> {
-    // Warm: the ray files read once into the page cache, the tree index loaded (timed apart).
     let ds = Dataset::open(fetch_path)?;
-    let t = Instant::now();
-    let mut warm_bytes = 0u64;
-    for f in ds.ray_files() {
-        warm_bytes += std::io::copy(&mut File::open(&f)?, &mut std::io::sink())?;
-    }
-    let warm_secs = t.elapsed().as_secs_f64();
-    let t = Instant::now();
+    let segments = &ds.manifest().segments;
     let n_trees = ds.tree_count().max(1);
-    ds.tree_entry_at(0)?;
-    let index_secs = t.elapsed().as_secs_f64();
-    eprintln!(
-        "  read {:.0} MiB of ray files in {warm_secs:.1} s to warm the page cache; tree index {index_secs:.2} s",
-        warm_bytes as f64 / (1 << 20) as f64
-    );
     let mut rng = 0x2545_F491_4F6C_DD1Du64;
-    let mut pick = || -> Result<store::TreeEntry> {
+    let mut next = move || {
         rng ^= rng << 13;
         rng ^= rng >> 7;
         rng ^= rng << 17;
-        ds.tree_entry_at((rng % n_trees) as usize)?.context("tree index shorter than the manifest says")
+        rng
     };
+    // A random tree: a segment chosen in proportion to its trees, an id in its range (ids a
+    // segment's range skips are drawn again, untimed).
+    let mut pick = |ds: &Dataset| -> Result<(TreeId, store::Tree, f64)> {
+        for _ in 0..10_000 {
+            let mut k = next() % n_trees;
+            let Some(seg) = segments.iter().find(|s| {
+                let hit = k < s.trees.rows;
+                k = k.saturating_sub(s.trees.rows);
+                hit
+            }) else {
+                continue;
+            };
+            let id = TreeId(seg.tree_id_min + next() % (seg.tree_id_max - seg.tree_id_min + 1));
+            let t = Instant::now();
+            match ds.tree(id) {
+                Ok(tree) => return Ok((id, tree, t.elapsed().as_secs_f64())),
+                Err(store::Error::NoSuchTree(_)) => continue,
+                Err(e) => return Err(e.into()),
+            }
+        }
+        anyhow::bail!("no tree found by 10,000 random ids in the manifest's segment ranges")
+    };
+    // The first fetches also read each segment's tree-file footer (kept afterwards).
+    let t = Instant::now();
     for _ in 0..200.min(fetches) {
-        ds.tree(pick()?.info.id)?;
+        pick(&ds)?;
+    }
+    eprintln!("  {} warm-up fetches in {:.2} s", 200.min(fetches), t.elapsed().as_secs_f64());
+    let mut first = Vec::with_capacity(fetches);
+    let mut picked = Vec::with_capacity(fetches);
+    let mut pixels = Vec::with_capacity(fetches);
+    while first.len() < fetches {
+        let (id, tree, secs) = pick(&ds)?;
+        first.push(secs);
+        picked.push(id.0);
+        pixels.push((tree.info.pixel, tree.info.sample));
     }
     let mut by_id = Vec::with_capacity(fetches);
-    let mut picked = Vec::with_capacity(fetches);
-    for _ in 0..fetches {
-        let id: TreeId = pick()?.info.id;
-        picked.push(id.0);
+    for &id in &picked {
         let t = Instant::now();
-        let tree = ds.tree(id)?;
+        let tree = ds.tree(TreeId(id))?;
         by_id.push(t.elapsed().as_secs_f64());
         std::hint::black_box(tree);
     }
     let mut by_pixel = Vec::with_capacity(fetches);
-    for _ in 0..fetches {
-        let e = pick()?.info;
+    for &([x, y], sample) in &pixels {
         let t = Instant::now();
-        let trees = ds.trees_at_pixel(e.pixel[0], e.pixel[1], Some(e.sample))?;
+        let trees = ds.trees_at_pixel(x, y, Some(sample))?;
         by_pixel.push(t.elapsed().as_secs_f64());
         std::hint::black_box(trees);
     }
+    let (first50, first99) = percentiles(&mut first);
     let (id50, id99) = percentiles(&mut by_id);
     let (px50, px99) = percentiles(&mut by_pixel);
     println!();
     println!(
-        "one-tree fetch ({}, {} rays, {} fetches, warm): by id p50 {id50:.3} ms, p99 {id99:.3} ms; \
-         by pixel and sample p50 {px50:.3} ms, p99 {px99:.3} ms; tree index load {index_secs:.3} s",
+        "one-tree fetch ({}, {} rays, {} fetches): by id p50 {id50:.3} ms, p99 {id99:.3} ms (warm); \
+         first touch p50 {first50:.3} ms, p99 {first99:.3} ms (a random tree of the trace); \
+         by pixel and sample p50 {px50:.3} ms, p99 {px99:.3} ms (warm)",
         ds.encoding().name(),
         ds.ray_count(),
         fetches,

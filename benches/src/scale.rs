@@ -1,8 +1,9 @@
 //! `rtvtk bench scale`: how time and memory grow with a trace's length. Each step records a
 //! Cornell-box trace of about N rays, then runs what a user runs on a whole trace, each command
 //! in its own fresh process, with its wall time and peak resident set: `record`, `info`, `check`,
-//! one pixel's trees (`tree --pixel`), SQL at one pixel, a per-pixel group-by, and the viewer's
-//! first ray picture (`render` of a 100K-ray sample). The table ends with each command's growth
+//! one pixel's trees (`tree --pixel`), one tree by id (`tree --tree`), 2000 random tree fetches
+//! (`bench fetch`, whose latencies are printed too), SQL at one pixel, a per-pixel group-by, and
+//! the viewer's first ray picture (`render` of a 100K-ray sample). The table ends with each command's growth
 //! from the first step to the last beside the growth of the rays: linear time grows as the rays
 //! do, random access and bounded memory do not grow.
 
@@ -156,6 +157,7 @@ pub fn run(a: &ScaleArgs) -> Result<()> {
     let mut names: Vec<&'static str> = Vec::new();
     // Per step: (rays, bytes, costs in `names` order).
     let mut done: Vec<(u64, u64, Vec<Cost>)> = Vec::new();
+    let mut fetch_lines: Vec<String> = Vec::new();
     for &n in &a.steps {
         let side = size_for(n, per_sample, spp);
         let dir = root.join(format!("trace-{n}"));
@@ -177,6 +179,9 @@ pub fn run(a: &ScaleArgs) -> Result<()> {
         costs.push(("record", c));
         let ds = rl::Dataset::open(&dir)?;
         let rays = ds.ray_count();
+        // A tree in the middle of the trace, by id.
+        let segs = &ds.manifest().segments;
+        let mid_tree = segs.get(segs.len() / 2).map_or(0, |s| s.tree_id_min);
         drop(ds);
         let bytes = dir_bytes(&dir);
         costs.push(("info", measured(&exe, &args(&["info", &d]))?.0));
@@ -189,6 +194,16 @@ pub fn run(a: &ScaleArgs) -> Result<()> {
             bail!("`rtvtk tree {d} --pixel {px},{py} --sample {s}` printed no tree");
         }
         costs.push(("one pixel's tree (`tree --pixel`)", c));
+        costs.push((
+            "one tree by id (`tree --tree`)",
+            measured(&exe, &args(&["tree", &d, "--tree", &mid_tree.to_string()]))?.0,
+        ));
+        let (c, out) = measured(&exe, &args(&["bench", "fetch", &d, "--fetches", "2000", "--no-duckdb"]))?;
+        costs.push(("2000 random tree fetches in one process (`bench fetch`)", c));
+        fetch_lines.push(format!(
+            "{n}: {}",
+            out.lines().find(|l| l.starts_with("one-tree fetch")).unwrap_or("(no fetch figures printed)")
+        ));
         let mut sql = |label: &'static str, query: String, to_file: bool| -> Result<()> {
             let mut v = args(&["sql", &d, &query]);
             if let Some(m) = &a.memory_limit {
@@ -271,6 +286,10 @@ pub fn run(a: &ScaleArgs) -> Result<()> {
              random access's and bounded memory's stay near 1x",
             last.0 as f64 / first.0.max(1) as f64
         );
+    }
+    println!("\nfetch latency per step (`bench fetch`):");
+    for l in &fetch_lines {
+        println!("  {l}");
     }
     for (rays, bytes, costs) in &done {
         let check = costs[names.iter().position(|n| *n == "check").unwrap_or(0)];

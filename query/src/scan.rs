@@ -638,13 +638,17 @@ impl RaysScanExec {
         if virtual_cols.is_empty() {
             return Ok(it);
         }
-        let entries = match &part.entries {
-            Some(e) => e.clone(),
-            None => self.ds.segment_tree_entries(part.segment)?,
-        };
+        // The segment's tree table is read when its first batch is (engines start every
+        // partition's stream at once): only the segments being read hold theirs.
+        let mut entries = part.entries.clone();
+        let (ds, segment) = (self.ds.clone(), part.segment);
         let path = self.ds.dir().join(&self.ds.manifest().segments[part.segment].rays.path);
         Ok(Box::new(it.map(move |b| {
             let b = b?;
+            let entries: &[TreeEntry] = match &mut entries {
+                Some(e) => e,
+                None => entries.insert(ds.segment_tree_entries(segment)?),
+            };
             let ids = b
                 .column_by_name(col::TREE_ID)
                 .and_then(|c| c.as_primitive_opt::<UInt64Type>())

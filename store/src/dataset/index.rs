@@ -1,5 +1,6 @@
 //! The tree index: every tree's pixel, sample, size and place, from the tree tables (loaded
-//! whole on first need, or only the pages of the ids asked for), and the lookups on it.
+//! whole when a caller asks for every tree, otherwise only the pages of the ids or pixels asked
+//! for), and the lookups on it.
 
 use super::*;
 
@@ -32,16 +33,23 @@ impl Dataset {
 
     /// The trees of segment `i` that `filter` keeps, sorted by id. Reads only the tree-table
     /// pages whose statistics (the file's page index: min/max of `tree_id`, `pixel_x`, `pixel_y`,
-    /// `sample` per page) can hold a kept tree; uses the table when already loaded.
+    /// `sample` per page) can hold a kept tree; the footer and page index are read once per
+    /// segment and kept (a few KiB), so later lookups in the segment read one or two pages.
     pub fn segment_tree_entries_where(&self, i: usize, filter: &TreeFilter) -> Result<Vec<TreeEntry>> {
-        if let Some(all) = self.segment_trees.get(i).and_then(|c| c.get()) {
-            return Ok(all.iter().filter(|e| filter.keeps(&e.info)).copied().collect());
-        }
         let path = self.dir.join(&self.segment(i).trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
-        let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
-        let meta = guard(&path, || ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path)))?;
-        check_schema(meta.schema(), &tree_schema(), &path)?;
+        let meta = match self.tree_metas.get(i).and_then(|c| c.get()) {
+            Some(m) => m.clone(),
+            None => {
+                let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
+                let meta = guard(&path, || ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path)))?;
+                check_schema(meta.schema(), &tree_schema(), &path)?;
+                if let Some(cell) = self.tree_metas.get(i) {
+                    let _ = cell.set(meta.clone());
+                }
+                meta
+            }
+        };
         let Some(rows) = filter_pages(&meta, filter) else {
             // No page index (not written by this store): the whole table.
             return Ok(self.segment_tree_entries(i)?.iter().filter(|e| filter.keeps(&e.info)).copied().collect());
@@ -152,36 +160,31 @@ impl Dataset {
         self.load_tree(&self.entry_of(id)?)
     }
 
-    /// Where tree `id` is: from the whole index when it is loaded, otherwise from the tree tables
-    /// of only the segments whose id range holds `id` (each loaded once), so a first lookup on a
-    /// large trace does not read every tree table.
+    /// Where tree `id` is: from the whole index when it is loaded, otherwise from only the
+    /// segments whose id range holds `id`, and in them only the tree-table page whose id
+    /// statistics hold it, so a lookup on a large trace reads a page, not every tree table.
     pub fn entry_of(&self, id: TreeId) -> Result<TreeEntry> {
         if let Some(ix) = self.index.get() {
             let pos = ix.by_id.binary_search_by_key(&id, |e| e.info.id).map_err(|_| Error::NoSuchTree(id.0))?;
             return Ok(ix.by_id[pos]);
         }
+        let filter = TreeFilter { tree_id: Some(vec![(id.0, id.0)]), ..Default::default() };
         for (i, seg) in self.manifest.segments.iter().enumerate() {
             if id.0 < seg.tree_id_min || id.0 > seg.tree_id_max {
                 continue;
             }
-            let entries = self.segment_tree_entries(i)?;
-            if let Ok(pos) = entries.binary_search_by_key(&id, |e| e.info.id) {
-                return Ok(entries[pos]);
+            if let Some(e) = self.segment_tree_entries_where(i, &filter)?.first() {
+                return Ok(*e);
             }
         }
         Err(Error::NoSuchTree(id.0))
     }
 
-    /// The trees of segment `i`, sorted by id (its tree table, loaded once and kept).
+    /// The trees of segment `i`, sorted by id: its whole tree table, read on each call and not
+    /// kept by the dataset (a scan holds it while it reads the segment), so memory does not grow
+    /// with the trees a process has touched.
     pub fn segment_tree_entries(&self, i: usize) -> Result<Arc<Vec<TreeEntry>>> {
-        if let Some(e) = self.segment_trees.get(i).and_then(|c| c.get()) {
-            return Ok(e.clone());
-        }
-        let e = Arc::new(self.read_tree_table(i)?);
-        if let Some(cell) = self.segment_trees.get(i) {
-            let _ = cell.set(e.clone());
-        }
-        Ok(e)
+        Ok(Arc::new(self.read_tree_table(i)?))
     }
 
     /// Every tree of a pixel (of one sample, or of all samples), ordered by sample then id.

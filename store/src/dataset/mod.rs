@@ -54,8 +54,8 @@ pub struct Dataset {
     file_schema: SchemaRef,
     metas: Vec<OnceLock<Arc<SegmentMeta>>>,
     index: OnceLock<Arc<TreeIndex>>,
-    /// Each segment's tree table (sorted by id), loaded on the first lookup by id that needs it.
-    segment_trees: Vec<OnceLock<Arc<Vec<TreeEntry>>>>,
+    /// Each segment's tree-file footer with its page index, loaded on the first lookup in it.
+    tree_metas: Vec<OnceLock<ArrowReaderMetadata>>,
 }
 
 /// Datasets opened by this process so far (see [`Dataset::opened`]).
@@ -97,7 +97,7 @@ impl Dataset {
         let kinds = manifest.kind_table();
         let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();
         let metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
-        let segment_trees = manifest.segments.iter().map(|_| OnceLock::new()).collect();
+        let tree_metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
         let schema = ray_schema(&payload);
         Ok(Self {
             file_schema: file_schema(&schema, manifest.encoding, manifest.format_version),
@@ -109,7 +109,7 @@ impl Dataset {
             kinds_by_name,
             metas,
             index: OnceLock::new(),
-            segment_trees,
+            tree_metas,
         })
     }
 
