@@ -60,7 +60,8 @@ impl Dataset {
 
     /// [`Dataset::check`], calling `progress` with the rays of each segment once it is checked.
     /// Segments are checked on up to all cores at once; memory holds a few segments' tree tables
-    /// (plus the tree ids of segments whose id ranges overlap), whatever the trace's length.
+    /// (and a batch of ids per segment whose id range overlaps another's), whatever the trace's
+    /// length.
     pub fn check_with(&self, progress: &(dyn Fn(u64) + Sync)) -> CheckReport {
         check(self, progress)
     }
@@ -72,9 +73,6 @@ struct SegmentCheck {
     errors: Vec<String>,
     trees: u64,
     rays: u64,
-    /// The segment's tree ids, sorted, when its id range overlaps another segment's (for the
-    /// dataset-wide uniqueness check).
-    ids: Option<Vec<u64>>,
 }
 
 /// Segments whose manifest id ranges overlap another segment's: only their ids can collide.
@@ -121,7 +119,7 @@ fn check(ds: &Dataset, progress: &(dyn Fn(u64) + Sync)) -> CheckReport {
                         if i >= n {
                             break;
                         }
-                        let c = check_segment(ds, i, overlapping.contains(&i));
+                        let c = check_segment(ds, i);
                         progress(m.segments[i].rays.rows);
                         mine.push((i, c));
                     }
@@ -134,7 +132,6 @@ fn check(ds: &Dataset, progress: &(dyn Fn(u64) + Sync)) -> CheckReport {
     for (i, c) in done.into_iter().flatten() {
         results[i] = Some(c);
     }
-    let mut shared_ids: Vec<Vec<(u64, u32)>> = Vec::new();
     for (i, c) in results.into_iter().enumerate() {
         let Some(c) = c else {
             r.errors.push(format!("segment {}: the thread checking it failed", m.segments[i].id));
@@ -143,22 +140,13 @@ fn check(ds: &Dataset, progress: &(dyn Fn(u64) + Sync)) -> CheckReport {
         r.errors.extend(c.errors);
         r.trees += c.trees;
         r.rays += c.rays;
-        if let Some(ids) = c.ids {
-            shared_ids.push(ids.into_iter().map(|id| (id, m.segments[i].id)).collect());
-        }
     }
     // Tree ids unique across segments: only segments with overlapping id ranges can share one;
-    // their sorted ids are merged.
-    if shared_ids.len() > 1 {
-        let mut last: Option<u64> = None;
-        let mut reported = 0;
-        for &(id, seg) in crate::columns::RunMerge::new(&shared_ids, |t: &(u64, u32)| t.0) {
-            if last == Some(id) && reported < MAX_PER_SEGMENT {
-                r.errors.push(format!("segment {seg}: tree {id} appears more than once in the dataset"));
-                reported += 1;
-            }
-            last = Some(id);
-        }
+    // their tree tables' sorted id columns are merged as streams.
+    if overlapping.len() > 1 {
+        let mut segs: Vec<usize> = overlapping.into_iter().collect();
+        segs.sort_unstable();
+        unique_across(ds, &segs, &mut r.errors);
     }
     if total.rays != m.stats.rays || total.trees != m.stats.trees {
         r.errors.push(format!(
@@ -208,11 +196,84 @@ fn check(ds: &Dataset, progress: &(dyn Fn(u64) + Sync)) -> CheckReport {
     r
 }
 
+/// Tree ids of segments `segs` (whose id ranges overlap) unique across them: a k-way merge of
+/// their tree tables' `tree_id` columns, read as streams (a batch per segment in memory). An id
+/// found in two segments is reported once per pair (ids repeated within one segment are reported
+/// by its own check). A table that does not read, or is not sorted by id, is reported and leaves
+/// the merge there.
+fn unique_across(ds: &Dataset, segs: &[usize], errors: &mut Vec<String>) {
+    use std::cmp::Reverse;
+    use std::collections::BinaryHeap;
+    type Ids = Box<dyn Iterator<Item = crate::Result<Vec<u64>>>>;
+    struct Stream {
+        ids: Ids,
+        batch: Vec<u64>,
+        at: usize,
+        seg: u32,
+    }
+    // The next batch of a stream (empty at its end or after an error, which is reported).
+    let refill = |s: &mut Stream, errors: &mut Vec<String>| {
+        s.at = 0;
+        s.batch = match s.ids.next() {
+            Some(Ok(b)) => b,
+            Some(Err(e)) => {
+                errors.push(format!("segment {}: {e}", s.seg));
+                Vec::new()
+            }
+            None => Vec::new(),
+        };
+    };
+    let m = ds.manifest();
+    let mut streams = Vec::with_capacity(segs.len());
+    let mut heap = BinaryHeap::new();
+    for &i in segs {
+        let seg = m.segments[i].id;
+        let ids: Ids = match ds.segment_tree_ids(i) {
+            Ok(it) => Box::new(it),
+            Err(e) => {
+                errors.push(format!("segment {seg}: {e}"));
+                continue;
+            }
+        };
+        let mut s = Stream { ids, batch: Vec::new(), at: 0, seg };
+        refill(&mut s, errors);
+        if let Some(&id) = s.batch.first() {
+            heap.push(Reverse((id, streams.len())));
+        }
+        streams.push(s);
+    }
+    let mut last: Option<(u64, usize)> = None;
+    let mut reported = 0;
+    while let Some(Reverse((id, k))) = heap.pop() {
+        if let Some((prev, j)) = last
+            && prev == id
+            && j != k
+            && reported < MAX_PER_SEGMENT
+        {
+            errors.push(format!("segment {}: tree {id} appears more than once in the dataset", streams[k].seg));
+            reported += 1;
+        }
+        last = Some((id, k));
+        let s = &mut streams[k];
+        s.at += 1;
+        if s.at == s.batch.len() {
+            refill(s, errors);
+        }
+        if let Some(&next) = s.batch.get(s.at) {
+            if next < id {
+                errors.push(format!("segment {}: tree table not sorted by tree_id ({next} after {id})", s.seg));
+                continue;
+            }
+            heap.push(Reverse((next, k)));
+        }
+    }
+}
+
 /// Every invariant of segment `i`: its files' sizes and checksums, its tree table (ids in the
 /// manifest's range and unique, pixels in its bounds, trees tiling the ray file, row groups
 /// starting at trees), and every ray decoded and checked against its tree, straight from the
 /// decoded columns (no per-tree batches).
-fn check_segment(ds: &Dataset, i: usize, keep_ids: bool) -> SegmentCheck {
+fn check_segment(ds: &Dataset, i: usize) -> SegmentCheck {
     let m = ds.manifest();
     let seg = &m.segments[i];
     let mut c = SegmentCheck::default();
@@ -273,9 +334,6 @@ fn check_segment(ds: &Dataset, i: usize, keep_ids: bool) -> SegmentCheck {
             r.push(format!("segment {}: more errors not shown", seg.id));
             return c;
         }
-    }
-    if keep_ids {
-        c.ids = Some(entries.iter().map(|e| e.info.id.0).collect());
     }
     // Rows tiling the ray file exactly.
     // A tree without rays starts where the next one does: it comes first (ties in any other

@@ -31,6 +31,27 @@ impl Dataset {
         Ok(out)
     }
 
+    /// The `tree_id` column of segment `i`'s tree table, in file order (sorted by id in a sound
+    /// file), a batch at a time: memory is one batch and the column chunk being read.
+    pub(crate) fn segment_tree_ids(&self, i: usize) -> Result<impl Iterator<Item = Result<Vec<u64>>> + use<>> {
+        use crate::schema::col;
+        let path = self.dir.join(&self.segment(i).trees.path);
+        let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
+        let builder = guard(&path, || ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path)))?;
+        check_schema(builder.schema(), &tree_schema(), &path)?;
+        let at = builder.schema().index_of(col::TREE_ID).map_err(|_| Error::Corrupt {
+            path: path.clone(),
+            what: "tree file".into(),
+            message: "no tree_id column".into(),
+        })?;
+        let mask = parquet::arrow::ProjectionMask::roots(builder.parquet_schema(), [at]);
+        let reader = builder.with_projection(mask).with_batch_size(8 * 1024).build().map_err(pq_err(&path))?;
+        Ok(Guarded::new(reader, &path).map(move |b| {
+            let b = b?;
+            Ok(crate::tree::primitive::<UInt64Type>(&b, col::TREE_ID, &path)?.values().to_vec())
+        }))
+    }
+
     /// The trees of segment `i` that `filter` keeps, sorted by id. Reads only the tree-table
     /// pages whose statistics (the file's page index: min/max of `tree_id`, `pixel_x`, `pixel_y`,
     /// `sample` per page) can hold a kept tree; the footer and page index are read once per
