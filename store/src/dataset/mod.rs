@@ -219,13 +219,13 @@ impl Dataset {
         }
         let path = self.dir.join(&self.segment(i).rays.path);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let meta = guard(&path, || {
-            ArrowReaderMetadata::load(
-                &file,
-                ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required),
-            )
-            .map_err(pq_err(&path))
-        })?;
+        // The offset index (where each page starts) is what reads of a few trees need; the column
+        // index (per-page statistics) is never consulted on ray files and was most of the
+        // footer's memory, which the dataset keeps per segment.
+        let options = ArrowReaderOptions::new()
+            .with_offset_index_policy(PageIndexPolicy::Required)
+            .with_column_index_policy(PageIndexPolicy::Skip);
+        let meta = guard(&path, || ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path)))?;
         check_schema(meta.schema(), &self.file_schema, &path)?;
         let starts = row_group_starts(&meta);
         let row: u64 =
