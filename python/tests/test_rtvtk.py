@@ -273,6 +273,9 @@ def test_ctrl_c_stops_a_running_query(traced):
     code = f"""
         import os, signal, threading, time
         import rtvtk
+        # Python's own Ctrl-C handler, even when the suite runs as a background job (`cmd &` in a
+        # shell without job control starts it with SIGINT ignored, and Python then installs none).
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         s = rtvtk.open({out!r})
         threading.Timer(1.0, lambda: os.kill(os.getpid(), signal.SIGINT)).start()
         start = time.monotonic()
