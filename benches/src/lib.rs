@@ -532,7 +532,8 @@ pub fn fetch_bench(fetch_path: &std::path::Path, fetches: usize, duckdb: bool) -
             }) else {
                 continue;
             };
-            let id = TreeId(seg.tree_id_min + next() % (seg.tree_id_max - seg.tree_id_min + 1));
+            let span = seg.tree_id_max.saturating_sub(seg.tree_id_min).saturating_add(1);
+            let id = TreeId(seg.tree_id_min.saturating_add(next() % span));
             let t = Instant::now();
             match ds.tree(id) {
                 Ok(tree) => return Ok((id, tree, t.elapsed().as_secs_f64())),
