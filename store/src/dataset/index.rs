@@ -5,13 +5,19 @@
 use super::*;
 
 impl Dataset {
-    /// Reads the tree table of segment `i`, sorted by id.
-    pub(super) fn read_tree_table(&self, i: usize) -> Result<Vec<TreeEntry>> {
-        let seg = self.segment(i);
-        let path = self.dir.join(&seg.trees.path);
+    /// A reader of segment `i`'s tree file (its schema checked), with its path.
+    fn tree_file(&self, i: usize) -> Result<(PathBuf, ParquetRecordBatchReaderBuilder<File>)> {
+        let path = self.dir.join(&self.segment(i).trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
         let builder = guard(&path, || ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path)))?;
         check_schema(builder.schema(), &tree_schema(), &path)?;
+        Ok((path, builder))
+    }
+
+    /// Reads the tree table of segment `i`, sorted by id.
+    pub(super) fn read_tree_table(&self, i: usize) -> Result<Vec<TreeEntry>> {
+        let seg = self.segment(i);
+        let (path, builder) = self.tree_file(i)?;
         let reader = Guarded::new(builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?, &path);
         let mut out = Vec::with_capacity((seg.trees.rows as usize).min(1 << 22));
         for batch in reader {
@@ -35,10 +41,7 @@ impl Dataset {
     /// file), a batch at a time: memory is one batch and the column chunk being read.
     pub(crate) fn segment_tree_ids(&self, i: usize) -> Result<impl Iterator<Item = Result<Vec<u64>>> + use<>> {
         use crate::schema::col;
-        let path = self.dir.join(&self.segment(i).trees.path);
-        let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
-        let builder = guard(&path, || ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path)))?;
-        check_schema(builder.schema(), &tree_schema(), &path)?;
+        let (path, builder) = self.tree_file(i)?;
         let at = builder.schema().index_of(col::TREE_ID).map_err(|_| Error::Corrupt {
             path: path.clone(),
             what: "tree file".into(),
