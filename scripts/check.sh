@@ -3,6 +3,16 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# A build that fills the disk fails in odd places (a linker's "Bus error", a truncated rlib): say so
+# at the start when space is short, and again at the end when a step failed with the disk nearly full.
+target_dir="${CARGO_TARGET_DIR:-target}"
+mkdir -p "$target_dir"
+free_mib() { df -Pm "$target_dir" | awk 'NR==2 {print $4}'; }
+if [ "$(free_mib)" -lt 20480 ]; then
+  echo "warning: $(free_mib) MiB free on the disk holding $target_dir; a cold build and the tests need about 20 GiB" >&2
+fi
+trap 'rc=$?; if [ "$rc" -ne 0 ] && [ "$(free_mib)" -lt 2048 ]; then echo "check.sh failed with only $(free_mib) MiB free on the disk holding $target_dir: the failure above is likely the disk filling" >&2; fi' EXIT
+
 # Every system package the tests need: installed, or named and the script stops (system-deps.sh).
 source scripts/system-deps.sh
 
