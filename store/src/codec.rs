@@ -141,15 +141,16 @@ pub fn file_schema(plain: &SchemaRef, encoding: Encoding, format_version: u32) -
     Arc::new(Schema::new_with_metadata(fields, plain.metadata().clone()))
 }
 
+/// The bits of `f` as an integer ordered like the floats (negative floats reversed); branch-free.
 #[inline]
 fn ord(f: f32) -> i32 {
     let b = f.to_bits() as i32;
-    if b < 0 { b ^ 0x7fff_ffff } else { b }
+    b ^ (((b >> 31) as u32) >> 1) as i32
 }
 
 #[inline]
 fn unord(i: i32) -> f32 {
-    f32::from_bits((if i < 0 { i ^ 0x7fff_ffff } else { i }) as u32)
+    f32::from_bits((i ^ (((i >> 31) as u32) >> 1) as i32) as u32)
 }
 
 #[inline]
@@ -366,6 +367,54 @@ fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], 
     }
 }
 
+/// Decodes every ray of `codes` as a direction with a predicted axis (codes 0..=5, as
+/// [`predicted_dir`] with [`unit_component`]: bit for bit the same) into `out`. Returns whether
+/// some ray has another code (raw, octahedral, or unknown bits), which the caller decodes again.
+///
+/// One pass without branches or bounds checks, so the compiler vectorizes it: the axis is chosen
+/// by selects, not by indexing.
+fn predicted_dirs(codes: &[u8], e: [&[u32]; 3], out: [&mut [f32]; 3]) -> bool {
+    let n = codes.len();
+    let (e0, e1, e2) = (&e[0][..n], &e[1][..n], &e[2][..n]);
+    let [dx, dy, dz] = out;
+    let (dx, dy, dz) = (&mut dx[..n], &mut dy[..n], &mut dz[..n]);
+    let mut other = 0u8;
+    for i in 0..n {
+        let c = codes[i];
+        let code = c & 7;
+        other |= (c & 0x80) | u8::from(code >= 6);
+        let (b, cc) = (f32::from_bits(e0[i]), f32::from_bits(e1[i]));
+        let (bd, cd) = (f64::from(b), f64::from(cc));
+        let p = (1.0 - bd * bd - cd * cd).max(0.0).sqrt() as f32;
+        let negative = code >= 3;
+        let a = apply(e2[i], if negative { -p } else { p });
+        let axis = if negative { code - 3 } else { code };
+        // axis 0: (a, b, c); axis 1: (c, a, b); axis 2: (b, c, a)
+        dx[i] = if axis == 0 {
+            a
+        } else if axis == 1 {
+            cc
+        } else {
+            b
+        };
+        dy[i] = if axis == 1 {
+            a
+        } else if axis == 2 {
+            cc
+        } else {
+            b
+        };
+        dz[i] = if axis == 2 {
+            a
+        } else if axis == 0 {
+            cc
+        } else {
+            b
+        };
+    }
+    other != 0
+}
+
 /// Rays whose bounds are added to the statistics at a time while encoding.
 const STATS_BLOCK: usize = 256;
 
@@ -546,27 +595,26 @@ impl Decoder {
             Some((tree, ray, ..)) => format!("tree {} ray {}", tree.value(i), ray.value(i)),
             None => format!("row {i} of the batch"),
         };
-        // Directions: the predicted components first, in a loop of their own that the compiler
-        // vectorizes (one square root per ray bounds the scalar loop); then each ray from its code.
+        // Directions: every ray decoded as if its axis were predicted, in one branch-free loop the
+        // compiler vectorizes; then the rare rays stored otherwise (raw, octahedral, or a code
+        // with unknown bits) again, one by one.
         let (codes, e0, e1, e2) =
             (&code.values()[..n], &ed[0].values()[..n], &ed[1].values()[..n], &ed[2].values()[..n]);
-        let pred: Vec<f32> =
-            e0.iter().zip(e1).map(|(&b, &c)| unit_component(f32::from_bits(b), f32::from_bits(c), false)).collect();
         let mut dir = [vec![0.0f32; n], vec![0.0f32; n], vec![0.0f32; n]];
         {
             let [dx, dy, dz] = &mut dir;
-            let (dx, dy, dz) = (&mut dx[..n], &mut dy[..n], &mut dz[..n]);
-            for (i, &c) in codes.iter().enumerate() {
-                if c >> 7 != 0 {
-                    return Err(corrupt(format!("{}: enc_dir_code {c} has unknown bits", row_name(i))));
+            if predicted_dirs(codes, [e0, e1, e2], [dx, dy, dz]) {
+                for (i, &c) in codes.iter().enumerate() {
+                    if c >> 7 != 0 {
+                        return Err(corrupt(format!("{}: enc_dir_code {c} has unknown bits", row_name(i))));
+                    }
+                    let code = c & 7;
+                    if code >= 6 {
+                        let d = decode_dir(code, [e0[i], e1[i], e2[i]], bits)
+                            .map_err(|m| corrupt(format!("{}: {m}", row_name(i))))?;
+                        (dx[i], dy[i], dz[i]) = (d[0], d[1], d[2]);
+                    }
                 }
-                let (code, w) = (c & 7, [e0[i], e1[i], e2[i]]);
-                let d = if code < 6 {
-                    predicted_dir(code, w, pred[i])
-                } else {
-                    decode_dir(code, w, bits).map_err(|m| corrupt(format!("{}: {m}", row_name(i))))?
-                };
-                (dx[i], dy[i], dz[i]) = (d[0], d[1], d[2]);
             }
         }
         let Some((tree, ray, parent, t, eo)) = structure else {
@@ -724,6 +772,66 @@ mod tests {
         // A normalized vector costs a small residual.
         let (_, w, _) = encode_dir([0.26726124, 0.5345225, 0.8017837], Encoding::Lossless);
         assert!(w[2] < 16, "residual {}", w[2]);
+    }
+
+    #[test]
+    fn the_vectorized_direction_loop_matches_the_per_ray_decoder() {
+        // Directions along every axis and sign, non-unit and non-finite ones (raw codes), and
+        // octahedral codes: each row decoded by the batch loop, then by `decode_dir`.
+        let mut dirs = Vec::new();
+        for i in 0..3000 {
+            let a = i as f64 * 0.37;
+            let z = (i as f64 / 1500.0) - 1.0;
+            let r = (1.0 - z * z).sqrt();
+            let v = [(r * a.cos()) as f32, (r * a.sin()) as f32, z as f32];
+            dirs.push([v[(i / 7) % 3], v[(i / 7 + 1) % 3], v[(i / 7 + 2) % 3]]);
+        }
+        dirs.extend([
+            [3.0, -4.0, 12.0],
+            [0.0, 0.0, 0.0],
+            [f32::NAN, 0.0, 1.0],
+            [-0.0, -0.0, -1.0],
+            [1e-30, -1.0, 1e-38],
+        ]);
+        for (encoding, bits) in [(Encoding::Lossless, 0u8), (Encoding::Oct(12), 12)] {
+            let (mut codes, mut w) = (Vec::new(), [Vec::new(), Vec::new(), Vec::new()]);
+            for (i, &d) in dirs.iter().enumerate() {
+                let (code, wi, _) = encode_dir(d, encoding);
+                // Origin and t flags in the upper bits must not change the direction.
+                codes.push(code | (((i % 8) as u8) << 3) | if i % 3 == 0 { T_PREDICTED } else { 0 });
+                for k in 0..3 {
+                    w[k].push(wi[k]);
+                }
+            }
+            let n = dirs.len();
+            let mut out = [vec![0.0f32; n], vec![0.0f32; n], vec![0.0f32; n]];
+            let [ox, oy, oz] = &mut out;
+            let other = predicted_dirs(&codes, [&w[0], &w[1], &w[2]], [ox, oy, oz]);
+            assert!(other, "raw or octahedral codes are reported");
+            for i in 0..n {
+                let code = codes[i] & 7;
+                let want = decode_dir(code, [w[0][i], w[1][i], w[2][i]], bits).unwrap();
+                if code < 6 {
+                    let got = [out[0][i], out[1][i], out[2][i]];
+                    assert_eq!(got.map(f32::to_bits), want.map(f32::to_bits), "row {i}: {:?}", dirs[i]);
+                    if encoding == Encoding::Lossless {
+                        assert_eq!(got.map(f32::to_bits), dirs[i].map(f32::to_bits), "row {i}");
+                    }
+                }
+            }
+        }
+        // Only predicted codes: nothing left for the per-ray pass; an unknown bit is reported.
+        let unit = [[0.6f32, 0.8, 0.0]; 4];
+        let enc: Vec<_> = unit.iter().map(|&d| encode_dir(d, Encoding::Lossless)).collect();
+        let mut codes: Vec<u8> = enc.iter().map(|e| e.0).collect();
+        let w: [Vec<u32>; 3] = [0, 1, 2].map(|k| enc.iter().map(|e| e.1[k]).collect());
+        let mut out = [vec![0.0f32; 4], vec![0.0f32; 4], vec![0.0f32; 4]];
+        let [ox, oy, oz] = &mut out;
+        assert!(!predicted_dirs(&codes, [&w[0], &w[1], &w[2]], [ox, oy, oz]));
+        assert_eq!([out[0][2], out[1][2], out[2][2]], unit[2]);
+        codes[1] |= 0x80;
+        let [ox, oy, oz] = &mut out;
+        assert!(predicted_dirs(&codes, [&w[0], &w[1], &w[2]], [ox, oy, oz]));
     }
 
     #[test]
