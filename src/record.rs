@@ -63,6 +63,10 @@ pub struct RecordArgs {
     /// (smaller chunks keep the writers' working set out of the tracers' caches).
     #[arg(long, default_value_t = RecorderOptions::default().chunk_rays as u64, value_parser = clap::value_parser!(u64).range(1..))]
     pub chunk_rays: u64,
+    /// Rows per Parquet data page of the ray files: the unit a one-tree fetch decompresses
+    /// (smaller pages fetch faster and compress a little worse).
+    #[arg(long, default_value_t = store::WriteOptions::default().page_rows as u64, value_parser = clap::value_parser!(u64).range(1..=1 << 20))]
+    pub page_rows: u64,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Tracing threads (default: all cores).
@@ -235,6 +239,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
             };
             options.write.encoding = a.encoding;
             options.segment_rays = a.segment_rays;
+            options.write.page_rows = a.page_rows as usize;
             options.chunk_rays = a.chunk_rays as usize;
             options.sites = a.sites;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;

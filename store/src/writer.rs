@@ -33,9 +33,12 @@ use crate::{Error, FORMAT_VERSION, Result};
 pub struct WriteOptions {
     /// Rows per Parquet row group in a ray file.
     pub row_group_rows: usize,
-    /// Rows per data page: the unit a one-tree fetch reads and decompresses. 16K rows: 4K-row
-    /// pages cost the writers ~25% more CPU (zstd's per-page table building, arrow-rs's per-page
-    /// work) for a fetch of ~0.5 instead of ~0.8 ms (`rtvtk bench store --page-rows N`).
+    /// Rows per data page: the unit a one-tree fetch reads and decompresses. 8K rows (16K until
+    /// 2026-12-05): on a 25M-ray path-tracer trace with its payload a fetch by id takes 0.67
+    /// instead of 0.95 ms at p50 for 0.6% more bytes, and a scan of the directions ~10% longer;
+    /// 4K-row pages add 2.1% bytes and cost the writers more CPU (zstd's per-page table
+    /// building, arrow-rs's per-page work) for little more (`rtvtk record --page-rows N`, then
+    /// `rtvtk bench fetch`).
     pub page_rows: usize,
     /// zstd level of every column.
     pub zstd_level: i32,
@@ -50,7 +53,7 @@ impl Default for WriteOptions {
     fn default() -> Self {
         Self {
             row_group_rows: 128 * 1024,
-            page_rows: 16 * 1024,
+            page_rows: 8 * 1024,
             zstd_level: 1,
             sync: true,
             encoding: Encoding::default(),

@@ -84,11 +84,7 @@ impl Dataset {
             return Ok(out);
         }
         let (groups, selection) = select_rows(&row_group_starts(&meta), &meta, &rows);
-        let reader = ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta)
-            .with_row_groups(groups)
-            .with_row_selection(selection)
-            .with_batch_size(64 * 1024)
-            .build()
+        let reader = super::pooled::reader(file, &meta, None, Some(groups), Some(selection), 64 * 1024)
             .map_err(pq_err(&path))?;
         for batch in Guarded::new(reader, &path) {
             let b = batch?;

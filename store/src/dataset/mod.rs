@@ -3,6 +3,7 @@
 //! (`read`) and the sequential scan (`scan`) live in the child modules. `check` sits on top.
 
 mod index;
+mod pooled;
 mod read;
 mod scan;
 
@@ -40,6 +41,9 @@ struct SegmentMeta {
     row_group_starts: Vec<u64>,
     /// The planes hit distances are predicted from (format version 3; empty before).
     planes: Arc<Planes>,
+    /// The root column at which a read of a few trees splits the file's columns in two for two
+    /// threads: the halves hold about the same bytes, compressed and decompressed together.
+    split_root: usize,
 }
 
 /// A trace dataset opened for reading.
@@ -250,7 +254,8 @@ impl Dataset {
             })?,
             None => Planes::default(),
         };
-        let m = Arc::new(SegmentMeta { meta, row_group_starts: starts, planes: Arc::new(planes) });
+        let split_root = balanced_split(&meta);
+        let m = Arc::new(SegmentMeta { meta, row_group_starts: starts, planes: Arc::new(planes), split_root });
         let _ = self.metas[i].set(m.clone());
         Ok(m)
     }
@@ -295,6 +300,35 @@ impl Dataset {
     pub(crate) fn row_group_starts(&self, i: usize) -> Result<Vec<u64>> {
         Ok(self.segment_meta(i)?.row_group_starts.clone())
     }
+}
+
+/// The root column splitting a file's columns into two runs whose column chunks hold about the
+/// same compressed plus decompressed bytes (what decoding them costs); at least one root on
+/// each side where there are two.
+fn balanced_split(meta: &ArrowReaderMetadata) -> usize {
+    let schema = meta.metadata().file_metadata().schema_descr();
+    let roots = schema.root_schema().get_fields().len();
+    let mut cost = vec![0u64; roots];
+    for rg in meta.metadata().row_groups() {
+        for (leaf, c) in rg.columns().iter().enumerate().take(schema.num_columns()) {
+            let root = schema.get_column_root_idx(leaf);
+            if let Some(slot) = cost.get_mut(root) {
+                let bytes = c.compressed_size().max(0) as u64 + c.uncompressed_size().max(0) as u64;
+                *slot = slot.saturating_add(bytes);
+            }
+        }
+    }
+    let total: u64 = cost.iter().sum();
+    let mut acc = 0u64;
+    let mut split = roots / 2;
+    for (r, c) in cost.iter().enumerate() {
+        if acc.saturating_add(c / 2) >= total / 2 {
+            split = r;
+            break;
+        }
+        acc += c;
+    }
+    if roots < 2 { split } else { split.clamp(1, roots - 1) }
 }
 
 /// A Parquet batch reader whose errors and panics name the file, and which ends after its first

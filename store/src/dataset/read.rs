@@ -36,22 +36,22 @@ impl Dataset {
         let meta = self.segment_meta(i)?;
         let path = self.dir.join(&self.segment(i).rays.path);
         let file = File::open(&path).map_err(io_err("opening a ray file", &path))?;
-        let mut builder =
-            ParquetRecordBatchReaderBuilder::new_with_metadata(file, meta.meta.clone()).with_batch_size(batch_size);
-        if let Some(roots) = roots {
+        let projection = roots.map(|roots| {
             let schema = meta.meta.metadata().file_metadata().schema_descr();
-            builder = builder.with_projection(parquet::arrow::ProjectionMask::roots(schema, roots));
-        }
+            parquet::arrow::ProjectionMask::roots(schema, roots)
+        });
+        let (mut groups, mut selection) = (None, None);
         if let Some(rows) = rows {
-            let (groups, selection) = select_rows(&meta.row_group_starts, &meta.meta, rows);
-            builder = builder.with_row_groups(groups);
+            let (g, s) = select_rows(&meta.row_group_starts, &meta.meta, rows);
+            groups = Some(g);
             // Whole row groups need no selection (the viewer's loads read row group by row
             // group): arrow-rs then reads their pages straight through.
-            if selection.iter().any(|s| s.skip) {
-                builder = builder.with_row_selection(selection);
+            if s.iter().any(|s| s.skip) {
+                selection = Some(s);
             }
         }
-        let reader = Guarded::new(builder.build().map_err(pq_err(&path))?, &path);
+        let reader = super::pooled::reader(file, &meta.meta, projection, groups, selection, batch_size);
+        let reader = Guarded::new(reader.map_err(pq_err(&path))?, &path);
         Ok((path, reader))
     }
 
@@ -68,7 +68,7 @@ impl Dataset {
         // two halves of the columns at once where there is a second core.
         let split = roots >= 4 && count <= PARALLEL_READ_ROWS && cores() > 1;
         let batch = if split {
-            let half = roots / 2;
+            let half = self.segment_meta(i)?.split_root;
             let second = || self.read_rows_of(i, Some((half..roots).collect()), &one, count);
             let (a, b) = std::thread::scope(|s| {
                 let other = std::thread::Builder::new().name("rtvtk-fetch".into()).spawn_scoped(s, second);
