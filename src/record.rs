@@ -236,7 +236,10 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         (Some(out), false) => {
             let mut options = RecorderOptions {
                 payload: renderers::payload_schema(),
-                workers: a.writers.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())).max(1),
+                workers: a
+                    .writers
+                    .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+                    .max(1),
                 ..Default::default()
             };
             options.write.encoding = a.encoding;
