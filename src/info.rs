@@ -59,6 +59,7 @@ pub fn run(dir: &Path, as_json: bool) -> Result<()> {
             "format": m.format,
             "format_version": m.format_version,
             "encoding": m.encoding.name(),
+            "payload_mantissa_bits": m.payload_mantissa_bits,
             "complete": m.complete,
             "segments": m.segments.len(),
             "trees": s.trees,
@@ -89,6 +90,9 @@ pub fn run(dir: &Path, as_json: bool) -> Result<()> {
         if m.complete { "" } else { " (recording did not finish cleanly)" }
     );
     println!("encoding       {}", m.encoding.name());
+    if let Some(bits) = m.payload_mantissa_bits {
+        println!("payload        lossy: float values rounded to {bits} mantissa bits");
+    }
     println!("segments       {}", m.segments.len());
     println!("trees          {}", s.trees);
     println!("rays           {}  ({} misses, {} with NaN/Inf)", s.rays, s.misses, s.non_finite);

@@ -7,7 +7,7 @@ use arrow::array::{
     Float32Array, RecordBatch, StringArray, UInt8Array, UInt16Array, UInt32Array, UInt64Array, make_array,
 };
 use arrow::buffer::{BooleanBuffer, Buffer, NullBuffer, OffsetBuffer, ScalarBuffer};
-use arrow::datatypes::{Field, SchemaRef, UInt8Type};
+use arrow::datatypes::{DataType, Field, SchemaRef, UInt8Type};
 
 use crate::error::arrow_err;
 use crate::schema::{BytesPayload, KindTable, PayloadSchema, Storage, ray_schema, tree_schema};
@@ -235,6 +235,55 @@ pub(crate) fn write_fitting(value: Value<'_>, storage: Storage, list_len: Option
 pub struct PayloadBuf {
     pub bytes: Vec<u8>,
     pub valid: Vec<bool>,
+}
+
+/// Rounds the float32 or float64 values of a payload buffer (`element` values, little-endian)
+/// to `keep` mantissa bits: round half to even on the bits; a value that would round to infinity
+/// is truncated instead; NaN and infinities are left as they are. Other element types (and
+/// `keep` at or above the type's mantissa width) are left untouched.
+pub(crate) fn round_mantissas(element: &DataType, bytes: &mut [u8], keep: u8) {
+    match element {
+        DataType::Float32 if keep < 23 => {
+            for v in bytes.chunks_exact_mut(4) {
+                let b = u32::from_le_bytes([v[0], v[1], v[2], v[3]]);
+                v.copy_from_slice(&round_bits_32(b, u32::from(keep)).to_le_bytes());
+            }
+        }
+        DataType::Float64 if keep < 52 => {
+            for v in bytes.chunks_exact_mut(8) {
+                let mut a = [0u8; 8];
+                a.copy_from_slice(v);
+                v.copy_from_slice(&round_bits_64(u64::from_le_bytes(a), u32::from(keep)).to_le_bytes());
+            }
+        }
+        _ => {}
+    }
+}
+
+/// `b` (float32 bits) with its mantissa rounded to `keep` (< 23) bits.
+pub(crate) fn round_bits_32(b: u32, keep: u32) -> u32 {
+    const EXP: u32 = 0x7f80_0000;
+    let drop = 23 - keep;
+    if b & EXP == EXP {
+        return b;
+    }
+    let mask = (1u32 << drop) - 1;
+    let lsb = (b >> drop) & 1;
+    let r = b.wrapping_add((mask >> 1) + lsb) & !mask;
+    if r & EXP == EXP { b & !mask } else { r }
+}
+
+/// `b` (float64 bits) with its mantissa rounded to `keep` (< 52) bits.
+pub(crate) fn round_bits_64(b: u64, keep: u32) -> u64 {
+    const EXP: u64 = 0x7ff0_0000_0000_0000;
+    let drop = 52 - keep;
+    if b & EXP == EXP {
+        return b;
+    }
+    let mask = (1u64 << drop) - 1;
+    let lsb = (b >> drop) & 1;
+    let r = b.wrapping_add((mask >> 1) + lsb) & !mask;
+    if r & EXP == EXP { b & !mask } else { r }
 }
 
 /// The opaque bytes payload column buffer.

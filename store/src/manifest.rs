@@ -61,6 +61,10 @@ pub struct Manifest {
     /// How the ray files store origins and directions (absent in version 1: plain).
     #[serde(default = "plain_encoding")]
     pub encoding: Encoding,
+    /// Float payload values were rounded to this many mantissa bits when written (lossy
+    /// payload); absent when the payload is bit-exact.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub payload_mantissa_bits: Option<u8>,
     /// Typed payload columns (absent when there are none).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub payload: Vec<PayloadColumnDecl>,
@@ -90,6 +94,7 @@ impl Manifest {
             format_version: FORMAT_VERSION,
             created_by: format!("rtvtk-store {}", env!("CARGO_PKG_VERSION")),
             encoding,
+            payload_mantissa_bits: None,
             payload: payload
                 .fields
                 .iter()

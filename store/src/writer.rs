@@ -47,6 +47,12 @@ pub struct WriteOptions {
     pub sync: bool,
     /// How origins and directions are stored (lossless residuals by default).
     pub encoding: Encoding,
+    /// Lossy payload: float32 and float64 payload values (scalars and list elements) rounded to
+    /// this many mantissa bits (1..=22; round half to even, never to infinity; NaN, infinities
+    /// and zeros kept) before they are written. None (the default): payload bit-exact. Recorded
+    /// in the manifest (`payload_mantissa_bits`). 10 bits is half precision's mantissa: a
+    /// relative error of at most 2^-11.
+    pub payload_mantissa_bits: Option<u8>,
 }
 
 impl Default for WriteOptions {
@@ -57,6 +63,7 @@ impl Default for WriteOptions {
             zstd_level: 1,
             sync: true,
             encoding: Encoding::default(),
+            payload_mantissa_bits: None,
         }
     }
 }
@@ -120,7 +127,15 @@ impl DatasetWriter {
         ensure_empty(dir)?;
         let segments = dir.join("segments");
         fs::create_dir_all(&segments).map_err(io_err("creating the dataset directory", &segments))?;
-        let manifest = Manifest::new(&payload, options.encoding);
+        if let Some(bits) = options.payload_mantissa_bits
+            && !(1..=22).contains(&bits)
+        {
+            return Err(Error::Encoding(format!(
+                "payload mantissa bits {bits}: expected 1 to 22 (None keeps every bit)"
+            )));
+        }
+        let mut manifest = Manifest::new(&payload, options.encoding);
+        manifest.payload_mantissa_bits = options.payload_mantissa_bits;
         manifest.store(dir, options.sync)?;
         Ok(Self {
             dir: dir.to_path_buf(),
@@ -172,6 +187,7 @@ impl DatasetWriter {
             rows: 0,
             stats: Stats::default(),
             encoding: self.options.encoding,
+            payload_mantissa_bits: self.options.payload_mantissa_bits,
             schema,
             row_group_rows: self.options.row_group_rows.max(1),
             planes: PlaneLearner::default(),
@@ -256,6 +272,8 @@ pub struct SegmentWriter {
     rows: u64,
     stats: Stats,
     encoding: Encoding,
+    /// [`WriteOptions::payload_mantissa_bits`].
+    payload_mantissa_bits: Option<u8>,
     /// Schema of the ray file (the ray table's, or the encoded layout).
     schema: arrow::datatypes::SchemaRef,
     row_group_rows: usize,
@@ -293,6 +311,11 @@ impl SegmentWriter {
             ))
         };
         self.stats.merge(&stats);
+        if let Some(bits) = self.payload_mantissa_bits {
+            for (field, buf) in payload.fields.iter().zip(cols.payload.iter_mut()) {
+                crate::columns::round_mantissas(&field.element, &mut buf.bytes, bits);
+            }
+        }
         let trees = std::mem::take(&mut cols.trees);
         let mut batch = cols.into_ray_batch(payload, kinds)?;
         if let Some((enc, kind_codes)) = encoded {

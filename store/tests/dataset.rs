@@ -821,3 +821,115 @@ mod fuzz {
         assert!(ds.manifest().segments.iter().all(|s| s.rays.rows > 64), "several row groups per file");
     }
 }
+
+/// The lossy payload option: float payload values within 2^-(bits+1) relative error, NaN,
+/// infinities, zeros and the largest finite value kept, other payload columns and the core
+/// columns bit-exact, the choice recorded in the manifest, and out-of-range choices refused.
+#[test]
+fn lossy_payload_rounds_float_mantissas_only() {
+    let schema = PayloadSchema::new(
+        vec![
+            PayloadField::list("radiance", DataType::Float32, 3).unwrap(),
+            PayloadField::scalar("pdf", DataType::Float64).unwrap(),
+            PayloadField::scalar("tag", DataType::Int64).unwrap(),
+        ],
+        None,
+    )
+    .unwrap();
+    let mut specials = vec![
+        f32::NAN,
+        f32::from_bits(0x7fc0_1234),
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        0.0,
+        -0.0,
+        f32::MAX,
+        -f32::MAX,
+        f32::MIN_POSITIVE,
+        f32::from_bits(3),
+        1.0,
+        1.0 + f32::EPSILON,
+        -1e30,
+        1e-30,
+    ];
+    let mut x = 0x1234_5678u32;
+    for _ in 0..600 {
+        x ^= x << 13;
+        x ^= x >> 17;
+        x ^= x << 5;
+        specials.push(f32::from_bits(x & 0x7f7f_ffff) * if x & 1 == 0 { 1.0 } else { -1.0 });
+    }
+    let n = specials.len() / 3;
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("lossy");
+    let options = WriteOptions { payload_mantissa_bits: Some(10), ..WriteOptions::default() };
+    let w = DatasetWriter::create(&path, schema.clone(), options).unwrap();
+    let kinds = KindTable::default();
+    let mut seg = w.open_segment().unwrap();
+    let mut cols = RayColumns::new(&schema);
+    let mut mism = Vec::new();
+    for i in 0..n {
+        let f = ray([i as f32, 0.5, 0.25], [0.0, 0.0, -1.0], Some(1.5), Kind::CAMERA);
+        cols.push_core(i as u64, 0, store::NONE_U32, 0, &f);
+        let rgb = &specials[3 * i..3 * i + 3];
+        let pdf = f64::from(rgb[0]) * std::f64::consts::PI;
+        let vals = [Value::List(ListValue::F32(rgb)), Value::F64(pdf), Value::I64(i as i64 * 7 - 1_000_000_007)];
+        cols.push_payload(&schema, &vals, None, &mut mism);
+        cols.trees.push(TreeRow {
+            tree_id: i as u64,
+            pixel_x: i as u32,
+            pixel_y: 0,
+            sample: 0,
+            ray_count: 1,
+            max_depth: 0,
+            first_row: i as u64,
+        });
+    }
+    assert!(mism.is_empty(), "{mism:?}");
+    seg.write(cols, &schema, &kinds).unwrap();
+    seg.seal(&w, &kinds).unwrap();
+    w.mark_complete().unwrap();
+
+    let ds = Dataset::open(&path).unwrap();
+    assert_eq!(ds.manifest().payload_mantissa_bits, Some(10));
+    let batches: Vec<_> = ds.segment_batches(0).unwrap().map(|b| b.unwrap()).collect();
+    let b = arrow::compute::concat_batches(&batches[0].schema(), &batches).unwrap();
+    let radiance = b.column_by_name("radiance").unwrap().as_fixed_size_list();
+    let values = radiance.values().as_primitive::<Float32Type>();
+    let pdf = b.column_by_name("pdf").unwrap().as_primitive::<arrow::datatypes::Float64Type>();
+    let tag = b.column_by_name("tag").unwrap().as_primitive::<Int64Type>();
+    let origin_x = b.column_by_name("origin_x").unwrap().as_primitive::<Float32Type>();
+    for i in 0..n {
+        assert_eq!(tag.value(i), i as i64 * 7 - 1_000_000_007);
+        assert_eq!(origin_x.value(i), i as f32, "core columns stay exact");
+        for k in 0..3 {
+            let (want, got) = (specials[3 * i + k], values.value(3 * i + k));
+            if want.is_nan() || want.is_infinite() || want == 0.0 {
+                assert_eq!(got.to_bits(), want.to_bits(), "{want:e} kept bit for bit");
+                continue;
+            }
+            assert!(got.is_finite(), "{want:e} rounded to {got:e}");
+            assert_eq!(got.is_sign_negative(), want.is_sign_negative());
+            if want.abs() >= f32::MIN_POSITIVE {
+                let rel = ((f64::from(got) - f64::from(want)) / f64::from(want)).abs();
+                assert!(rel <= 2f64.powi(-11), "{want:e} -> {got:e}: relative error {rel:e}");
+                assert_eq!(got.to_bits() & ((1 << 13) - 1), 0, "{got:e} keeps 10 mantissa bits");
+            }
+        }
+        let want = f64::from(specials[3 * i]) * std::f64::consts::PI;
+        let got = pdf.value(i);
+        if want.is_finite() && want != 0.0 {
+            assert!(((got - want) / want).abs() <= 2f64.powi(-11), "pdf {want:e} -> {got:e}");
+        } else {
+            assert_eq!(got.to_bits(), want.to_bits());
+        }
+    }
+    // f32::MAX would round up to infinity: it is truncated to the largest 10-bit mantissa instead.
+    assert_eq!(values.value(6).to_bits(), 0x7f7f_e000, "the largest finite value does not become infinite");
+
+    for bad in [0u8, 23, 200] {
+        let options = WriteOptions { payload_mantissa_bits: Some(bad), ..WriteOptions::default() };
+        let err = DatasetWriter::create(&dir.path().join(format!("bad{bad}")), schema.clone(), options).err().unwrap();
+        assert!(err.to_string().contains("mantissa bits"), "{err}");
+    }
+}
