@@ -29,6 +29,22 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 5)]
         rounds: u32,
     },
+    /// Bytes of path-tracer traces with their payload against pyarrow's default zstd Parquet of
+    /// the same ray table: lossless, with the lossy payload option, and with lossy payload and
+    /// oct16 directions (needs `python3` with `pyarrow`).
+    Payload {
+        /// Scenes, each `cornell`, `cornell-glass`, `glossy` or an OBJ file (camera framed
+        /// automatically).
+        #[arg(long, value_delimiter = ',', default_value = "cornell,cornell-glass")]
+        scenes: Vec<String>,
+        #[arg(long, default_value = "256x256")]
+        size: String,
+        #[arg(long, default_value_t = 16)]
+        spp: u32,
+        /// Mantissa bits of each lossy payload variant (1 to 22).
+        #[arg(long, value_delimiter = ',', default_value = "10,7")]
+        bits: Vec<u8>,
+    },
     /// Write throughput and bytes per ray against plain arrow-rs Parquet, and one-tree fetch latency.
     Store {
         /// Rays to record (at least).
@@ -230,6 +246,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         }
         BenchCommand::Fetch { dataset, fetches, no_duckdb } => bench::fetch_bench(&dataset, fetches, !no_duckdb),
         BenchCommand::Record { runs, args } => bench::record::run(runs, &args),
+        BenchCommand::Payload { scenes, size, spp, bits } => {
+            bench::payload::run(&bench::payload::PayloadArgs { scenes, size, spp: spp.max(1), bits })
+        }
         BenchCommand::Scale { steps, spp, dir, keep, no_render, memory_limit } => {
             if let Some(m) = &memory_limit {
                 crate::sql::parse_bytes(m).map_err(anyhow::Error::msg)?;

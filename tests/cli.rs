@@ -276,6 +276,35 @@ fn bench_record_reports_the_recording_overhead() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("failed"), "{}", String::from_utf8_lossy(&o.stderr));
 }
 
+/// `rtvtk bench payload` records a scene lossless and with the lossy payload option, and sizes
+/// each against pyarrow's default zstd Parquet of the same rays; bad bits and a missing scene
+/// are refused by name.
+#[test]
+fn bench_payload_sizes_each_variant_against_pyarrow() {
+    let out = rtvtk(&["bench", "payload", "--scenes", "cornell", "--size", "12x10", "--spp", "2", "--bits", "10"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let s = String::from_utf8_lossy(&out.stdout);
+    for want in ["pyarrow default zstd (baseline)", "| lossless |", "| payload 10 bits |", "| payload 10 bits, oct16 |"]
+    {
+        assert!(s.contains(want), "{want}: {s}");
+    }
+    // Each variant's ratio is a positive number (at 240 rays their order is noise: the trees'
+    // order in the files depends on the tracing threads).
+    let ratio = |name: &str| -> f64 {
+        let line = s.lines().find(|l| l.contains(&format!("| {name} |"))).unwrap();
+        line.split('|').nth(5).unwrap().trim().trim_end_matches('x').parse().unwrap()
+    };
+    for name in ["lossless", "payload 10 bits", "payload 10 bits, oct16"] {
+        assert!(ratio(name) > 0.0, "{name}: {s}");
+    }
+    let o = rtvtk(&["bench", "payload", "--scenes", "cornell", "--bits", "30"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--bits 30"), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = rtvtk(&["bench", "payload", "--scenes", "nowhere.obj", "--size", "8x8", "--spp", "1"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("nowhere.obj"), "{}", String::from_utf8_lossy(&o.stderr));
+}
+
 /// `rtvtk bench scale` records a trace per step and times every whole-trace command on each in
 /// its own process, then says how each grew; a bad step count is refused by name.
 #[test]

@@ -17,6 +17,7 @@
 #[cfg(feature = "embree")]
 mod embree;
 pub mod gpu;
+pub mod payload;
 pub mod query;
 pub mod record;
 pub mod scale;
