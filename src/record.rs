@@ -198,6 +198,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         }
         None => (a.window, None),
     };
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let opts = RenderOptions {
         width: w,
         height: h,
@@ -207,7 +208,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         max_depth: a.max_depth,
         window,
         samples,
-        threads: a.threads.unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get())),
+        threads: a.threads.unwrap_or(cores),
         bug: a.inject_bug,
         record_kinds,
         record_visits: a.record_visits,
@@ -241,10 +242,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         (Some(out), false) => {
             let mut options = RecorderOptions {
                 payload: renderers::payload_schema(),
-                workers: a
-                    .writers
-                    .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
-                    .max(1),
+                workers: a.writers.unwrap_or(cores).max(1),
                 ..Default::default()
             };
             options.write.encoding = a.encoding;

@@ -136,19 +136,28 @@ fn cpu_seconds() -> f64 {
 
 /// Bytes of the files under `dir`.
 pub(crate) fn dir_bytes(dir: &std::path::Path) -> u64 {
-    fn walk(p: &std::path::Path) -> u64 {
-        std::fs::read_dir(p)
-            .map(|rd| {
-                rd.filter_map(|e| e.ok())
-                    .map(|e| {
-                        let m = e.metadata().ok();
-                        if m.as_ref().is_some_and(|m| m.is_dir()) { walk(&e.path()) } else { m.map_or(0, |m| m.len()) }
-                    })
-                    .sum()
-            })
-            .unwrap_or(0)
-    }
-    walk(dir)
+    dir_bytes_where(dir, &|_| true)
+}
+
+/// Bytes of the files under `dir` (recursively) whose name `keep` accepts; unreadable entries
+/// count 0.
+pub(crate) fn dir_bytes_where(dir: &std::path::Path, keep: &dyn Fn(&str) -> bool) -> u64 {
+    std::fs::read_dir(dir)
+        .map(|rd| {
+            rd.filter_map(|e| e.ok())
+                .map(|e| {
+                    let m = e.metadata().ok();
+                    if m.as_ref().is_some_and(|m| m.is_dir()) {
+                        dir_bytes_where(&e.path(), keep)
+                    } else if keep(&e.file_name().to_string_lossy()) {
+                        m.map_or(0, |m| m.len())
+                    } else {
+                        0
+                    }
+                })
+                .sum()
+        })
+        .unwrap_or(0)
 }
 
 pub struct StoreArgs {

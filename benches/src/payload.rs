@@ -10,6 +10,8 @@ use std::process::Command;
 
 use anyhow::{Context, Result, bail};
 
+use crate::dir_bytes_where;
+
 /// What to record: each scene (`cornell`, `cornell-glass`, `glossy` or an OBJ file) at `size`
 /// (`WxH`) and `spp`, and the mantissa bits of each lossy payload variant.
 pub struct PayloadArgs {
@@ -19,28 +21,10 @@ pub struct PayloadArgs {
     pub bits: Vec<u8>,
 }
 
+/// Runs `rtvtk ARGS` (failing with its stderr's tail when it fails).
 fn rtvtk(exe: &Path, args: &[&str]) -> Result<()> {
-    let out = Command::new(exe).args(args).output().with_context(|| format!("running {}", exe.display()))?;
-    if !out.status.success() {
-        let err = String::from_utf8_lossy(&out.stderr);
-        bail!("`rtvtk {}` failed ({}): {}", args.join(" "), out.status, err.trim());
-    }
-    Ok(())
-}
-
-/// Bytes of the files under `dir` whose name satisfies `keep`.
-fn bytes_where(dir: &Path, keep: &dyn Fn(&str) -> bool) -> Result<u64> {
-    let mut total = 0;
-    for e in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
-        let e = e?;
-        let p = e.path();
-        if p.is_dir() {
-            total += bytes_where(&p, keep)?;
-        } else if keep(&e.file_name().to_string_lossy()) {
-            total += e.metadata()?.len();
-        }
-    }
-    Ok(total)
+    let args: Vec<String> = args.iter().map(|a| a.to_string()).collect();
+    crate::scale::measured(exe, &args).map(|_| ())
 }
 
 /// pyarrow's default zstd Parquet of the plain copy's ray files: (rays, bytes).
@@ -118,8 +102,8 @@ pub fn run(a: &PayloadArgs) -> Result<()> {
             baseline as f64 / rays as f64
         );
         for ((name, _), dir) in variants.iter().zip(&dirs) {
-            let ray_files = bytes_where(dir, &|n| n.ends_with(".rays.parquet"))?;
-            let whole = bytes_where(dir, &|n| !(n.ends_with(".png") || n.ends_with(".exr")))?;
+            let ray_files = dir_bytes_where(dir, &|n| n.ends_with(".rays.parquet"));
+            let whole = dir_bytes_where(dir, &|n| !(n.ends_with(".png") || n.ends_with(".exr")));
             println!(
                 "| {scene} | {rays} | {name} | {:.2} | {:.3}x | {:.3}x |",
                 ray_files as f64 / rays as f64,

@@ -34,14 +34,14 @@ pub struct ScaleArgs {
 
 /// One command's wall seconds and peak resident bytes.
 #[derive(Clone, Copy, Debug)]
-struct Cost {
+pub(crate) struct Cost {
     secs: f64,
     rss: u64,
 }
 
 /// Runs `rtvtk ARGS` in a fresh process: its cost, and its stdout. A failure is an error naming
 /// the command and the end of what it printed.
-fn measured(exe: &Path, args: &[String]) -> Result<(Cost, String)> {
+pub(crate) fn measured(exe: &Path, args: &[String]) -> Result<(Cost, String)> {
     let mut cmd = Command::new(exe);
     cmd.args(args);
     let t = Instant::now();

@@ -340,25 +340,13 @@ fn encode_dir(d: [f32; 3], encoding: Encoding) -> (u8, [u32; 3], [f32; 3]) {
     (axis as u8 + 3 * u8::from(negative), [b.to_bits(), c.to_bits(), residual(d[axis], pred)], d)
 }
 
-/// A direction stored with a predicted axis (codes 0..=5): the two stored components and the
-/// residual of the third against `p`, the magnitude [`unit_component`] predicts for it.
-#[inline]
-fn predicted_dir(code: u8, w: [u32; 3], p: f32) -> [f32; 3] {
-    // Table lookups instead of `% 3`: the axis changes from ray to ray, so branches on it would
-    // mispredict.
-    const AXIS: [usize; 6] = [0, 1, 2, 0, 1, 2];
-    let axis = AXIS[code as usize % 6]; // callers pass code < 6; `% 6` keeps any other in bounds
-    let mut d = [0.0f32; 3];
-    d[AXIS[axis + 1]] = f32::from_bits(w[0]);
-    d[AXIS[axis + 2]] = f32::from_bits(w[1]);
-    d[axis] = apply(w[2], if code >= 3 { -p } else { p });
-    d
-}
-
 #[inline]
 fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], String> {
     if code < 6 {
-        return Ok(predicted_dir(code, w, unit_component(f32::from_bits(w[0]), f32::from_bits(w[1]), false)));
+        // One ray through the batch loop: one decoder of predicted directions.
+        let (mut x, mut y, mut z) = ([0.0f32], [0.0f32], [0.0f32]);
+        predicted_dirs(&[code], [&w[..1], &w[1..2], &w[2..]], [&mut x, &mut y, &mut z]);
+        return Ok([x[0], y[0], z[0]]);
     }
     match code {
         DIR_RAW => Ok([f32::from_bits(w[0]), f32::from_bits(w[1]), f32::from_bits(w[2])]),
@@ -367,8 +355,9 @@ fn decode_dir(code: u8, w: [u32; 3], bits: u8) -> std::result::Result<[f32; 3], 
     }
 }
 
-/// Decodes every ray of `codes` as a direction with a predicted axis (codes 0..=5, as
-/// [`predicted_dir`] with [`unit_component`]: bit for bit the same) into `out`. Returns whether
+/// Decodes every ray of `codes` as a direction with a predicted axis (codes 0..=5: the two stored
+/// components and the residual of the third against the magnitude [`unit_component`] predicts
+/// for it) into `out`. Returns whether
 /// some ray has another code (raw, octahedral, or unknown bits), which the caller decodes again.
 ///
 /// One pass without branches or bounds checks, so the compiler vectorizes it: the axis is chosen

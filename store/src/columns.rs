@@ -242,48 +242,31 @@ pub struct PayloadBuf {
 /// is truncated instead; NaN and infinities are left as they are. Other element types (and
 /// `keep` at or above the type's mantissa width) are left untouched.
 pub(crate) fn round_mantissas(element: &DataType, bytes: &mut [u8], keep: u8) {
-    match element {
-        DataType::Float32 if keep < 23 => {
-            for v in bytes.chunks_exact_mut(4) {
-                let b = u32::from_le_bytes([v[0], v[1], v[2], v[3]]);
-                v.copy_from_slice(&round_bits_32(b, u32::from(keep)).to_le_bytes());
-            }
-        }
-        DataType::Float64 if keep < 52 => {
-            for v in bytes.chunks_exact_mut(8) {
-                let mut a = [0u8; 8];
-                a.copy_from_slice(v);
-                v.copy_from_slice(&round_bits_64(u64::from_le_bytes(a), u32::from(keep)).to_le_bytes());
-            }
-        }
-        _ => {}
+    // (bytes per value, mantissa bits, exponent mask) of the float types.
+    let (width, mantissa, exponent) = match element {
+        DataType::Float32 => (4, 23, 0x7f80_0000u64),
+        DataType::Float64 => (8, 52, 0x7ff0_0000_0000_0000),
+        _ => return,
+    };
+    let keep = u32::from(keep);
+    if keep >= mantissa {
+        return;
     }
-}
-
-/// `b` (float32 bits) with its mantissa rounded to `keep` (< 23) bits.
-pub(crate) fn round_bits_32(b: u32, keep: u32) -> u32 {
-    const EXP: u32 = 0x7f80_0000;
-    let drop = 23 - keep;
-    if b & EXP == EXP {
-        return b;
-    }
-    let mask = (1u32 << drop) - 1;
-    let lsb = (b >> drop) & 1;
-    let r = b.wrapping_add((mask >> 1) + lsb) & !mask;
-    if r & EXP == EXP { b & !mask } else { r }
-}
-
-/// `b` (float64 bits) with its mantissa rounded to `keep` (< 52) bits.
-pub(crate) fn round_bits_64(b: u64, keep: u32) -> u64 {
-    const EXP: u64 = 0x7ff0_0000_0000_0000;
-    let drop = 52 - keep;
-    if b & EXP == EXP {
-        return b;
-    }
+    let drop = mantissa - keep;
     let mask = (1u64 << drop) - 1;
-    let lsb = (b >> drop) & 1;
-    let r = b.wrapping_add((mask >> 1) + lsb) & !mask;
-    if r & EXP == EXP { b & !mask } else { r }
+    for v in bytes.chunks_exact_mut(width) {
+        let mut a = [0u8; 8];
+        a[..width].copy_from_slice(v);
+        let b = u64::from_le_bytes(a);
+        if b & exponent == exponent {
+            continue; // NaN or infinity
+        }
+        // Half of the dropped range, plus the kept last bit (ties to even); a float32's bits
+        // stay below 2^32, as the sum cannot pass the sign bit without making the exponent all ones.
+        let r = (b + (mask >> 1) + ((b >> drop) & 1)) & !mask;
+        let r = if r & exponent == exponent { b & !mask } else { r };
+        v.copy_from_slice(&r.to_le_bytes()[..width]);
+    }
 }
 
 /// The opaque bytes payload column buffer.

@@ -81,43 +81,20 @@ impl<R: PageReader> Iterator for Decompressing<R> {
 
 impl<R: PageReader> PageReader for Decompressing<R> {
     fn get_next_page(&mut self) -> Result<Option<Page>> {
-        let Some(page) = self.inner.get_next_page()? else {
+        let Some(mut page) = self.inner.get_next_page()? else {
             return Ok(None);
         };
-        Ok(Some(match page {
-            Page::DataPage { buf, num_values, encoding, def_level_encoding, rep_level_encoding, statistics } => {
-                let buf = decompress(&buf, 0)?;
-                Page::DataPage { buf, num_values, encoding, def_level_encoding, rep_level_encoding, statistics }
-            }
-            Page::DataPageV2 {
-                buf,
-                num_values,
-                encoding,
-                num_nulls,
-                num_rows,
-                def_levels_byte_len,
-                rep_levels_byte_len,
-                is_compressed,
-                statistics,
-            } => {
-                let keep = def_levels_byte_len as usize + rep_levels_byte_len as usize;
-                let buf = if is_compressed { decompress(&buf, keep)? } else { buf };
-                Page::DataPageV2 {
-                    buf,
-                    num_values,
-                    encoding,
-                    num_nulls,
-                    num_rows,
-                    def_levels_byte_len,
-                    rep_levels_byte_len,
-                    is_compressed: false,
-                    statistics,
+        match &mut page {
+            Page::DataPage { buf, .. } | Page::DictionaryPage { buf, .. } => *buf = decompress(buf, 0)?,
+            Page::DataPageV2 { buf, def_levels_byte_len, rep_levels_byte_len, is_compressed, .. } => {
+                if *is_compressed {
+                    let keep = *def_levels_byte_len as usize + *rep_levels_byte_len as usize;
+                    *buf = decompress(buf, keep)?;
+                    *is_compressed = false;
                 }
             }
-            Page::DictionaryPage { buf, num_values, encoding, is_sorted } => {
-                Page::DictionaryPage { buf: decompress(&buf, 0)?, num_values, encoding, is_sorted }
-            }
-        }))
+        }
+        Ok(Some(page))
     }
 
     fn peek_next_page(&mut self) -> Result<Option<PageMetadata>> {
