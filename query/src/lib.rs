@@ -7,6 +7,7 @@ mod engine;
 mod error;
 mod functions;
 mod live;
+pub mod memory;
 pub mod numerics;
 mod plan_util;
 mod scan;

@@ -148,7 +148,7 @@ pub fn default_memory_limit() -> Option<usize> {
 pub fn session_state(options: &SessionOptions) -> Result<datafusion::execution::SessionState> {
     let mut runtime = datafusion::execution::runtime_env::RuntimeEnvBuilder::new();
     if let Some(limit) = options.memory_limit.or_else(default_memory_limit) {
-        runtime = runtime.with_memory_limit(limit, 1.0);
+        runtime = runtime.with_memory_pool(crate::memory::session_pool(limit));
     }
     Ok(SessionStateBuilder::new()
         .with_config(session_config())

@@ -199,7 +199,8 @@ impl Admission {
 }
 
 /// One query's memory within the session's pool: refuses growth beyond `limit` with a clear
-/// `ResourcesExhausted`, and passes everything on to the shared pool (the process total).
+/// `ResourcesExhausted` (except where [`crate::memory::granted_always`]: a repartition's queues,
+/// counted but never refused), and passes everything on to the shared pool (the process total).
 #[derive(Debug)]
 pub struct QueryPool {
     shared: Arc<dyn MemoryPool>,
@@ -238,6 +239,10 @@ impl MemoryPool for QueryPool {
         self.shared.shrink(reservation, shrink);
     }
     fn try_grow(&self, reservation: &MemoryReservation, additional: usize) -> datafusion::error::Result<()> {
+        if crate::memory::granted_always(reservation.consumer()) {
+            self.grow(reservation, additional);
+            return Ok(());
+        }
         let before = self.used.fetch_add(additional, Ordering::SeqCst);
         if before + additional > self.limit {
             self.used.fetch_sub(additional, Ordering::SeqCst);
