@@ -103,4 +103,35 @@ mod tests {
         let state = crate::session_state(&options).expect("a session");
         assert_eq!(state.runtime_env().memory_pool.name(), "rtvtk session pool");
     }
+
+    /// The exception keys on the name DataFusion gives a repartition's reservations: under a
+    /// limit of one byte a repartition of 40 batches would spill every one of them, and with the
+    /// session's pool it spills none (a renamed consumer would make this fail).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_repartition_under_a_tiny_limit_keeps_its_batches() {
+        use arrow::array::{RecordBatch, UInt64Array};
+        use arrow::datatypes::{DataType, Field, Schema};
+        let options = crate::SessionOptions { memory_limit: Some(1), stock_aggregation: true };
+        let ctx = datafusion::prelude::SessionContext::new_with_state(crate::session_state(&options).unwrap());
+        for set in [
+            "SET datafusion.execution.target_partitions = 2",
+            "SET datafusion.optimizer.repartition_file_scans = false",
+        ] {
+            ctx.sql(set).await.unwrap().collect().await.unwrap();
+        }
+        let schema = Arc::new(Schema::new(vec![Field::new("k", DataType::UInt64, false)]));
+        let batches: Vec<RecordBatch> = (0..40u64)
+            .map(|b| {
+                let k = UInt64Array::from_iter_values(b * 1000..(b + 1) * 1000);
+                RecordBatch::try_new(schema.clone(), vec![Arc::new(k)]).unwrap()
+            })
+            .collect();
+        let table = datafusion::datasource::MemTable::try_new(schema, vec![batches]).unwrap();
+        ctx.register_table("t", Arc::new(table)).unwrap();
+        let plan = ctx.sql("EXPLAIN ANALYZE SELECT k FROM t WHERE k % 3 = 0").await.unwrap().collect().await.unwrap();
+        let text = arrow::util::pretty::pretty_format_batches(&plan).unwrap().to_string();
+        let line =
+            text.lines().find(|l| l.contains("RepartitionExec")).unwrap_or_else(|| panic!("no repartition: {text}"));
+        assert!(line.contains("spill_count=0"), "the repartition spilled: {line}");
+    }
 }
