@@ -471,6 +471,13 @@ impl Pushdown {
     }
 }
 
+/// Rows per batch of a `rays` scan: DataFusion's own default batch size. Against 64K-row batches
+/// (`store::READ_BATCH_ROWS`) on a 25M-ray trace of 12 segments, release build: a two-column scan
+/// peaks at 104-109 instead of 183-189 MB in the same time (0.34-0.37 s), origins and `t`
+/// decode in 1.24 instead of 1.58 s, octants, check-style and per-pixel queries unchanged, and a
+/// 5.9M-group `tree_id` group-by under a 300 MiB limit peaks 6% higher (605 against 570 MB).
+const SCAN_BATCH_ROWS: usize = 8 * 1024;
+
 /// Reads the `rays` table's partitions: one per segment left after pruning.
 #[derive(Clone)]
 pub(crate) struct RaysScanExec {
@@ -634,7 +641,8 @@ impl RaysScanExec {
         if !virtual_cols.is_empty() && !read.iter().any(|n| n == col::TREE_ID) {
             read.push(col::TREE_ID.into());
         }
-        let it = self.ds.segment_columns_in(part.segment, &read, part.rows.as_deref().map(|v| v.as_slice()))?;
+        let rows = part.rows.as_deref().map(|v| v.as_slice());
+        let it = self.ds.segment_columns_in(part.segment, &read, rows, SCAN_BATCH_ROWS)?;
         if virtual_cols.is_empty() {
             return Ok(it);
         }

@@ -19,7 +19,7 @@ mod writer;
 pub use check::CheckReport;
 pub use codec::{Decoder, ENC_T, ENCODED_COLUMNS, Encoding, KIND_CODE, file_schema};
 pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
-pub use dataset::{Dataset, TreeEntry, TreeFilter, TreeIter};
+pub use dataset::{Dataset, READ_BATCH_ROWS, TreeEntry, TreeFilter, TreeIter};
 pub use error::{Error, Result};
 pub use manifest::{FORMAT_NAME, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, PayloadColumnDecl, SegmentEntry};
 pub use planes::{PLANES_KEY, Planes};

@@ -546,8 +546,11 @@ fn projected_columns_equal_the_full_decode() {
         ] {
             let names: Vec<String> = names.into_iter().map(String::from).collect();
             for rows in [None, Some(&subset[..])] {
-                let got: Vec<RecordBatch> =
-                    ds.segment_columns_in(0, &names, rows).unwrap().map(|b| b.unwrap()).collect();
+                let got: Vec<RecordBatch> = ds
+                    .segment_columns_in(0, &names, rows, store::READ_BATCH_ROWS)
+                    .unwrap()
+                    .map(|b| b.unwrap())
+                    .collect();
                 let got = arrow::compute::concat_batches(&got[0].schema(), &got).unwrap();
                 let expected_rows: Vec<usize> = match rows {
                     None => (0..full.num_rows()).collect(),

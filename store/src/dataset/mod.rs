@@ -9,6 +9,7 @@ mod scan;
 
 use index::TreeIndex;
 pub use index::{TreeEntry, TreeFilter};
+pub use read::READ_BATCH_ROWS;
 pub(crate) use read::cores;
 use read::select_rows;
 pub use scan::TreeIter;

@@ -748,7 +748,12 @@ fn read_pieces<'s>(
                         // The lock is held only to take a job: a closed queue ends the thread.
                         let job = jobs.lock().map_err(|_| ()).and_then(|q| q.recv().map_err(|_| ()));
                         let Ok((index, piece, out)) = job else { return };
-                        let batches = match ds.segment_columns_in(piece.segment, names, piece.rows.as_deref()) {
+                        let batches = match ds.segment_columns_in(
+                            piece.segment,
+                            names,
+                            piece.rows.as_deref(),
+                            store::READ_BATCH_ROWS,
+                        ) {
                             Ok(it) => it,
                             Err(e) => {
                                 let _ = out.send(Err(e.into()));
@@ -920,7 +925,7 @@ fn matching_rows(ds: &store::Dataset, s: &RaysSettings, rows: Option<&RowsBySegm
             },
             None => None,
         };
-        for b in ds.segment_columns_in(i, &names, ranges)? {
+        for b in ds.segment_columns_in(i, &names, ranges, store::READ_BATCH_ROWS)? {
             let b = b?;
             let (names_of, codes) = kind_codes(b.column(0).as_ref())?;
             let keep: Vec<bool> = names_of
