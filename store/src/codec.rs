@@ -115,14 +115,17 @@ const DIR_RAW: u8 = 6;
 const DIR_OCT: u8 = 7;
 
 /// The schema of the ray files for `plain` (the ray table schema) and encoded layouts, as
-/// `format_version` writes them (`t` is encoded from version 3 on).
+/// `format_version` writes them (`t` is encoded from version 3 on, the path payload's
+/// `radiance` from version 4).
 pub fn file_schema(plain: &SchemaRef, encoding: Encoding, format_version: u32) -> SchemaRef {
     if encoding == Encoding::Plain {
         return plain.clone();
     }
     let mut fields: Vec<Field> = Vec::with_capacity(plain.fields().len() + 1);
+    let radiance_predicted = format_version >= 4 && crate::path_payload::predicts_radiance(plain);
     for f in plain.fields() {
         match f.name().as_str() {
+            crate::path_payload::RADIANCE if radiance_predicted => fields.push(crate::path_payload::encoded_field(f)),
             "origin_y" | "origin_z" | "dir_x" | "dir_y" | "dir_z" => {}
             // Kind codes as recorded (names in the manifest's `kinds`): writing a string
             // dictionary column costs a hash per row.
@@ -154,13 +157,13 @@ fn unord(i: i32) -> f32 {
 }
 
 #[inline]
-fn residual(actual: f32, pred: f32) -> u32 {
+pub(crate) fn residual(actual: f32, pred: f32) -> u32 {
     let d = ord(actual).wrapping_sub(ord(pred));
     ((d << 1) ^ (d >> 31)) as u32
 }
 
 #[inline]
-fn apply(r: u32, pred: f32) -> f32 {
+pub(crate) fn apply(r: u32, pred: f32) -> f32 {
     let d = ((r >> 1) as i32) ^ -((r & 1) as i32);
     unord(ord(pred).wrapping_add(d))
 }
@@ -500,13 +503,16 @@ pub struct Decoder {
     state: TreeState,
     /// The planes of the segment being decoded (its ray file's `rtvtk.planes`).
     planes: Arc<Planes>,
+    /// The last tree id of the batch decoded before, where `radiance` is predicted from whole
+    /// trees: the next batch must not go on with that tree.
+    last_tree: Option<u64>,
 }
 
 impl Decoder {
     /// A decoder to the ray table schema `plain`; `kinds` names the kind codes. Files of format
     /// version 3 also need their segment's planes ([`Decoder::with_planes`]).
     pub fn new(encoding: Encoding, plain: SchemaRef, kinds: KindTable) -> Self {
-        Self { encoding, plain, kinds, state: TreeState::default(), planes: Arc::default() }
+        Self { encoding, plain, kinds, state: TreeState::default(), planes: Arc::default(), last_tree: None }
     }
 
     /// The decoder for a segment whose ray file holds `planes`.
@@ -515,7 +521,9 @@ impl Decoder {
         self
     }
 
-    /// Decodes one batch of a ray file at `path` (named in errors).
+    /// Decodes one batch of a ray file at `path` (named in errors). Where the file predicts
+    /// `radiance` (`enc_radiance`), batches must end at tree ends
+    /// ([`crate::Dataset::segment_batches_in`] cuts them so).
     pub fn decode(&mut self, batch: RecordBatch, path: &Path) -> Result<RecordBatch> {
         if self.encoding == Encoding::Plain {
             return Ok(batch);
@@ -523,6 +531,9 @@ impl Decoder {
         let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
         let g = self.decode_geometry(&batch, path, true)?;
         let mut floats: Vec<(&str, ArrayRef)> = g.columns();
+        if batch.column_by_name(crate::path_payload::ENC_RADIANCE).is_some() {
+            floats.push((crate::path_payload::RADIANCE, self.decode_radiance(&batch, path)?));
+        }
         let kind = kinds_of_codes(file_column(&batch, KIND_CODE, path)?, &self.kinds, path)?;
         let mut columns = Vec::with_capacity(self.plain.fields().len());
         for f in self.plain.fields() {
@@ -535,6 +546,25 @@ impl Decoder {
             }
         }
         RecordBatch::try_new(self.plain.clone(), columns).map_err(|e| corrupt(format!("decoded batch: {e}")))
+    }
+
+    /// The `radiance` column of a batch of whole trees of a ray file that predicts it (columns
+    /// `enc_radiance`, `tree_id`, `kind_code` and `throughput`).
+    pub(crate) fn decode_radiance(&mut self, batch: &RecordBatch, path: &Path) -> Result<ArrayRef> {
+        let tree = file_column(batch, crate::schema::col::TREE_ID, path)?.as_primitive_opt::<UInt64Type>();
+        if let Some(ids) = tree.filter(|t| !t.is_empty()) {
+            let first = ids.value(0);
+            if self.last_tree == Some(first) {
+                return Err(Error::Corrupt {
+                    path: path.to_path_buf(),
+                    what: "ray file".into(),
+                    message: format!("tree {first} goes on past the end of a batch: radiance decodes from whole trees"),
+                });
+            }
+            self.last_tree = Some(ids.value(ids.len() - 1));
+        }
+        let throughput = file_column(batch, crate::path_payload::THROUGHPUT, path)?;
+        crate::path_payload::decode(batch, throughput, path)
     }
 
     /// Decodes the directions of a batch of a ray file, and its origins (and encoded hit

@@ -8,6 +8,7 @@ mod error;
 pub mod geom;
 mod manifest;
 mod pages;
+mod path_payload;
 mod planes;
 mod rows;
 pub mod scene;
@@ -22,6 +23,7 @@ pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, Ra
 pub use dataset::{Dataset, READ_BATCH_ROWS, TreeEntry, TreeFilter, TreeIter};
 pub use error::{Error, Result};
 pub use manifest::{FORMAT_NAME, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, PayloadColumnDecl, SegmentEntry};
+pub use path_payload::{ENC_RADIANCE, RADIANCE, THROUGHPUT};
 pub use planes::{PLANES_KEY, Planes};
 pub use rows::{CoreRow, RayRows, RowLayout};
 pub use schema::{

@@ -21,7 +21,7 @@ pub const MANIFEST_FILE: &str = "manifest.json";
 /// Value of the manifest's `format` field.
 pub const FORMAT_NAME: &str = "rtvtk-trace";
 /// The format version this build writes and the newest it reads.
-pub const FORMAT_VERSION: u32 = 3;
+pub const FORMAT_VERSION: u32 = 4;
 
 /// A file of a segment, as the manifest records it.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

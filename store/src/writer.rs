@@ -23,6 +23,7 @@ use crate::columns::{RayColumns, TreeRow};
 use crate::error::{io_err, pq_err};
 use crate::manifest::{FileEntry, Manifest, SegmentEntry, segment_file, sync_dir};
 use crate::pages::{Plan, RayFileWriter};
+use crate::path_payload::{ENC_RADIANCE, RADIANCE, THROUGHPUT};
 use crate::planes::{PLANES_KEY, PlaneLearner};
 use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
 use crate::stats::Stats;
@@ -321,12 +322,19 @@ impl SegmentWriter {
         if let Some((enc, kind_codes)) = encoded {
             let t_nulls = batch.column_by_name("t").and_then(|t| t.nulls().cloned());
             let mut arrays = enc.into_arrays(t_nulls).into_iter();
+            let radiance = match self.schema.index_of(ENC_RADIANCE) {
+                Ok(_) => Some(encode_radiance(&batch, kind_codes.values())?),
+                Err(_) => None,
+            };
             let kind_codes: arrow::array::ArrayRef = std::sync::Arc::new(kind_codes);
             let mut columns = Vec::with_capacity(self.schema.fields().len());
             for f in self.schema.fields() {
                 let c = match batch.column_by_name(f.name()) {
                     Some(c) => c.clone(),
                     None if f.name() == KIND_CODE => kind_codes.clone(),
+                    None if f.name() == ENC_RADIANCE => {
+                        radiance.clone().ok_or_else(|| Error::Encoding("no radiance".into()))?
+                    }
                     None => arrays.next().ok_or_else(|| Error::Encoding(format!("no encoded column {}", f.name())))?,
                 };
                 columns.push(c);
@@ -450,6 +458,16 @@ impl SegmentWriter {
     }
 }
 
+/// The `enc_radiance` column of a ray batch of whole trees (`kind` its kind codes).
+fn encode_radiance(batch: &arrow::array::RecordBatch, kind: &[u8]) -> Result<arrow::array::ArrayRef> {
+    use arrow::array::AsArray;
+    let col = |name: &str| batch.column_by_name(name).ok_or_else(|| Error::Encoding(format!("no column {name}")));
+    let tree = col(crate::schema::col::TREE_ID)?
+        .as_primitive_opt::<arrow::datatypes::UInt64Type>()
+        .ok_or_else(|| Error::Encoding("tree_id is not UInt64".into()))?;
+    crate::path_payload::encode(tree.values(), kind, col(THROUGHPUT)?, col(RADIANCE)?)
+}
+
 /// Refuses a directory that exists and holds anything: a new dataset never overwrites a trace.
 fn ensure_empty(dir: &Path) -> Result<()> {
     if dir.exists() {
@@ -481,6 +499,8 @@ fn column_plan(field: &arrow::datatypes::Field, encoding: Encoding) -> Plan {
     match field.name().as_str() {
         crate::schema::col::TREE_ID => Plan::Delta,
         n if n == ENC_T || ENCODED_COLUMNS.contains(&n) => Plan::Split { stats: false },
+        // Mostly zero residuals and the bits of repeated emitter values: whole triples repeat.
+        ENC_RADIANCE => Plan::Plain { stats: false },
         _ if float => Plan::Plain { stats: true },
         _ => Plan::Split { stats: true },
     }

@@ -1,11 +1,11 @@
-//! Encodings (format versions 2 and 3): bit-exact round trips, lossy error bounds, reading
-//! versions 1 and 2.
+//! Encodings (format versions 2 to 4): bit-exact round trips, lossy error bounds, reading
+//! versions 1 to 3.
 #![allow(clippy::unwrap_used)]
 
 use std::path::Path;
 use std::sync::Arc;
 
-use arrow::array::{ArrayRef, RecordBatch, UInt8Array, UInt32Array};
+use arrow::array::{ArrayRef, AsArray, RecordBatch, UInt8Array, UInt32Array};
 use store::{
     Dataset, DatasetWriter, Encoding, Kind, KindTable, PayloadSchema, RayColumns, RayFields, TreeId, TreeRow,
     WriteOptions,
@@ -408,6 +408,16 @@ fn older_fixture_reads_back(name: &str, version: u32, encoding: Encoding) {
         assert_eq!(bits3(r.direction), bits3(d));
         assert_eq!(r.t.map(f32::to_bits), f(v[col("t")]).map(f32::to_bits));
         assert_eq!(r.prim, v[col("prim")].parse().ok());
+        if let Some(r0) = header.iter().position(|h| *h == "r0") {
+            // Radiance as version 3 stored it (plain floats; version 4 predicts it).
+            let row = v[col("ray")].parse::<usize>().unwrap();
+            let l = tree.batch.column_by_name("radiance").unwrap().as_fixed_size_list();
+            let got = l.value(row);
+            let got = got.as_primitive::<arrow::datatypes::Float32Type>();
+            for c in 0..3 {
+                assert_eq!(got.value(c).to_bits(), f(v[r0 + c]).unwrap().to_bits());
+            }
+        }
         hits += u64::from(r.t.is_some());
         n += 1;
     }
@@ -426,6 +436,12 @@ fn version_1_datasets_still_read() {
 fn version_2_lossless_datasets_still_read() {
     // Version 2 stored `t` as plain floats in encoded files (version 3 predicts it).
     older_fixture_reads_back("v2-cornell-lossless", 2, Encoding::Lossless);
+}
+
+#[test]
+fn version_3_lossless_datasets_still_read() {
+    // Version 3 stored the path payload's radiance as plain floats (version 4 predicts it).
+    older_fixture_reads_back("v3-cornell-lossless", 3, Encoding::Lossless);
 }
 
 #[test]

@@ -3,6 +3,7 @@
 //! directions decoded only when asked for).
 
 use super::*;
+use crate::path_payload::ENC_RADIANCE;
 
 impl Dataset {
     /// Loads the tree an index entry points at.
@@ -138,7 +139,8 @@ impl Dataset {
     ) -> Result<impl Iterator<Item = Result<RecordBatch>> + use<>> {
         let (path, reader) = self.ray_reader(i, None, rows, 64 * 1024)?;
         let mut decoder = self.decoder(i)?;
-        Ok(reader.map(move |b| {
+        let batches = self.tree_aligned_if_needed(reader, &path, true);
+        Ok(batches.map(move |b| {
             let b = b?;
             decoder.decode(b, &path)
         }))
@@ -225,14 +227,35 @@ impl Dataset {
                 file_names.push("t");
             }
         }
+        // The path payload's radiance, predicted from whole trees' throughput and kinds.
+        let want_radiance =
+            self.file_schema.index_of(ENC_RADIANCE).is_ok() && names.iter().any(|n| n == crate::path_payload::RADIANCE);
+        if want_radiance {
+            file_names.extend([
+                ENC_RADIANCE,
+                crate::path_payload::THROUGHPUT,
+                crate::schema::col::TREE_ID,
+                crate::codec::KIND_CODE,
+            ]);
+        }
         let roots: BTreeSet<usize> = file_names.iter().filter_map(|n| self.file_schema.index_of(n).ok()).collect();
         let (path, reader) = self.ray_reader(i, Some(roots.into_iter().collect()), rows, batch_rows.max(1))?;
         let kinds = self.kinds.clone();
         let mut decoder = self.decoder(i)?;
-        Ok(Box::new(reader.map(move |b| {
+        let batches = self.tree_aligned_if_needed(reader, &path, want_radiance);
+        Ok(Box::new(batches.map(move |b| {
             let b = b?;
             let mut fields: Vec<arrow::datatypes::FieldRef> = b.schema().fields().iter().cloned().collect();
             let mut cols = b.columns().to_vec();
+            if want_radiance {
+                let radiance = decoder.decode_radiance(&b, &path)?;
+                fields.push(Arc::new(arrow::datatypes::Field::new(
+                    crate::path_payload::RADIANCE,
+                    radiance.data_type().clone(),
+                    true,
+                )));
+                cols.push(radiance);
+            }
             if want_geometry {
                 let g = decoder.decode_geometry(&b, &path, want_origin)?;
                 for (name, col) in g.columns() {
@@ -254,6 +277,25 @@ impl Dataset {
                 .map_err(arrow_err("decoded columns"))?;
             project(b)
         })))
+    }
+}
+
+impl Dataset {
+    /// `reader`'s batches cut to end at tree ends where radiance is decoded (`wanted`) from a
+    /// file that predicts it from whole trees; as they come otherwise.
+    fn tree_aligned_if_needed(
+        &self,
+        reader: Guarded,
+        path: &Path,
+        wanted: bool,
+    ) -> Box<dyn Iterator<Item = Result<RecordBatch>> + Send> {
+        let tree = reader.schema().index_of(crate::schema::col::TREE_ID).ok();
+        match tree {
+            Some(tree) if wanted && self.file_schema.index_of(ENC_RADIANCE).is_ok() => {
+                Box::new(crate::path_payload::tree_aligned(reader, tree, path))
+            }
+            _ => Box::new(reader),
+        }
     }
 }
 
