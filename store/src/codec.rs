@@ -116,16 +116,18 @@ const DIR_OCT: u8 = 7;
 
 /// The schema of the ray files for `plain` (the ray table schema) and encoded layouts, as
 /// `format_version` writes them (`t` is encoded from version 3 on, the path payload's
-/// `radiance` from version 4).
+/// `throughput` and `radiance` from version 4).
 pub fn file_schema(plain: &SchemaRef, encoding: Encoding, format_version: u32) -> SchemaRef {
     if encoding == Encoding::Plain {
         return plain.clone();
     }
     let mut fields: Vec<Field> = Vec::with_capacity(plain.fields().len() + 1);
-    let radiance_predicted = format_version >= 4 && crate::path_payload::predicts_radiance(plain);
+    let path_payload = format_version >= 4 && crate::path_payload::predicts_path_payload(plain);
     for f in plain.fields() {
         match f.name().as_str() {
-            crate::path_payload::RADIANCE if radiance_predicted => fields.push(crate::path_payload::encoded_field(f)),
+            crate::path_payload::RADIANCE | crate::path_payload::THROUGHPUT if path_payload => {
+                fields.extend(crate::path_payload::encoded_fields(f))
+            }
             "origin_y" | "origin_z" | "dir_x" | "dir_y" | "dir_z" => {}
             // Kind codes as recorded (names in the manifest's `kinds`): writing a string
             // dictionary column costs a hash per row.
@@ -503,6 +505,8 @@ pub struct Decoder {
     state: TreeState,
     /// The planes of the segment being decoded (its ray file's `rtvtk.planes`).
     planes: Arc<Planes>,
+    /// The throughput colours of the segment being decoded (its ray file's `rtvtk.chromas`).
+    chromas: Arc<crate::path_payload::Chromas>,
     /// The last tree id of the batch decoded before, where `radiance` is predicted from whole
     /// trees: the next batch must not go on with that tree.
     last_tree: Option<u64>,
@@ -512,7 +516,21 @@ impl Decoder {
     /// A decoder to the ray table schema `plain`; `kinds` names the kind codes. Files of format
     /// version 3 also need their segment's planes ([`Decoder::with_planes`]).
     pub fn new(encoding: Encoding, plain: SchemaRef, kinds: KindTable) -> Self {
-        Self { encoding, plain, kinds, state: TreeState::default(), planes: Arc::default(), last_tree: None }
+        Self {
+            encoding,
+            plain,
+            kinds,
+            state: TreeState::default(),
+            planes: Arc::default(),
+            chromas: Arc::default(),
+            last_tree: None,
+        }
+    }
+
+    /// The decoder for a segment whose ray file holds throughput colours `chromas`.
+    pub fn with_chromas(mut self, chromas: Arc<crate::path_payload::Chromas>) -> Self {
+        self.chromas = chromas;
+        self
     }
 
     /// The decoder for a segment whose ray file holds `planes`.
@@ -531,8 +549,10 @@ impl Decoder {
         let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
         let g = self.decode_geometry(&batch, path, true)?;
         let mut floats: Vec<(&str, ArrayRef)> = g.columns();
-        if batch.column_by_name(crate::path_payload::ENC_RADIANCE).is_some() {
-            floats.push((crate::path_payload::RADIANCE, self.decode_radiance(&batch, path)?));
+        if batch.column_by_name(crate::path_payload::ENC_THROUGHPUT).is_some() {
+            let throughput = self.decode_throughput(&batch, path)?;
+            floats.push((crate::path_payload::RADIANCE, self.decode_radiance(&batch, &throughput, path)?));
+            floats.push((crate::path_payload::THROUGHPUT, throughput));
         }
         let kind = kinds_of_codes(file_column(&batch, KIND_CODE, path)?, &self.kinds, path)?;
         let mut columns = Vec::with_capacity(self.plain.fields().len());
@@ -548,9 +568,20 @@ impl Decoder {
         RecordBatch::try_new(self.plain.clone(), columns).map_err(|e| corrupt(format!("decoded batch: {e}")))
     }
 
+    /// The `throughput` column of a batch of a ray file that predicts it (`enc_throughput`,
+    /// `enc_chroma`).
+    pub(crate) fn decode_throughput(&self, batch: &RecordBatch, path: &Path) -> Result<ArrayRef> {
+        crate::path_payload::decode_throughput(batch, &self.chromas, path)
+    }
+
     /// The `radiance` column of a batch of whole trees of a ray file that predicts it (columns
-    /// `enc_radiance`, `tree_id`, `kind_code` and `throughput`).
-    pub(crate) fn decode_radiance(&mut self, batch: &RecordBatch, path: &Path) -> Result<ArrayRef> {
+    /// `enc_radiance`, `tree_id`, `kind_code`), with the batch's decoded `throughput`.
+    pub(crate) fn decode_radiance(
+        &mut self,
+        batch: &RecordBatch,
+        throughput: &ArrayRef,
+        path: &Path,
+    ) -> Result<ArrayRef> {
         let tree = file_column(batch, crate::schema::col::TREE_ID, path)?.as_primitive_opt::<UInt64Type>();
         if let Some(ids) = tree.filter(|t| !t.is_empty()) {
             let first = ids.value(0);
@@ -563,7 +594,6 @@ impl Decoder {
             }
             self.last_tree = Some(ids.value(ids.len() - 1));
         }
-        let throughput = file_column(batch, crate::path_payload::THROUGHPUT, path)?;
         crate::path_payload::decode(batch, throughput, path)
     }
 

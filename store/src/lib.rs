@@ -23,7 +23,7 @@ pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, Ra
 pub use dataset::{Dataset, READ_BATCH_ROWS, TreeEntry, TreeFilter, TreeIter};
 pub use error::{Error, Result};
 pub use manifest::{FORMAT_NAME, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, PayloadColumnDecl, SegmentEntry};
-pub use path_payload::{ENC_RADIANCE, RADIANCE, THROUGHPUT};
+pub use path_payload::{CHROMAS_KEY, Chromas, ENC_CHROMA, ENC_RADIANCE, ENC_THROUGHPUT, RADIANCE, THROUGHPUT};
 pub use planes::{PLANES_KEY, Planes};
 pub use rows::{CoreRow, RayRows, RowLayout};
 pub use schema::{

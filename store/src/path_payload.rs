@@ -1,30 +1,41 @@
-//! The path payload's radiance predicted from the path's own arithmetic (format version 4,
-//! encoded layouts).
+//! The path payload predicted (format version 4, encoded layouts): `throughput` by its colour,
+//! `radiance` from the path's own arithmetic.
 //!
 //! A path tracer that records each ray's `throughput` (the path weight it was spawned with) and
-//! `radiance` (the light it carries back to its origin) writes numbers tied to each other: the
-//! tree's root carries the whole sample's estimate `L`, the sum of what its shadow rays brought
-//! (`throughput * radiance` of each, added in recording order), and every other ray carries what
-//! was gathered after it, `(L - gathered before it) / throughput`. Stored as they are, those
-//! radiance triples are nearly random floats (5.5 of the 23.6 bytes a ray of a path-traced
-//! Cornell box took); predicted from the same arithmetic, in `f32` and in the same order, they
-//! come out exactly and cost almost nothing.
+//! `radiance` (the light it carries back to its origin) writes numbers tied to each other. Stored
+//! as they are, they are nearly random floats: 10.3 of the 23.6 bytes a ray of a path-traced
+//! Cornell box took. When the payload declares both as `float32[3]`, encoded ray files store
+//! them as residuals against predictions instead:
 //!
-//! When the payload declares `throughput` and `radiance` both as `float32[3]`, encoded ray files
-//! (from format version 4) store `radiance` as `enc_radiance` (`uint32[3]`): each component's
-//! zig-zag ULP distance to its prediction, per tree of rows `s..e`:
+//! - **Throughput by colour.** A shadow ray's weight is its parent's throughput times the
+//!   material's colour times one scalar (geometry over pdf), so its three channels keep one of a
+//!   few ratios: the Cornell box's 1M distinct shadow weights have 84 colours. The writer learns
+//!   a segment's colours (the first triple seen of each, keyed by its two channel ratios to 13
+//!   bits) and saves them in the ray file's key-value metadata (`rtvtk.chromas`, base64 of
+//!   little-endian f32 triples). `enc_chroma` (`uint16`) names a ray's colour (1-based; 0: none),
+//!   and `enc_throughput` (`uint32[3]`) holds the first channel's bits and the two others' zig-zag
+//!   ULP distances to `r * (g_ref / r_ref)` and `r * (b_ref / r_ref)` (computed in `f64` as
+//!   `(r / r_ref) * g_ref`, rounded to `f32`), or their bits with colour 0. A colour never changes
+//!   once learned, so one tree still decodes on its own.
+//! - **Radiance by the path's arithmetic.** The tree's root carries the whole sample's estimate
+//!   `L`, the sum of what its shadow rays brought (`throughput * radiance` of each, added in
+//!   recording order), and every other ray carries what was gathered after it,
+//!   `(L - gathered before it) / throughput`. `radiance` is stored as `enc_radiance`
+//!   (`uint32[3]`): each component's zig-zag ULP distance to its prediction, per tree of rows
+//!   `s..e`:
+//!   - shadow rays (kind code 1) other than the root: predicted 0 (the bits are stored; they are
+//!     the emitter's radiance or zero);
+//!   - the root (row `s`): the sum over those shadow rays, in row order, of
+//!     `throughput * radiance` (both present), in `f32`, starting from 0;
+//!   - every other ray: per component, `(L - acc) / b` where `b > 0`, else 0, with `L` the root's
+//!     radiance, `acc` that sum over the shadow rays before it, and `b` its throughput; 0 when
+//!     its throughput is null.
 //!
-//! - shadow rays (kind code 1) other than the root: predicted 0 (the bits are stored; they are
-//!   the emitter's radiance or zero);
-//! - the root (row `s`): the sum over those shadow rays, in row order, of
-//!   `throughput * radiance` (both present), starting from 0;
-//! - every other ray: per component, `(L - acc) / b` where `b > 0`, else 0, with `L` the root's
-//!   radiance, `acc` that sum over the shadow rays before it, and `b` its throughput; 0 when its
-//!   throughput is null.
+//!   In `f32` and in the same order as the path tracer, the predictions come out exactly.
 //!
 //! Any other renderer's values round-trip too (every bit pattern does); they only cost more.
-//! The prediction reads a whole tree before its root, so decoding needs batches that end at tree
-//! ends ([`tree_aligned`]); a tree still decodes on its own.
+//! The radiance prediction reads a whole tree before its root, so decoding it needs batches
+//! that end at tree ends ([`tree_aligned`]); a tree still decodes on its own.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -43,22 +54,177 @@ pub const THROUGHPUT: &str = "throughput";
 pub const RADIANCE: &str = "radiance";
 /// The ray-file column `radiance` is stored in (format version 4, encoded layouts).
 pub const ENC_RADIANCE: &str = "enc_radiance";
+/// The ray-file column `throughput` is stored in (with [`ENC_CHROMA`]).
+pub const ENC_THROUGHPUT: &str = "enc_throughput";
+/// The ray-file column naming each ray's throughput colour.
+pub const ENC_CHROMA: &str = "enc_chroma";
+/// Key-value metadata key of a ray file's throughput colours.
+pub const CHROMAS_KEY: &str = "rtvtk.chromas";
+/// Colours a segment learns at most (`enc_chroma` is 1-based, 0 for none).
+const MAX_CHROMAS: usize = u16::MAX as usize;
 
 /// Whether `f` is a `float32[3]` column.
 fn is_rgb(f: &Field) -> bool {
     matches!(f.data_type(), DataType::FixedSizeList(item, 3) if item.data_type() == &DataType::Float32)
 }
 
-/// Whether the ray table `plain` holds the path payload whose radiance is predicted.
-pub(crate) fn predicts_radiance(plain: &Schema) -> bool {
+/// Whether the ray table `plain` holds the path payload, which encoded layouts predict.
+pub(crate) fn predicts_path_payload(plain: &Schema) -> bool {
     let rgb = |name: &str| plain.field_with_name(name).is_ok_and(is_rgb);
     rgb(THROUGHPUT) && rgb(RADIANCE)
 }
 
-/// The `enc_radiance` field standing for the `radiance` field `f`.
-pub(crate) fn encoded_field(f: &Field) -> Field {
+/// The ray-file fields standing for the payload field `f` (`throughput` or `radiance`).
+pub(crate) fn encoded_fields(f: &Field) -> Vec<Field> {
     let item = Arc::new(Field::new("item", DataType::UInt32, false));
-    Field::new(ENC_RADIANCE, DataType::FixedSizeList(item, 3), f.is_nullable()).with_metadata(f.metadata().clone())
+    let list = |name: &str| {
+        Field::new(name, DataType::FixedSizeList(item.clone(), 3), f.is_nullable()).with_metadata(f.metadata().clone())
+    };
+    if f.name() == THROUGHPUT {
+        vec![list(ENC_THROUGHPUT), Field::new(ENC_CHROMA, DataType::UInt16, false)]
+    } else {
+        vec![list(ENC_RADIANCE)]
+    }
+}
+
+/// The throughput colours of a segment, as its ray file saves them.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Chromas {
+    refs: Vec<[f32; 3]>,
+}
+
+impl Chromas {
+    pub fn len(&self) -> usize {
+        self.refs.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.refs.is_empty()
+    }
+
+    /// The value of [`CHROMAS_KEY`].
+    pub fn to_metadata(&self) -> String {
+        use base64::Engine;
+        let bytes: Vec<u8> = self.refs.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
+        base64::engine::general_purpose::STANDARD.encode(bytes)
+    }
+
+    /// Parses [`Chromas::to_metadata`] output.
+    pub fn from_metadata(value: &str) -> std::result::Result<Self, String> {
+        use base64::Engine;
+        let bytes = base64::engine::general_purpose::STANDARD
+            .decode(value.trim())
+            .map_err(|e| format!("{CHROMAS_KEY} is not base64: {e}"))?;
+        if bytes.len() % 12 != 0 || bytes.len() / 12 > MAX_CHROMAS {
+            return Err(format!(
+                "{CHROMAS_KEY} holds {} bytes: expected up to {MAX_CHROMAS} triples of f32",
+                bytes.len()
+            ));
+        }
+        let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+        let refs: Vec<[f32; 3]> = bytes.chunks_exact(12).map(|r| [f(&r[0..4]), f(&r[4..8]), f(&r[8..12])]).collect();
+        if let Some((k, _)) = refs.iter().enumerate().find(|(_, v)| !usable(**v)) {
+            return Err(format!(
+                "{CHROMAS_KEY}: colour {} is not a finite triple with a non-zero first channel",
+                k + 1
+            ));
+        }
+        Ok(Self { refs })
+    }
+}
+
+/// Whether a colour can be predicted from: finite, first channel not zero.
+#[inline]
+fn usable(v: [f32; 3]) -> bool {
+    v[0].is_finite() && v[0] != 0.0 && v[1].is_finite() && v[2].is_finite()
+}
+
+/// The second and third channels predicted from the first, `r`, and a colour's triple.
+#[inline]
+fn by_colour(r: f32, c: [f32; 3]) -> [f32; 2] {
+    let k = f64::from(r) / f64::from(c[0]);
+    [(k * f64::from(c[1])) as f32, (k * f64::from(c[2])) as f32]
+}
+
+/// Learns a segment's throughput colours while it is written.
+#[derive(Default)]
+pub(crate) struct ChromaLearner {
+    slots: std::collections::HashMap<u64, u16, ahash::RandomState>,
+    chromas: Chromas,
+}
+
+impl ChromaLearner {
+    /// The colour of `v` (1-based), learned now if new; 0 for none.
+    fn slot(&mut self, v: [f32; 3]) -> u16 {
+        if !usable(v) {
+            return 0;
+        }
+        // The two channel ratios to 13 mantissa bits (about 1e-4).
+        let ratio = |c: f32| ((f64::from(c) / f64::from(v[0])) as f32).to_bits() >> 10;
+        let key = (u64::from(ratio(v[1])) << 32) | u64::from(ratio(v[2]));
+        if let Some(&s) = self.slots.get(&key) {
+            return s;
+        }
+        if self.chromas.refs.len() >= MAX_CHROMAS {
+            return 0;
+        }
+        self.chromas.refs.push(v);
+        let s = self.chromas.refs.len() as u16;
+        self.slots.insert(key, s);
+        s
+    }
+
+    pub(crate) fn chromas(&self) -> &Chromas {
+        &self.chromas
+    }
+}
+
+/// The `enc_throughput` and `enc_chroma` columns of a `throughput` column, learning colours.
+pub(crate) fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Result<(ArrayRef, ArrayRef)> {
+    let (tv, tn) = rgb_values(throughput, THROUGHPUT).map_err(Error::Encoding)?;
+    let n = tv.len() / 3;
+    let mut enc = vec![0u32; 3 * n];
+    let mut slots = vec![0u16; n];
+    for i in 0..n {
+        if !valid(tn, i) {
+            continue;
+        }
+        let v = triple(tv, i);
+        let s = learner.slot(v);
+        let pred = if s == 0 { [0.0; 2] } else { by_colour(v[0], learner.chromas.refs[s as usize - 1]) };
+        enc[3 * i] = v[0].to_bits();
+        enc[3 * i + 1] = residual(v[1], pred[0]);
+        enc[3 * i + 2] = residual(v[2], pred[1]);
+        slots[i] = s;
+    }
+    Ok((u32x3(enc, tn.cloned()), Arc::new(arrow::array::UInt16Array::from(slots))))
+}
+
+/// The `throughput` column of a batch of a ray file at `path` that predicts it, from its
+/// `enc_throughput` and `enc_chroma` columns and the segment's colours.
+pub(crate) fn decode_throughput(batch: &RecordBatch, chromas: &Chromas, path: &Path) -> Result<ArrayRef> {
+    let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
+    let (ev, en) =
+        u32x3_values(crate::codec::file_column(batch, ENC_THROUGHPUT, path)?, ENC_THROUGHPUT).map_err(corrupt)?;
+    let slots = crate::codec::file_column(batch, ENC_CHROMA, path)?
+        .as_primitive_opt::<arrow::datatypes::UInt16Type>()
+        .ok_or_else(|| corrupt(format!("column {ENC_CHROMA} is not UInt16")))?;
+    let mut out = Vec::with_capacity(ev.len());
+    for (i, &s) in slots.values().iter().enumerate() {
+        let r = f32::from_bits(ev[3 * i]);
+        let pred = match s {
+            0 => [0.0; 2],
+            s => by_colour(
+                r,
+                *chromas.refs.get(s as usize - 1).ok_or_else(|| {
+                    corrupt(format!("row {i} of the batch: colour {s} of {} the file saves", chromas.len()))
+                })?,
+            ),
+        };
+        out.extend([r, apply(ev[3 * i + 1], pred[0]), apply(ev[3 * i + 2], pred[1])]);
+    }
+    let item = Arc::new(Field::new("item", DataType::Float32, false));
+    Ok(Arc::new(FixedSizeListArray::new(item, 3, Arc::new(Float32Array::from(out)), en.cloned())))
 }
 
 /// The values of a `float32[3]` column, and its validity.
@@ -392,6 +558,55 @@ mod tests {
                 .collect::<Vec<_>>()
         };
         assert_eq!(bits(&back), bits(&rad));
+    }
+
+    #[test]
+    fn throughput_round_trips_by_colour_and_bad_colour_tables_are_errors() {
+        let n = 300;
+        let colours = [[0.73f32, 0.42, 0.12], [0.2, 0.6, 0.9]];
+        let mut v: Vec<[f32; 3]> = (0..n)
+            .map(|i| {
+                let s = 0.001 + i as f32 * 0.37;
+                colours[i % 2].map(|c| c * s)
+            })
+            .collect();
+        v[7] = [0.0, 1.0, 2.0];
+        v[8] = [f32::NAN, 1.0, f32::INFINITY];
+        v[9] = [-0.0, f32::from_bits(1), f32::MAX];
+        let thr = rgb(&v, Some((0..n).map(|i| i % 11 != 3).collect()));
+        let mut learner = ChromaLearner::default();
+        let (enc, slots) = encode_throughput(&thr, &mut learner).unwrap();
+        let chromas = Chromas::from_metadata(&learner.chromas().to_metadata()).unwrap();
+        assert_eq!(&chromas, learner.chromas());
+        assert!(chromas.len() <= 6, "{} colours for two (plus rounding at the keys' edges)", chromas.len());
+        let schema = Schema::new(vec![
+            Field::new(ENC_THROUGHPUT, enc.data_type().clone(), true),
+            Field::new(ENC_CHROMA, DataType::UInt16, false),
+        ]);
+        let b = RecordBatch::try_new(Arc::new(schema), vec![enc, slots]).unwrap();
+        let back = decode_throughput(&b, &chromas, Path::new("f")).unwrap();
+        let bits = |a: &ArrayRef| {
+            let l = a.as_fixed_size_list();
+            (0..l.len())
+                .map(|i| {
+                    l.is_valid(i).then(|| {
+                        l.value(i)
+                            .as_primitive::<Float32Type>()
+                            .values()
+                            .iter()
+                            .map(|f| f.to_bits())
+                            .collect::<Vec<_>>()
+                    })
+                })
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(bits(&back), bits(&thr));
+        // A colour the file does not save, and tables that are not triples of usable floats.
+        let err = decode_throughput(&b, &Chromas::default(), Path::new("seg.rays.parquet")).unwrap_err().to_string();
+        assert!(err.contains("seg.rays.parquet") && err.contains("colour 1 of 0"), "{err}");
+        assert!(Chromas::from_metadata("not base64!").is_err());
+        let bad = Chromas { refs: vec![[0.0, 1.0, 1.0]] }.to_metadata();
+        assert!(Chromas::from_metadata(&bad).unwrap_err().contains("colour 1"));
     }
 
     #[test]

@@ -23,7 +23,7 @@ use crate::columns::{RayColumns, TreeRow};
 use crate::error::{io_err, pq_err};
 use crate::manifest::{FileEntry, Manifest, SegmentEntry, segment_file, sync_dir};
 use crate::pages::{Plan, RayFileWriter};
-use crate::path_payload::{ENC_RADIANCE, RADIANCE, THROUGHPUT};
+use crate::path_payload::{CHROMAS_KEY, ChromaLearner, ENC_CHROMA, ENC_RADIANCE, ENC_THROUGHPUT, RADIANCE, THROUGHPUT};
 use crate::planes::{PLANES_KEY, PlaneLearner};
 use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
 use crate::stats::Stats;
@@ -192,6 +192,7 @@ impl DatasetWriter {
             schema,
             row_group_rows: self.options.row_group_rows.max(1),
             planes: PlaneLearner::default(),
+            chromas: ChromaLearner::default(),
         })
     }
 
@@ -280,6 +281,8 @@ pub struct SegmentWriter {
     row_group_rows: usize,
     /// Planes of the primitives hit so far, for predicting hit distances (saved at seal).
     planes: PlaneLearner,
+    /// Throughput colours seen so far, for predicting throughput (saved at seal).
+    chromas: ChromaLearner,
 }
 
 impl SegmentWriter {
@@ -322,9 +325,15 @@ impl SegmentWriter {
         if let Some((enc, kind_codes)) = encoded {
             let t_nulls = batch.column_by_name("t").and_then(|t| t.nulls().cloned());
             let mut arrays = enc.into_arrays(t_nulls).into_iter();
-            let radiance = match self.schema.index_of(ENC_RADIANCE) {
-                Ok(_) => Some(encode_radiance(&batch, kind_codes.values())?),
-                Err(_) => None,
+            let (radiance, throughput) = match self.schema.index_of(ENC_RADIANCE) {
+                Ok(_) => (
+                    Some(encode_radiance(&batch, kind_codes.values())?),
+                    Some(crate::path_payload::encode_throughput(
+                        batch.column_by_name(THROUGHPUT).ok_or_else(|| Error::Encoding("no throughput".into()))?,
+                        &mut self.chromas,
+                    )?),
+                ),
+                Err(_) => (None, None),
             };
             let kind_codes: arrow::array::ArrayRef = std::sync::Arc::new(kind_codes);
             let mut columns = Vec::with_capacity(self.schema.fields().len());
@@ -334,6 +343,10 @@ impl SegmentWriter {
                     None if f.name() == KIND_CODE => kind_codes.clone(),
                     None if f.name() == ENC_RADIANCE => {
                         radiance.clone().ok_or_else(|| Error::Encoding("no radiance".into()))?
+                    }
+                    None if f.name() == ENC_THROUGHPUT || f.name() == ENC_CHROMA => {
+                        let (t, c) = throughput.as_ref().ok_or_else(|| Error::Encoding("no throughput".into()))?;
+                        if f.name() == ENC_CHROMA { c.clone() } else { t.clone() }
                     }
                     None => arrays.next().ok_or_else(|| Error::Encoding(format!("no encoded column {}", f.name())))?,
                 };
@@ -410,6 +423,10 @@ impl SegmentWriter {
         let planes = self.planes.planes();
         if !planes.is_empty() {
             writer.append_key_value_metadata(KeyValue::new(PLANES_KEY.into(), planes.to_metadata()));
+        }
+        let chromas = self.chromas.chromas();
+        if !chromas.is_empty() {
+            writer.append_key_value_metadata(KeyValue::new(CHROMAS_KEY.into(), chromas.to_metadata()));
         }
         let sink = writer.into_inner().map_err(pq_err(&self.tmp))?;
         let rays = finish_file(sink, &self.tmp, ds.options.sync)?;
@@ -500,7 +517,8 @@ fn column_plan(field: &arrow::datatypes::Field, encoding: Encoding) -> Plan {
         crate::schema::col::TREE_ID => Plan::Delta,
         n if n == ENC_T || ENCODED_COLUMNS.contains(&n) => Plan::Split { stats: false },
         // Mostly zero residuals and the bits of repeated emitter values: whole triples repeat.
-        ENC_RADIANCE => Plan::Plain { stats: false },
+        ENC_RADIANCE | ENC_THROUGHPUT => Plan::Plain { stats: false },
+        ENC_CHROMA => Plan::Split { stats: false },
         _ if float => Plan::Plain { stats: true },
         _ => Plan::Split { stats: true },
     }

@@ -1,6 +1,7 @@
-//! The path payload's radiance predicted from the path's arithmetic (format version 4): what a
-//! path tracer records comes back bit for bit through every read (whole segments, projected
-//! columns in batches that cut trees, row subsets, one tree), and so does any other value.
+//! The path payload predicted (format version 4): throughput by colour, radiance from the path's
+//! arithmetic. What a path tracer records comes back bit for bit through every read (whole
+//! segments, projected columns in batches that cut trees, row subsets, one tree), and so does
+//! any other value.
 #![allow(clippy::unwrap_used)]
 
 use std::path::Path;
@@ -37,17 +38,21 @@ fn schema() -> PayloadSchema {
 }
 
 /// (kind, parent, throughput, radiance or None for "gathered after it", gathered before it)
+/// A triple as written, None for null.
+type Rgb = Option<[f32; 3]>;
+
 type PathRay = (Kind, u32, [f32; 3], Option<[f32; 3]>, [f32; 3]);
 
 /// Trees as the path tracer records them (camera ray; per bounce a shadow ray toward an emitter
 /// and the next bounce; radiance `(l - gathered before) / throughput`), every 9th tree with
 /// arbitrary values instead (NaN, infinities, nulls, zero throughput) that must round-trip too.
-/// Returns the columns and each ray's radiance as written (None for null).
-fn paths(n: u64) -> (RayColumns, Vec<Option<[f32; 3]>>) {
+/// Returns the columns and each ray's radiance and throughput as written (None for null).
+fn paths(n: u64) -> (RayColumns, Vec<Rgb>, Vec<Rgb>) {
     let schema = schema();
     let mut rng = Rng(0x2545_F491_4F6C_DD1D);
     let mut cols = RayColumns::new(&schema);
     let mut expected = Vec::new();
+    let mut expected_thr = Vec::new();
     let mut mismatches = Vec::new();
     for id in 0..n {
         let first = cols.len() as u64;
@@ -93,6 +98,7 @@ fn paths(n: u64) -> (RayColumns, Vec<Option<[f32; 3]>>) {
             let (tv, rv) = (v(thr_ok, &thr), v(rad_ok, &rad));
             cols.push_payload(&schema, &[tv, rv], None, &mut mismatches);
             expected.push(rad_ok.then_some(rad));
+            expected_thr.push(thr_ok.then_some(thr));
         }
         let count = cols.len() as u64 - first;
         let max_depth = depths.iter().copied().max().unwrap_or(0);
@@ -107,7 +113,7 @@ fn paths(n: u64) -> (RayColumns, Vec<Option<[f32; 3]>>) {
         });
     }
     assert!(mismatches.is_empty());
-    (cols, expected)
+    (cols, expected, expected_thr)
 }
 
 fn write(dir: &Path, cols: RayColumns, encoding: Encoding) {
@@ -121,11 +127,16 @@ fn write(dir: &Path, cols: RayColumns, encoding: Encoding) {
     w.mark_complete().unwrap();
 }
 
-/// The radiance bits of a `radiance` column (None for null rows).
+/// The bits of the `radiance` column of `batches` (None for null rows).
 fn bits(batches: &[RecordBatch]) -> Vec<Option<[u32; 3]>> {
+    bits_of(batches, "radiance")
+}
+
+/// The bits of a `float32[3]` column `name` of `batches` (None for null rows).
+fn bits_of(batches: &[RecordBatch], name: &str) -> Vec<Option<[u32; 3]>> {
     let mut out = Vec::new();
     for b in batches {
-        let l = b.column_by_name("radiance").unwrap().as_fixed_size_list();
+        let l = b.column_by_name(name).unwrap().as_fixed_size_list();
         let v = l.values().as_primitive::<Float32Type>();
         for i in 0..l.len() {
             out.push(l.is_valid(i).then(|| [0, 1, 2].map(|c| v.value(3 * i + c).to_bits())));
@@ -136,8 +147,11 @@ fn bits(batches: &[RecordBatch]) -> Vec<Option<[u32; 3]>> {
 
 #[test]
 fn path_radiance_round_trips_through_every_read() {
-    let (cols, expected) = paths(700);
-    let expected: Vec<Option<[u32; 3]>> = expected.iter().map(|r| r.map(|v| v.map(f32::to_bits))).collect();
+    let (cols, expected, thr) = paths(700);
+    let to_bits = |v: Vec<Option<[f32; 3]>>| -> Vec<Option<[u32; 3]>> {
+        v.iter().map(|r| r.map(|v| v.map(f32::to_bits))).collect()
+    };
+    let (expected, thr) = (to_bits(expected), to_bits(thr));
     for encoding in [Encoding::Lossless, Encoding::Oct(12), Encoding::Plain] {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ds");
@@ -146,16 +160,28 @@ fn path_radiance_round_trips_through_every_read() {
         let file = ds.file_schema();
         assert_eq!(file.index_of("enc_radiance").is_ok(), encoding != Encoding::Plain, "{encoding:?}");
         assert_eq!(file.index_of("radiance").is_ok(), encoding == Encoding::Plain, "{encoding:?}");
+        assert_eq!(file.index_of("enc_throughput").is_ok(), encoding != Encoding::Plain, "{encoding:?}");
         // Whole segment.
         let full: Vec<RecordBatch> = ds.segment_batches(0).unwrap().map(|b| b.unwrap()).collect();
         assert_eq!(bits(&full), expected, "{encoding:?}");
+        assert_eq!(bits_of(&full, "throughput"), thr, "{encoding:?}");
         // Projected, alone and beside other columns, in batches far smaller than a tree.
-        for names in [vec!["radiance"], vec!["depth", "radiance", "origin_x"], vec!["throughput", "radiance"]] {
+        for names in [
+            vec!["radiance"],
+            vec!["depth", "radiance", "origin_x"],
+            vec!["throughput", "radiance"],
+            vec!["throughput"],
+        ] {
             let names: Vec<String> = names.into_iter().map(String::from).collect();
             for batch_rows in [3, 100, store::READ_BATCH_ROWS] {
                 let got: Vec<RecordBatch> =
                     ds.segment_columns_in(0, &names, None, batch_rows).unwrap().map(|b| b.unwrap()).collect();
-                assert_eq!(bits(&got), expected, "{encoding:?} {names:?} {batch_rows}");
+                if names.contains(&"radiance".to_string()) {
+                    assert_eq!(bits(&got), expected, "{encoding:?} {names:?} {batch_rows}");
+                }
+                if names.contains(&"throughput".to_string()) {
+                    assert_eq!(bits_of(&got, "throughput"), thr, "{encoding:?} {names:?} {batch_rows}");
+                }
             }
         }
         // Row subsets (whole trees) and single trees.
@@ -173,14 +199,15 @@ fn path_radiance_round_trips_through_every_read() {
         for e in trees.iter().step_by(37) {
             let tree = ds.load_tree(e).unwrap();
             let (a, b) = (e.first_row as usize, e.first_row as usize + e.info.ray_count as usize);
-            assert_eq!(bits(&[tree.batch]), expected[a..b], "{encoding:?} tree {}", e.info.id.0);
+            assert_eq!(bits(std::slice::from_ref(&tree.batch)), expected[a..b], "{encoding:?} tree {}", e.info.id.0);
+            assert_eq!(bits_of(&[tree.batch], "throughput"), thr[a..b], "{encoding:?} tree {}", e.info.id.0);
         }
     }
 }
 
 #[test]
 fn predicted_radiance_costs_a_fraction_of_the_stored_floats() {
-    let (cols, _) = paths(3000);
+    let (cols, _, _) = paths(3000);
     let size = |encoding: Encoding| {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("ds");
@@ -201,4 +228,7 @@ fn predicted_radiance_costs_a_fraction_of_the_stored_floats() {
     let (stored, predicted) = (plain["radiance"], lossless["enc_radiance"]);
     // Every ninth tree holds arbitrary values; the rest are predicted exactly.
     assert!(predicted * 2 < stored, "enc_radiance {predicted} bytes against radiance {stored}");
+    // Shadow weights take a few colours (the albedo's green channel varies here, so not many).
+    let (stored, predicted) = (plain["throughput"], lossless["enc_throughput"] + lossless["enc_chroma"]);
+    assert!(predicted < stored, "enc_throughput and enc_chroma {predicted} bytes against throughput {stored}");
 }

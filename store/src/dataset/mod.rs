@@ -30,6 +30,7 @@ use parquet::file::metadata::PageIndexPolicy;
 use crate::codec::{Decoder, ENC_T, Encoding, file_schema};
 use crate::error::{arrow_err, io_err, pq_err};
 use crate::manifest::{MANIFEST_FILE, Manifest, SegmentEntry};
+use crate::path_payload::CHROMAS_KEY;
 use crate::planes::{PLANES_KEY, Planes};
 use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
 use crate::stats::Stats;
@@ -42,6 +43,8 @@ struct SegmentMeta {
     row_group_starts: Vec<u64>,
     /// The planes hit distances are predicted from (format version 3; empty before).
     planes: Arc<Planes>,
+    /// The throughput colours (format version 4 with the path payload; empty otherwise).
+    chromas: Arc<crate::path_payload::Chromas>,
     /// The root column at which a read of a few trees splits the file's columns in two for two
     /// threads: the halves hold about the same bytes, compressed and decompressed together.
     split_root: usize,
@@ -255,8 +258,27 @@ impl Dataset {
             })?,
             None => Planes::default(),
         };
+        let chromas = match meta
+            .metadata()
+            .file_metadata()
+            .key_value_metadata()
+            .and_then(|kv| kv.iter().find(|e| e.key == CHROMAS_KEY).and_then(|e| e.value.as_deref()))
+        {
+            Some(v) => crate::path_payload::Chromas::from_metadata(v).map_err(|message| Error::Corrupt {
+                path: path.clone(),
+                what: "ray file metadata".into(),
+                message,
+            })?,
+            None => Default::default(),
+        };
         let split_root = balanced_split(&meta);
-        let m = Arc::new(SegmentMeta { meta, row_group_starts: starts, planes: Arc::new(planes), split_root });
+        let m = Arc::new(SegmentMeta {
+            meta,
+            row_group_starts: starts,
+            planes: Arc::new(planes),
+            chromas: Arc::new(chromas),
+            split_root,
+        });
         let _ = self.metas[i].set(m.clone());
         Ok(m)
     }
@@ -273,12 +295,15 @@ impl Dataset {
 
     /// A decoder from segment `i`'s ray-file batches (starting at a tree) to ray-table batches.
     pub fn decoder(&self, i: usize) -> Result<Decoder> {
-        let planes = if self.manifest.encoding == Encoding::Plain {
-            Arc::default()
+        let (planes, chromas) = if self.manifest.encoding == Encoding::Plain {
+            (Arc::default(), Arc::default())
         } else {
-            self.segment_meta(i)?.planes.clone()
+            let m = self.segment_meta(i)?;
+            (m.planes.clone(), m.chromas.clone())
         };
-        Ok(Decoder::new(self.manifest.encoding, self.schema.clone(), self.kinds.clone()).with_planes(planes))
+        Ok(Decoder::new(self.manifest.encoding, self.schema.clone(), self.kinds.clone())
+            .with_planes(planes)
+            .with_chromas(chromas))
     }
 
     pub(crate) fn segment_entries(&self, i: usize) -> Result<Vec<TreeEntry>> {

@@ -227,16 +227,17 @@ impl Dataset {
                 file_names.push("t");
             }
         }
-        // The path payload's radiance, predicted from whole trees' throughput and kinds.
-        let want_radiance =
-            self.file_schema.index_of(ENC_RADIANCE).is_ok() && names.iter().any(|n| n == crate::path_payload::RADIANCE);
+        // The path payload: throughput predicted by colour, radiance from whole trees'
+        // throughput and kinds.
+        let predicted = self.file_schema.index_of(ENC_RADIANCE).is_ok();
+        let want_radiance = predicted && names.iter().any(|n| n == crate::path_payload::RADIANCE);
+        let want_throughput =
+            predicted && (want_radiance || names.iter().any(|n| n == crate::path_payload::THROUGHPUT));
+        if want_throughput {
+            file_names.extend([crate::path_payload::ENC_THROUGHPUT, crate::path_payload::ENC_CHROMA]);
+        }
         if want_radiance {
-            file_names.extend([
-                ENC_RADIANCE,
-                crate::path_payload::THROUGHPUT,
-                crate::schema::col::TREE_ID,
-                crate::codec::KIND_CODE,
-            ]);
+            file_names.extend([ENC_RADIANCE, crate::schema::col::TREE_ID, crate::codec::KIND_CODE]);
         }
         let roots: BTreeSet<usize> = file_names.iter().filter_map(|n| self.file_schema.index_of(n).ok()).collect();
         let (path, reader) = self.ray_reader(i, Some(roots.into_iter().collect()), rows, batch_rows.max(1))?;
@@ -247,14 +248,23 @@ impl Dataset {
             let b = b?;
             let mut fields: Vec<arrow::datatypes::FieldRef> = b.schema().fields().iter().cloned().collect();
             let mut cols = b.columns().to_vec();
-            if want_radiance {
-                let radiance = decoder.decode_radiance(&b, &path)?;
+            if want_throughput {
+                let throughput = decoder.decode_throughput(&b, &path)?;
+                if want_radiance {
+                    let radiance = decoder.decode_radiance(&b, &throughput, &path)?;
+                    fields.push(Arc::new(arrow::datatypes::Field::new(
+                        crate::path_payload::RADIANCE,
+                        radiance.data_type().clone(),
+                        true,
+                    )));
+                    cols.push(radiance);
+                }
                 fields.push(Arc::new(arrow::datatypes::Field::new(
-                    crate::path_payload::RADIANCE,
-                    radiance.data_type().clone(),
+                    crate::path_payload::THROUGHPUT,
+                    throughput.data_type().clone(),
                     true,
                 )));
-                cols.push(radiance);
+                cols.push(throughput);
             }
             if want_geometry {
                 let g = decoder.decode_geometry(&b, &path, want_origin)?;
