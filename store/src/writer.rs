@@ -52,7 +52,9 @@ pub struct WriteOptions {
     /// this many mantissa bits (1..=22; round half to even, never to infinity; NaN, infinities
     /// and zeros kept) before they are written. None (the default): payload bit-exact. Recorded
     /// in the manifest (`payload_mantissa_bits`). 10 bits is half precision's mantissa: a
-    /// relative error of at most 2^-11.
+    /// relative error of at most 2^-11. The path payload of encoded layouts (`throughput` and
+    /// `radiance`, both float32[3]) is predicted instead and stays exact (rounded, it cost more
+    /// than exact values predicted).
     pub payload_mantissa_bits: Option<u8>,
 }
 
@@ -316,7 +318,13 @@ impl SegmentWriter {
         };
         self.stats.merge(&stats);
         if let Some(bits) = self.payload_mantissa_bits {
+            // The predicted path payload stays exact: rounded, it would no longer match its
+            // predictions (10 bits made a Cornell trace 22.36 instead of 16.67 B/ray).
+            let predicted = self.schema.index_of(ENC_RADIANCE).is_ok();
             for (field, buf) in payload.fields.iter().zip(cols.payload.iter_mut()) {
+                if predicted && (field.name == THROUGHPUT || field.name == RADIANCE) {
+                    continue;
+                }
                 crate::columns::round_mantissas(&field.element, &mut buf.bytes, bits);
             }
         }

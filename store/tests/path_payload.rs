@@ -117,8 +117,12 @@ fn paths(n: u64) -> (RayColumns, Vec<Rgb>, Vec<Rgb>) {
 }
 
 fn write(dir: &Path, cols: RayColumns, encoding: Encoding) {
+    write_with(dir, cols, WriteOptions { encoding, ..Default::default() })
+}
+
+fn write_with(dir: &Path, cols: RayColumns, options: WriteOptions) {
     let schema = schema();
-    let opts = WriteOptions { row_group_rows: 1000, page_rows: 100, encoding, ..Default::default() };
+    let opts = WriteOptions { row_group_rows: 1000, page_rows: 100, ..options };
     let w = DatasetWriter::create(dir, schema.clone(), opts).unwrap();
     let kinds = KindTable::default();
     let mut seg = w.open_segment().unwrap();
@@ -231,4 +235,26 @@ fn predicted_radiance_costs_a_fraction_of_the_stored_floats() {
     // Shadow weights take a few colours (the albedo's green channel varies here, so not many).
     let (stored, predicted) = (plain["throughput"], lossless["enc_throughput"] + lossless["enc_chroma"]);
     assert!(predicted < stored, "enc_throughput and enc_chroma {predicted} bytes against throughput {stored}");
+}
+
+#[test]
+fn the_lossy_payload_option_leaves_the_predicted_path_payload_exact() {
+    let (cols, rad, thr) = paths(200);
+    for (encoding, exact) in [(Encoding::Lossless, true), (Encoding::Plain, false)] {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("ds");
+        write_with(
+            &path,
+            cols.clone(),
+            WriteOptions { encoding, payload_mantissa_bits: Some(10), ..Default::default() },
+        );
+        let ds = Dataset::open(&path).unwrap();
+        let full: Vec<RecordBatch> = ds.segment_batches(0).unwrap().map(|b| b.unwrap()).collect();
+        let to_bits = |v: &[Option<[f32; 3]>]| -> Vec<Option<[u32; 3]>> {
+            v.iter().map(|r| r.map(|v| v.map(f32::to_bits))).collect()
+        };
+        // Predicted (encoded layouts): every bit kept. Plain files: rounded as asked.
+        assert_eq!(bits(&full) == to_bits(&rad), exact, "{encoding:?}");
+        assert_eq!(bits_of(&full, "throughput") == to_bits(&thr), exact, "{encoding:?}");
+    }
 }
