@@ -12,7 +12,8 @@
 //!   few ratios: the Cornell box's 1M distinct shadow weights have 84 colours. The writer learns
 //!   a segment's colours (the first triple seen of each, keyed by its two channel ratios to 13
 //!   bits) and saves them in the ray file's key-value metadata (`rtvtk.chromas`, base64 of
-//!   little-endian f32 triples). `enc_chroma` (`uint16`) names a ray's colour (1-based; 0: none),
+//!   little-endian f32 triples). `enc_chroma` (`uint16`) names a ray's colour in its low 15 bits
+//!   (1-based; 0: none),
 //!   and `enc_throughput` (`uint32[3]`) holds the first channel's bits and the two others' zig-zag
 //!   ULP distances to `r * (g_ref / r_ref)` and `r * (b_ref / r_ref)` (computed in `f64` as
 //!   `(r / r_ref) * g_ref`, rounded to `f32`), or their bits with colour 0. A colour never changes
@@ -31,7 +32,9 @@
 //!     radiance, `acc` that sum over the shadow rays before it, and `b` its throughput; 0 when
 //!     its throughput is null.
 //!
-//!   In `f32` and in the same order as the path tracer, the predictions come out exactly.
+//!   In `f32` and in the same order as the path tracer, the predictions come out exactly. A ray
+//!   whose residuals against 0 have fewer significant bits (another renderer's arithmetic) is
+//!   stored against 0 instead, flagged by bit 15 of `enc_chroma`.
 //!
 //! Any other renderer's values round-trip too (every bit pattern does); they only cost more.
 //! The radiance prediction reads a whole tree before its root, so decoding it needs batches
@@ -60,8 +63,11 @@ pub const ENC_THROUGHPUT: &str = "enc_throughput";
 pub const ENC_CHROMA: &str = "enc_chroma";
 /// Key-value metadata key of a ray file's throughput colours.
 pub const CHROMAS_KEY: &str = "rtvtk.chromas";
-/// Colours a segment learns at most (`enc_chroma` is 1-based, 0 for none).
-const MAX_CHROMAS: usize = u16::MAX as usize;
+/// Colours a segment learns at most (`enc_chroma`'s low 15 bits, 1-based, 0 for none).
+const MAX_CHROMAS: usize = 0x7fff;
+/// Bit of `enc_chroma`: the ray's radiance is stored against 0 (its bits) instead of its
+/// prediction, which was further off (another renderer's arithmetic).
+const RADIANCE_RAW: u16 = 0x8000;
 
 /// Whether `f` is a `float32[3]` column.
 fn is_rgb(f: &Field) -> bool {
@@ -179,8 +185,28 @@ impl ChromaLearner {
     }
 }
 
-/// The `enc_throughput` and `enc_chroma` columns of a `throughput` column, learning colours.
-pub(crate) fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Result<(ArrayRef, ArrayRef)> {
+/// The `enc_throughput`, `enc_chroma` and `enc_radiance` columns of whole trees: `tree`, `kind`
+/// codes, `throughput` and `radiance` as the ray table holds them; colours learned into
+/// `learner`.
+pub(crate) fn encode_path(
+    tree: &[u64],
+    kind: &[u8],
+    throughput: &ArrayRef,
+    radiance: &ArrayRef,
+    learner: &mut ChromaLearner,
+) -> Result<[ArrayRef; 3]> {
+    let (enc_throughput, mut slots) = encode_throughput(throughput, learner)?;
+    let (enc_radiance, raw) = encode(tree, kind, throughput, radiance)?;
+    for (s, raw) in slots.iter_mut().zip(raw) {
+        if raw {
+            *s |= RADIANCE_RAW;
+        }
+    }
+    Ok([enc_throughput, Arc::new(arrow::array::UInt16Array::from(slots)), enc_radiance])
+}
+
+/// The `enc_throughput` column of a `throughput` column and each row's colour, learning colours.
+fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Result<(ArrayRef, Vec<u16>)> {
     let (tv, tn) = rgb_values(throughput, THROUGHPUT).map_err(Error::Encoding)?;
     let n = tv.len() / 3;
     let mut enc = vec![0u32; 3 * n];
@@ -197,7 +223,7 @@ pub(crate) fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearn
         enc[3 * i + 2] = residual(v[2], pred[1]);
         slots[i] = s;
     }
-    Ok((u32x3(enc, tn.cloned()), Arc::new(arrow::array::UInt16Array::from(slots))))
+    Ok((u32x3(enc, tn.cloned()), slots))
 }
 
 /// The `throughput` column of a batch of a ray file at `path` that predicts it, from its
@@ -211,6 +237,7 @@ pub(crate) fn decode_throughput(batch: &RecordBatch, chromas: &Chromas, path: &P
         .ok_or_else(|| corrupt(format!("column {ENC_CHROMA} is not UInt16")))?;
     let mut out = Vec::with_capacity(ev.len());
     for (i, &s) in slots.values().iter().enumerate() {
+        let s = s & !RADIANCE_RAW;
         let r = f32::from_bits(ev[3 * i]);
         let pred = match s {
             0 => [0.0; 2],
@@ -331,9 +358,9 @@ fn masked(v: [f32; 3], ok: bool) -> [f32; 3] {
     if ok { v } else { [0.0; 3] }
 }
 
-/// The `enc_radiance` column of whole trees: `tree`, `kind` codes, `throughput` and `radiance`
-/// as the ray table holds them.
-pub(crate) fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef) -> Result<ArrayRef> {
+/// The `enc_radiance` column of whole trees and, per row, whether its radiance is stored against
+/// 0 instead of its prediction (fewer significant bits in the residuals).
+fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef) -> Result<(ArrayRef, Vec<bool>)> {
     let thr = rgb_values(throughput, THROUGHPUT).map_err(Error::Encoding)?;
     let (rv, rn) = rgb_values(radiance, RADIANCE).map_err(Error::Encoding)?;
     let n = tree.len();
@@ -341,7 +368,9 @@ pub(crate) fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance:
         return Err(Error::Encoding(format!("path payload of {n} rows: columns of other lengths")));
     }
     let mut res = vec![0u32; 3 * n];
+    let mut raw = vec![false; n];
     let mut out = vec![[0.0f32; 3]; n];
+    let bits = |r: [u32; 3]| r.iter().map(|r| 32 - r.leading_zeros()).sum::<u32>();
     walk(
         tree,
         kind,
@@ -350,15 +379,16 @@ pub(crate) fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance:
             let ok = valid(rn, i);
             let v = masked(triple(rv, i), ok);
             if ok {
-                for c in 0..3 {
-                    res[3 * i + c] = residual(v[c], pred[c]);
-                }
+                let p = [0, 1, 2].map(|c| residual(v[c], pred[c]));
+                let z = [0, 1, 2].map(|c| residual(v[c], 0.0));
+                raw[i] = bits(z) < bits(p);
+                res[3 * i..3 * i + 3].copy_from_slice(if raw[i] { &z } else { &p });
             }
             v
         },
         &mut out,
     );
-    Ok(u32x3(res, rn.cloned()))
+    Ok((u32x3(res, rn.cloned()), raw))
 }
 
 /// A `uint32[3]` column of `values` (three per row).
@@ -368,7 +398,7 @@ fn u32x3(values: Vec<u32>, nulls: Option<NullBuffer>) -> ArrayRef {
 }
 
 /// The `radiance` column of a batch of whole trees of a ray file at `path`, from its
-/// `enc_radiance`, `tree_id`, `kind_code` and `throughput` (decoded) columns.
+/// `enc_radiance`, `enc_chroma`, `tree_id`, `kind_code` and `throughput` (decoded) columns.
 pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) -> Result<ArrayRef> {
     let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
     let col = |name: &str| crate::codec::file_column(batch, name, path);
@@ -380,6 +410,10 @@ pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) ->
         .ok_or_else(|| corrupt(format!("column {} is not UInt8", crate::codec::KIND_CODE)))?;
     let thr = rgb_values(throughput, THROUGHPUT).map_err(corrupt)?;
     let (ev, en) = u32x3_values(col(ENC_RADIANCE)?, ENC_RADIANCE).map_err(corrupt)?;
+    let slots = col(ENC_CHROMA)?
+        .as_primitive_opt::<arrow::datatypes::UInt16Type>()
+        .ok_or_else(|| corrupt(format!("column {ENC_CHROMA} is not UInt16")))?
+        .values();
     let n = batch.num_rows();
     let mut out = vec![[0.0f32; 3]; n];
     walk(
@@ -387,6 +421,7 @@ pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) ->
         kind.values(),
         thr,
         |i, pred| {
+            let pred = if slots[i] & RADIANCE_RAW != 0 { [0.0; 3] } else { pred };
             let v = [0, 1, 2].map(|c| apply(ev[3 * i + c], pred[c]));
             masked(v, valid(en, i))
         },
@@ -457,21 +492,29 @@ mod tests {
         Arc::new(FixedSizeListArray::new(item, 3, Arc::new(values), nulls.map(NullBuffer::from)))
     }
 
-    fn batch(tree: &[u64], kind: &[u8], enc: ArrayRef) -> RecordBatch {
+    fn batch_with(tree: &[u64], kind: &[u8], enc: ArrayRef, raw: &[bool]) -> RecordBatch {
         let schema = Schema::new(vec![
             Field::new("tree_id", DataType::UInt64, false),
             Field::new(crate::codec::KIND_CODE, DataType::UInt8, false),
             Field::new(ENC_RADIANCE, enc.data_type().clone(), true),
+            Field::new(ENC_CHROMA, DataType::UInt16, false),
         ]);
+        let chroma: Vec<u16> = raw.iter().map(|&r| if r { RADIANCE_RAW } else { 0 }).collect();
         RecordBatch::try_new(
             Arc::new(schema),
             vec![
                 Arc::new(arrow::array::UInt64Array::from(tree.to_vec())),
                 Arc::new(arrow::array::UInt8Array::from(kind.to_vec())),
                 enc,
+                Arc::new(arrow::array::UInt16Array::from(chroma)),
             ],
         )
         .unwrap()
+    }
+
+    fn batch(tree: &[u64], kind: &[u8], enc: ArrayRef) -> RecordBatch {
+        let n = tree.len();
+        batch_with(tree, kind, enc, &vec![false; n])
     }
 
     /// A path as the path tracer records it: camera ray, then per bounce a shadow ray and the
@@ -522,11 +565,22 @@ mod tests {
             rad.extend(r);
         }
         let (thr, rad) = (rgb(&thr, None), rgb(&rad, None));
-        let enc = encode(&tree, &kind, &thr, &rad).unwrap();
+        let (enc, raw) = encode(&tree, &kind, &thr, &rad).unwrap();
         let (res, _) = u32x3_values(&enc, "enc").unwrap();
         assert!(res.iter().enumerate().all(|(i, &r)| kind[i / 3] == 1 || r == 0), "non-shadow rays predicted exactly");
-        let back = decode(&batch(&tree, &kind, enc), &thr, Path::new("f")).unwrap();
+        assert!(!raw.iter().any(|&r| r), "no ray stored against 0");
+        let back = decode(&batch_with(&tree, &kind, enc, &raw), &thr, Path::new("f")).unwrap();
         assert_eq!(back.as_ref(), rad.as_ref());
+        // Another renderer's convention (radiance 0 on most rays): stored against 0, still exact.
+        let other: Vec<[f32; 3]> =
+            (0..tree.len()).map(|i| if i % 5 == 0 { [0.5, 0.25, 0.125] } else { [0.0; 3] }).collect();
+        let other = rgb(&other, None);
+        let (enc, raw) = encode(&tree, &kind, &thr, &other).unwrap();
+        assert!(raw.iter().any(|&r| r));
+        let (res, _) = u32x3_values(&enc, "enc").unwrap();
+        assert!(res.iter().filter(|&&r| r == 0).count() > res.len() * 3 / 4, "zeros stay zeros");
+        let back = decode(&batch_with(&tree, &kind, enc, &raw), &thr, Path::new("f")).unwrap();
+        assert_eq!(back.as_ref(), other.as_ref());
     }
 
     #[test]
@@ -540,8 +594,8 @@ mod tests {
         let rad: Vec<[f32; 3]> = (0..n).map(|i| v(i + 2)).collect();
         let nulls = |m: usize| Some((0..n).map(|i| i % m != 0).collect());
         let (thr, rad) = (rgb(&thr, nulls(5)), rgb(&rad, nulls(4)));
-        let enc = encode(&tree, &kind, &thr, &rad).unwrap();
-        let back = decode(&batch(&tree, &kind, enc), &thr, Path::new("f")).unwrap();
+        let (enc, raw) = encode(&tree, &kind, &thr, &rad).unwrap();
+        let back = decode(&batch_with(&tree, &kind, enc, &raw), &thr, Path::new("f")).unwrap();
         let bits = |a: &ArrayRef| {
             let l = a.as_fixed_size_list();
             (0..l.len())
@@ -576,6 +630,7 @@ mod tests {
         let thr = rgb(&v, Some((0..n).map(|i| i % 11 != 3).collect()));
         let mut learner = ChromaLearner::default();
         let (enc, slots) = encode_throughput(&thr, &mut learner).unwrap();
+        let slots: ArrayRef = Arc::new(arrow::array::UInt16Array::from(slots));
         let chromas = Chromas::from_metadata(&learner.chromas().to_metadata()).unwrap();
         assert_eq!(&chromas, learner.chromas());
         assert!(chromas.len() <= 6, "{} colours for two (plus rounding at the keys' edges)", chromas.len());

@@ -333,15 +333,10 @@ impl SegmentWriter {
         if let Some((enc, kind_codes)) = encoded {
             let t_nulls = batch.column_by_name("t").and_then(|t| t.nulls().cloned());
             let mut arrays = enc.into_arrays(t_nulls).into_iter();
-            let (radiance, throughput) = match self.schema.index_of(ENC_RADIANCE) {
-                Ok(_) => (
-                    Some(encode_radiance(&batch, kind_codes.values())?),
-                    Some(crate::path_payload::encode_throughput(
-                        batch.column_by_name(THROUGHPUT).ok_or_else(|| Error::Encoding("no throughput".into()))?,
-                        &mut self.chromas,
-                    )?),
-                ),
-                Err(_) => (None, None),
+            // The path payload, predicted: [enc_throughput, enc_chroma, enc_radiance].
+            let path_payload = match self.schema.index_of(ENC_RADIANCE) {
+                Ok(_) => Some(encode_path_payload(&batch, kind_codes.values(), &mut self.chromas)?),
+                Err(_) => None,
             };
             let kind_codes: arrow::array::ArrayRef = std::sync::Arc::new(kind_codes);
             let mut columns = Vec::with_capacity(self.schema.fields().len());
@@ -349,12 +344,10 @@ impl SegmentWriter {
                 let c = match batch.column_by_name(f.name()) {
                     Some(c) => c.clone(),
                     None if f.name() == KIND_CODE => kind_codes.clone(),
-                    None if f.name() == ENC_RADIANCE => {
-                        radiance.clone().ok_or_else(|| Error::Encoding("no radiance".into()))?
-                    }
-                    None if f.name() == ENC_THROUGHPUT || f.name() == ENC_CHROMA => {
-                        let (t, c) = throughput.as_ref().ok_or_else(|| Error::Encoding("no throughput".into()))?;
-                        if f.name() == ENC_CHROMA { c.clone() } else { t.clone() }
+                    None if [ENC_THROUGHPUT, ENC_CHROMA, ENC_RADIANCE].contains(&f.name().as_str()) => {
+                        let k = [ENC_THROUGHPUT, ENC_CHROMA, ENC_RADIANCE].iter().position(|n| n == f.name());
+                        let arrays = path_payload.as_ref().ok_or_else(|| Error::Encoding("no path payload".into()))?;
+                        arrays[k.unwrap_or(0)].clone()
                     }
                     None => arrays.next().ok_or_else(|| Error::Encoding(format!("no encoded column {}", f.name())))?,
                 };
@@ -483,14 +476,19 @@ impl SegmentWriter {
     }
 }
 
-/// The `enc_radiance` column of a ray batch of whole trees (`kind` its kind codes).
-fn encode_radiance(batch: &arrow::array::RecordBatch, kind: &[u8]) -> Result<arrow::array::ArrayRef> {
+/// The predicted path payload of a ray batch of whole trees (`kind` its kind codes):
+/// `enc_throughput`, `enc_chroma`, `enc_radiance`.
+fn encode_path_payload(
+    batch: &arrow::array::RecordBatch,
+    kind: &[u8],
+    chromas: &mut ChromaLearner,
+) -> Result<[arrow::array::ArrayRef; 3]> {
     use arrow::array::AsArray;
     let col = |name: &str| batch.column_by_name(name).ok_or_else(|| Error::Encoding(format!("no column {name}")));
     let tree = col(crate::schema::col::TREE_ID)?
         .as_primitive_opt::<arrow::datatypes::UInt64Type>()
         .ok_or_else(|| Error::Encoding("tree_id is not UInt64".into()))?;
-    crate::path_payload::encode(tree.values(), kind, col(THROUGHPUT)?, col(RADIANCE)?)
+    crate::path_payload::encode_path(tree.values(), kind, col(THROUGHPUT)?, col(RADIANCE)?, chromas)
 }
 
 /// Refuses a directory that exists and holds anything: a new dataset never overwrites a trace.
