@@ -433,8 +433,10 @@ pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) ->
 }
 
 /// Re-cuts `batches` of a ray file (in file order, from a tree's first row) so that each ends at
-/// a tree's end, as [`decode`] needs; `tree` is the position of `tree_id` in them. A tree longer
-/// than a batch waits for the batches that complete it.
+/// a tree's end, as [`decode`] needs; `tree` is the position of `tree_id` in them. Each batch's
+/// last tree is held back and joined to its rows at the head of the next batch (only those rows
+/// are copied; the rest of the batch passes on as slices). A tree longer than a batch waits for
+/// the batches that complete it.
 pub(crate) fn tree_aligned<I>(
     batches: I,
     tree: usize,
@@ -446,23 +448,22 @@ where
     let path = path.to_path_buf();
     let mut batches = batches.fuse();
     let mut carry: Option<RecordBatch> = None;
+    let mut ready: std::collections::VecDeque<RecordBatch> = Default::default();
+    let concat = move |a: &RecordBatch, b: &RecordBatch, path: &Path| {
+        arrow::compute::concat_batches(&a.schema(), [a, b]).map_err(crate::error::arrow_err(path.display().to_string()))
+    };
     std::iter::from_fn(move || {
         loop {
-            let Some(next) = batches.next() else {
-                return carry.take().map(Ok);
+            if let Some(b) = ready.pop_front() {
+                return Some(Ok(b));
+            }
+            let next = match batches.next() {
+                None => return carry.take().map(Ok),
+                Some(Err(e)) => return Some(Err(e)),
+                Some(Ok(b)) if b.num_rows() == 0 => continue,
+                Some(Ok(b)) => b,
             };
-            let next = match next {
-                Ok(b) => b,
-                Err(e) => return Some(Err(e)),
-            };
-            let b = match carry.take() {
-                Some(c) => match arrow::compute::concat_batches(&c.schema(), [&c, &next]) {
-                    Ok(b) => b,
-                    Err(e) => return Some(Err(crate::error::arrow_err(path.display().to_string())(e))),
-                },
-                None => next,
-            };
-            let Some(ids) = b.column(tree).as_primitive_opt::<UInt64Type>() else {
+            let Some(ids) = next.column(tree).as_primitive_opt::<UInt64Type>() else {
                 return Some(Err(Error::Corrupt {
                     path: path.clone(),
                     what: "ray file".into(),
@@ -470,14 +471,36 @@ where
                 }));
             };
             let ids = ids.values();
-            // The last tree of the batch may go on in the next one: held back.
-            let last = ids.last().copied();
-            let cut = ids.iter().rposition(|&id| Some(id) != last).map_or(0, |p| p + 1);
-            if cut > 0 {
-                carry = (cut < b.num_rows()).then(|| b.slice(cut, b.num_rows() - cut));
-                return Some(Ok(b.slice(0, cut)));
+            let n = ids.len();
+            let mut start = 0;
+            if let Some(c) = carry.take() {
+                // The held-back tree's rows that open this batch, joined to it.
+                let held = c.column(tree).as_primitive::<UInt64Type>().value(0);
+                let end = ids.iter().position(|&id| id != held).unwrap_or(n);
+                if end == n {
+                    match concat(&c, &next, &path) {
+                        Ok(b) => carry = Some(b),
+                        Err(e) => return Some(Err(e)),
+                    }
+                    continue;
+                }
+                ready.push_back(if end == 0 {
+                    c
+                } else {
+                    match concat(&c, &next.slice(0, end), &path) {
+                        Ok(b) => b,
+                        Err(e) => return Some(Err(e)),
+                    }
+                });
+                start = end;
             }
-            carry = Some(b);
+            // Whole trees up to the start of the batch's last tree, which is held back.
+            let last = ids[n - 1];
+            let cut = ids[start..].iter().rposition(|&id| id != last).map_or(start, |p| start + p + 1);
+            if cut > start {
+                ready.push_back(next.slice(start, cut - start));
+            }
+            carry = Some(next.slice(cut, n - cut));
         }
     })
 }
@@ -668,10 +691,16 @@ mod tests {
     fn batches_are_recut_at_tree_ends() {
         let ids: Vec<u64> = vec![0, 0, 1, 1, 1, 2, 3, 3, 3, 3, 3, 4];
         let b = batch(&ids, &vec![0; ids.len()], u32x3(vec![0; 3 * ids.len()], None));
-        let parts = [(0, 3), (3, 4), (7, 1), (8, 4)].map(|(s, n)| Ok(b.slice(s, n)));
+        let parts = [(0, 3), (3, 4), (7, 0), (7, 1), (8, 4)].map(|(s, n)| Ok(b.slice(s, n)));
         let out: Vec<Vec<u64>> = tree_aligned(parts.into_iter(), 0, Path::new("f"))
             .map(|r| r.unwrap().column(0).as_primitive::<UInt64Type>().values().to_vec())
             .collect();
-        assert_eq!(out, vec![vec![0, 0], vec![1, 1, 1, 2], vec![3, 3, 3, 3, 3], vec![4]]);
+        // Every batch ends at a tree's end, and every row comes once, in order.
+        assert_eq!(out, vec![vec![0, 0], vec![1, 1, 1], vec![2], vec![3, 3, 3, 3, 3], vec![4]]);
+        let ends = [(0, 2), (2, 3), (5, 7)].map(|(s, n)| Ok(b.slice(s, n)));
+        let out: Vec<Vec<u64>> = tree_aligned(ends.into_iter(), 0, Path::new("f"))
+            .map(|r| r.unwrap().column(0).as_primitive::<UInt64Type>().values().to_vec())
+            .collect();
+        assert_eq!(out, vec![vec![0, 0], vec![1, 1, 1], vec![2, 3, 3, 3, 3, 3], vec![4]]);
     }
 }
