@@ -12,22 +12,23 @@
 //!   few ratios: the Cornell box's 1M distinct shadow weights have 84 colours. The writer learns
 //!   a segment's colours (the first triple seen of each, keyed by its two channel ratios to 13
 //!   bits) and saves them in the ray file's key-value metadata (`rtvtk.chromas`, base64 of
-//!   little-endian f32 triples). `enc_chroma` (`uint16`) names a ray's colour in its low 15 bits
-//!   (1-based; 0: none),
-//!   and `enc_throughput` (`uint32[3]`) holds the first channel's bits and the two others' zig-zag
-//!   ULP distances to `r * (g_ref / r_ref)` and `r * (b_ref / r_ref)` (computed in `f64` as
-//!   `(r / r_ref) * g_ref`, rounded to `f32`), or their bits with colour 0. A colour never changes
-//!   once learned, so one tree still decodes on its own.
+//!   little-endian f32 triples). `enc_chroma` (`uint16`) names a ray's colour in its low 13 bits
+//!   (1-based; 0: none) and flags null payloads; `enc_throughput_r/g/b` (`uint32` each) hold the
+//!   first channel's bits and the two others' zig-zag ULP distances to `r * (g_ref / r_ref)` and
+//!   `r * (b_ref / r_ref)` (computed in `f64` as `(r / r_ref) * g_ref`, rounded to `f32`), or
+//!   their bits with colour 0. A colour never changes once learned, so one tree still decodes on
+//!   its own.
 //! - **Radiance by the path's arithmetic.** The tree's root carries the whole sample's estimate
 //!   `L`, the sum of what its shadow rays brought (`throughput * radiance` of each, added in
 //!   recording order), and every other ray carries what was gathered after it,
-//!   `(L - gathered before it) / throughput`. `radiance` is stored as `enc_radiance`
-//!   (`uint32[3]`): each component's zig-zag ULP distance to its prediction, per tree of rows
+//!   `(L - gathered before it) / throughput`. `radiance` is stored as `enc_radiance_r/g/b`
+//!   (`uint32` each): each component's zig-zag ULP distance to its prediction, per tree of rows
 //!   `s..e`:
 //!   - shadow rays (kind code 1) other than the root: predicted 0 (the bits are stored; they are
 //!     the emitter's radiance or zero);
 //!   - the root (row `s`): the sum over those shadow rays, in row order, of
-//!     `throughput * radiance` (both present), in `f32`, starting from 0;
+//!     `throughput * radiance` (throughput present; a null radiance counts as 0), in `f32`,
+//!     starting from 0;
 //!   - every other ray: per component, `(L - acc) / b` where `b > 0`, else 0, with `L` the root's
 //!     radiance, `acc` that sum over the shadow rays before it, and `b` its throughput; 0 when
 //!     its throughput is null.
@@ -55,18 +56,23 @@ use crate::{Error, Result};
 pub const THROUGHPUT: &str = "throughput";
 /// The payload column of the light each ray carries back.
 pub const RADIANCE: &str = "radiance";
-/// The ray-file column `radiance` is stored in (format version 4, encoded layouts).
-pub const ENC_RADIANCE: &str = "enc_radiance";
-/// The ray-file column `throughput` is stored in (with [`ENC_CHROMA`]).
-pub const ENC_THROUGHPUT: &str = "enc_throughput";
-/// The ray-file column naming each ray's throughput colour.
+/// The ray-file columns `radiance` is stored in, one per channel (format version 4, encoded
+/// layouts): flat columns without nulls read several times faster than a nullable list.
+pub const ENC_RADIANCE: [&str; 3] = ["enc_radiance_r", "enc_radiance_g", "enc_radiance_b"];
+/// The ray-file columns `throughput` is stored in (with [`ENC_CHROMA`]).
+pub const ENC_THROUGHPUT: [&str; 3] = ["enc_throughput_r", "enc_throughput_g", "enc_throughput_b"];
+/// The ray-file column naming each ray's throughput colour, with its payload's null flags.
 pub const ENC_CHROMA: &str = "enc_chroma";
 /// Key-value metadata key of a ray file's throughput colours.
 pub const CHROMAS_KEY: &str = "rtvtk.chromas";
-/// Colours a segment learns at most (`enc_chroma`'s low 15 bits, 1-based, 0 for none).
-const MAX_CHROMAS: usize = 0x7fff;
-/// Bit of `enc_chroma`: the ray's radiance is stored against 0 (its bits) instead of its
-/// prediction, which was further off (another renderer's arithmetic).
+/// Colours a segment learns at most (`enc_chroma`'s low 13 bits, 1-based, 0 for none).
+const MAX_CHROMAS: usize = 0x1fff;
+/// Bits of `enc_chroma`: the colour; the ray's throughput is null; its radiance is null; its
+/// radiance is stored against 0 (its bits) instead of its prediction, which was further off
+/// (another renderer's arithmetic).
+const COLOUR: u16 = 0x1fff;
+const THROUGHPUT_NULL: u16 = 0x2000;
+const RADIANCE_NULL: u16 = 0x4000;
 const RADIANCE_RAW: u16 = 0x8000;
 
 /// Whether `f` is a `float32[3]` column.
@@ -82,15 +88,19 @@ pub(crate) fn predicts_path_payload(plain: &Schema) -> bool {
 
 /// The ray-file fields standing for the payload field `f` (`throughput` or `radiance`).
 pub(crate) fn encoded_fields(f: &Field) -> Vec<Field> {
-    let item = Arc::new(Field::new("item", DataType::UInt32, false));
-    let list = |name: &str| {
-        Field::new(name, DataType::FixedSizeList(item.clone(), 3), f.is_nullable()).with_metadata(f.metadata().clone())
-    };
+    let flat = |name: &str| Field::new(name, DataType::UInt32, false);
     if f.name() == THROUGHPUT {
-        vec![list(ENC_THROUGHPUT), Field::new(ENC_CHROMA, DataType::UInt16, false)]
+        let mut v: Vec<Field> = ENC_THROUGHPUT.iter().map(|n| flat(n)).collect();
+        v.push(Field::new(ENC_CHROMA, DataType::UInt16, false));
+        v
     } else {
-        vec![list(ENC_RADIANCE)]
+        ENC_RADIANCE.iter().map(|n| flat(n)).collect()
     }
+}
+
+/// All the ray-file columns of the path payload, in file order.
+pub(crate) fn encoded_columns() -> impl Iterator<Item = &'static str> {
+    ENC_THROUGHPUT.into_iter().chain([ENC_CHROMA]).chain(ENC_RADIANCE)
 }
 
 /// The throughput colours of a segment, as its ray file saves them.
@@ -185,34 +195,44 @@ impl ChromaLearner {
     }
 }
 
-/// The `enc_throughput`, `enc_chroma` and `enc_radiance` columns of whole trees: `tree`, `kind`
-/// codes, `throughput` and `radiance` as the ray table holds them; colours learned into
-/// `learner`.
+/// The path payload's ray-file columns of whole trees ([`encoded_columns`], in that order):
+/// `tree`, `kind` codes, `throughput` and `radiance` as the ray table holds them; colours
+/// learned into `learner`.
 pub(crate) fn encode_path(
     tree: &[u64],
     kind: &[u8],
     throughput: &ArrayRef,
     radiance: &ArrayRef,
     learner: &mut ChromaLearner,
-) -> Result<[ArrayRef; 3]> {
-    let (enc_throughput, mut slots) = encode_throughput(throughput, learner)?;
-    let (enc_radiance, raw) = encode(tree, kind, throughput, radiance)?;
-    for (s, raw) in slots.iter_mut().zip(raw) {
-        if raw {
-            *s |= RADIANCE_RAW;
-        }
+) -> Result<Vec<ArrayRef>> {
+    let (enc_throughput, mut flags) = encode_throughput(throughput, learner)?;
+    let (enc_radiance, radiance_flags) = encode(tree, kind, throughput, radiance)?;
+    for (s, f) in flags.iter_mut().zip(radiance_flags) {
+        *s |= f;
     }
-    Ok([enc_throughput, Arc::new(arrow::array::UInt16Array::from(slots)), enc_radiance])
+    let mut out = channels(enc_throughput);
+    out.push(Arc::new(arrow::array::UInt16Array::from(flags)));
+    out.extend(channels(enc_radiance));
+    Ok(out)
 }
 
-/// The `enc_throughput` column of a `throughput` column and each row's colour, learning colours.
-fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Result<(ArrayRef, Vec<u16>)> {
+/// Three flat columns of values stored three per row.
+fn channels(values: Vec<u32>) -> Vec<ArrayRef> {
+    (0..3)
+        .map(|c| Arc::new(UInt32Array::from_iter_values(values.iter().skip(c).step_by(3).copied())) as ArrayRef)
+        .collect()
+}
+
+/// The encoded throughput of a `throughput` column, three values per row, and each row's
+/// `enc_chroma` (colour, null flag), learning colours.
+fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Result<(Vec<u32>, Vec<u16>)> {
     let (tv, tn) = rgb_values(throughput, THROUGHPUT).map_err(Error::Encoding)?;
     let n = tv.len() / 3;
     let mut enc = vec![0u32; 3 * n];
     let mut slots = vec![0u16; n];
     for i in 0..n {
         if !valid(tn, i) {
+            slots[i] = THROUGHPUT_NULL;
             continue;
         }
         let v = triple(tv, i);
@@ -223,35 +243,73 @@ fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Resu
         enc[3 * i + 2] = residual(v[2], pred[1]);
         slots[i] = s;
     }
-    Ok((u32x3(enc, tn.cloned()), slots))
+    Ok((enc, slots))
+}
+
+/// The three flat `UInt32` columns `names` of a batch.
+fn u32_channels<'a>(batch: &'a RecordBatch, names: [&str; 3], path: &Path) -> Result<[&'a [u32]; 3]> {
+    let mut out: [&[u32]; 3] = [&[]; 3];
+    for (o, name) in out.iter_mut().zip(names) {
+        *o = crate::codec::file_column(batch, name, path)?
+            .as_primitive_opt::<UInt32Type>()
+            .ok_or_else(|| Error::Corrupt {
+                path: path.to_path_buf(),
+                what: "ray file".into(),
+                message: format!("column {name} is not UInt32"),
+            })?
+            .values();
+    }
+    Ok(out)
+}
+
+/// The `enc_chroma` column of a batch.
+fn chroma_column<'a>(batch: &'a RecordBatch, path: &Path) -> Result<&'a [u16]> {
+    Ok(crate::codec::file_column(batch, ENC_CHROMA, path)?
+        .as_primitive_opt::<arrow::datatypes::UInt16Type>()
+        .ok_or_else(|| Error::Corrupt {
+            path: path.to_path_buf(),
+            what: "ray file".into(),
+            message: format!("column {ENC_CHROMA} is not UInt16"),
+        })?
+        .values())
+}
+
+/// The validity of rows whose `enc_chroma` lacks `flag` (None when every row is valid).
+fn nulls_of(flags: &[u16], flag: u16) -> Option<NullBuffer> {
+    flags.iter().any(|f| f & flag != 0).then(|| NullBuffer::from_iter(flags.iter().map(|f| f & flag == 0)))
+}
+
+/// A `float32[3]` column of `values` (three per row).
+fn rgb_array(values: Vec<f32>, nulls: Option<NullBuffer>) -> ArrayRef {
+    let item = Arc::new(Field::new("item", DataType::Float32, false));
+    Arc::new(FixedSizeListArray::new(item, 3, Arc::new(Float32Array::from(values)), nulls))
 }
 
 /// The `throughput` column of a batch of a ray file at `path` that predicts it, from its
-/// `enc_throughput` and `enc_chroma` columns and the segment's colours.
+/// `enc_throughput_*` and `enc_chroma` columns and the segment's colours.
 pub(crate) fn decode_throughput(batch: &RecordBatch, chromas: &Chromas, path: &Path) -> Result<ArrayRef> {
-    let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
-    let (ev, en) =
-        u32x3_values(crate::codec::file_column(batch, ENC_THROUGHPUT, path)?, ENC_THROUGHPUT).map_err(corrupt)?;
-    let slots = crate::codec::file_column(batch, ENC_CHROMA, path)?
-        .as_primitive_opt::<arrow::datatypes::UInt16Type>()
-        .ok_or_else(|| corrupt(format!("column {ENC_CHROMA} is not UInt16")))?;
-    let mut out = Vec::with_capacity(ev.len());
-    for (i, &s) in slots.values().iter().enumerate() {
-        let s = s & !RADIANCE_RAW;
-        let r = f32::from_bits(ev[3 * i]);
+    let [er, eg, eb] = u32_channels(batch, ENC_THROUGHPUT, path)?;
+    let flags = chroma_column(batch, path)?;
+    let n = flags.len();
+    let (er, eg, eb) = (&er[..n], &eg[..n], &eb[..n]);
+    let mut out = Vec::with_capacity(3 * n);
+    for i in 0..n {
+        let s = flags[i] & COLOUR;
+        let r = f32::from_bits(er[i]);
         let pred = match s {
             0 => [0.0; 2],
             s => by_colour(
                 r,
-                *chromas.refs.get(s as usize - 1).ok_or_else(|| {
-                    corrupt(format!("row {i} of the batch: colour {s} of {} the file saves", chromas.len()))
+                *chromas.refs.get(s as usize - 1).ok_or_else(|| Error::Corrupt {
+                    path: path.to_path_buf(),
+                    what: "ray file".into(),
+                    message: format!("row {i} of the batch: colour {s} of {} the file saves", chromas.len()),
                 })?,
             ),
         };
-        out.extend([r, apply(ev[3 * i + 1], pred[0]), apply(ev[3 * i + 2], pred[1])]);
+        out.extend([r, apply(eg[i], pred[0]), apply(eb[i], pred[1])]);
     }
-    let item = Arc::new(Field::new("item", DataType::Float32, false));
-    Ok(Arc::new(FixedSizeListArray::new(item, 3, Arc::new(Float32Array::from(out)), en.cloned())))
+    Ok(rgb_array(out, nulls_of(flags, THROUGHPUT_NULL)))
 }
 
 /// The values of a `float32[3]` column, and its validity.
@@ -262,19 +320,6 @@ fn rgb_values<'a>(a: &'a ArrayRef, what: &str) -> std::result::Result<(&'a [f32]
         .ok_or_else(|| format!("{what} is not a list of 3"))?;
     let v = list.values().as_primitive_opt::<Float32Type>().ok_or_else(|| format!("{what} is not float32[3]"))?;
     // (Null lists read back with null components; only the lists' validity counts.)
-    if v.len() != 3 * list.len() {
-        return Err(format!("{what} has {} components for {} rows", v.len(), list.len()));
-    }
-    Ok((&v.values()[..], list.nulls()))
-}
-
-/// The values of a `uint32[3]` column.
-fn u32x3_values<'a>(a: &'a ArrayRef, what: &str) -> std::result::Result<(&'a [u32], Option<&'a NullBuffer>), String> {
-    let list = a
-        .as_fixed_size_list_opt()
-        .filter(|l| l.value_length() == 3)
-        .ok_or_else(|| format!("{what} is not a list of 3"))?;
-    let v = list.values().as_primitive_opt::<UInt32Type>().ok_or_else(|| format!("{what} is not uint32[3]"))?;
     if v.len() != 3 * list.len() {
         return Err(format!("{what} has {} components for {} rows", v.len(), list.len()));
     }
@@ -300,7 +345,7 @@ fn walk(
     kind: &[u8],
     thr: (&[f32], Option<&NullBuffer>),
     mut resolve: impl FnMut(usize, [f32; 3]) -> [f32; 3],
-    out: &mut [[f32; 3]],
+    out: &mut [f32],
 ) {
     let n = tree.len();
     let shadow = |i: usize| kind[i] == Kind::SHADOW.0;
@@ -316,7 +361,7 @@ fn walk(
         for i in s + 1..e {
             if shadow(i) {
                 let v = resolve(i, [0.0; 3]);
-                out[i] = v;
+                out[3 * i..3 * i + 3].copy_from_slice(&v);
                 if valid(tn, i) {
                     let t = triple(tv, i);
                     for c in 0..3 {
@@ -326,12 +371,12 @@ fn walk(
             }
         }
         let l = resolve(s, acc);
-        out[s] = l;
+        out[3 * s..3 * s + 3].copy_from_slice(&l);
         let mut acc = [0.0f32; 3];
         for i in s + 1..e {
             if shadow(i) {
                 if valid(tn, i) {
-                    let (t, v) = (triple(tv, i), out[i]);
+                    let (t, v) = (triple(tv, i), triple(out, i));
                     for c in 0..3 {
                         acc[c] += t[c] * v[c];
                     }
@@ -347,20 +392,17 @@ fn walk(
                     }
                 }
             }
-            out[i] = resolve(i, pred);
+            let v = resolve(i, pred);
+            out[3 * i..3 * i + 3].copy_from_slice(&v);
         }
         s = e;
     }
 }
 
-/// Only rows whose radiance is valid count in the sums: a null radiance reads as zero.
-fn masked(v: [f32; 3], ok: bool) -> [f32; 3] {
-    if ok { v } else { [0.0; 3] }
-}
-
-/// The `enc_radiance` column of whole trees and, per row, whether its radiance is stored against
-/// 0 instead of its prediction (fewer significant bits in the residuals).
-fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef) -> Result<(ArrayRef, Vec<bool>)> {
+/// The encoded radiance of whole trees, three values per row, and each row's `enc_chroma` flags:
+/// radiance null, or stored against 0 instead of its prediction (fewer significant bits in the
+/// residuals).
+fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef) -> Result<(Vec<u32>, Vec<u16>)> {
     let thr = rgb_values(throughput, THROUGHPUT).map_err(Error::Encoding)?;
     let (rv, rn) = rgb_values(radiance, RADIANCE).map_err(Error::Encoding)?;
     let n = tree.len();
@@ -368,37 +410,33 @@ fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef)
         return Err(Error::Encoding(format!("path payload of {n} rows: columns of other lengths")));
     }
     let mut res = vec![0u32; 3 * n];
-    let mut raw = vec![false; n];
-    let mut out = vec![[0.0f32; 3]; n];
+    let mut flags = vec![0u16; n];
+    let mut out = vec![0.0f32; 3 * n];
     let bits = |r: [u32; 3]| r.iter().map(|r| 32 - r.leading_zeros()).sum::<u32>();
     walk(
         tree,
         kind,
         thr,
         |i, pred| {
-            let ok = valid(rn, i);
-            let v = masked(triple(rv, i), ok);
-            if ok {
-                let p = [0, 1, 2].map(|c| residual(v[c], pred[c]));
-                let z = [0, 1, 2].map(|c| residual(v[c], 0.0));
-                raw[i] = bits(z) < bits(p);
-                res[3 * i..3 * i + 3].copy_from_slice(if raw[i] { &z } else { &p });
+            if !valid(rn, i) {
+                flags[i] = RADIANCE_NULL;
+                return [0.0; 3];
             }
+            let v = triple(rv, i);
+            let p = [0, 1, 2].map(|c| residual(v[c], pred[c]));
+            let z = [0, 1, 2].map(|c| residual(v[c], 0.0));
+            let raw = bits(z) < bits(p);
+            flags[i] = if raw { RADIANCE_RAW } else { 0 };
+            res[3 * i..3 * i + 3].copy_from_slice(if raw { &z } else { &p });
             v
         },
         &mut out,
     );
-    Ok((u32x3(res, rn.cloned()), raw))
-}
-
-/// A `uint32[3]` column of `values` (three per row).
-fn u32x3(values: Vec<u32>, nulls: Option<NullBuffer>) -> ArrayRef {
-    let item = Arc::new(Field::new("item", DataType::UInt32, false));
-    Arc::new(FixedSizeListArray::new(item, 3, Arc::new(UInt32Array::from(values)), nulls))
+    Ok((res, flags))
 }
 
 /// The `radiance` column of a batch of whole trees of a ray file at `path`, from its
-/// `enc_radiance`, `enc_chroma`, `tree_id`, `kind_code` and `throughput` (decoded) columns.
+/// `enc_radiance_*`, `enc_chroma`, `tree_id` and `kind_code` columns and its decoded `throughput`.
 pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) -> Result<ArrayRef> {
     let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
     let col = |name: &str| crate::codec::file_column(batch, name, path);
@@ -409,27 +447,25 @@ pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) ->
         .as_primitive_opt::<UInt8Type>()
         .ok_or_else(|| corrupt(format!("column {} is not UInt8", crate::codec::KIND_CODE)))?;
     let thr = rgb_values(throughput, THROUGHPUT).map_err(corrupt)?;
-    let (ev, en) = u32x3_values(col(ENC_RADIANCE)?, ENC_RADIANCE).map_err(corrupt)?;
-    let slots = col(ENC_CHROMA)?
-        .as_primitive_opt::<arrow::datatypes::UInt16Type>()
-        .ok_or_else(|| corrupt(format!("column {ENC_CHROMA} is not UInt16")))?
-        .values();
+    let e = u32_channels(batch, ENC_RADIANCE, path)?;
+    let flags = chroma_column(batch, path)?;
     let n = batch.num_rows();
-    let mut out = vec![[0.0f32; 3]; n];
+    let mut out = vec![0.0f32; 3 * n];
     walk(
-        tree.values(),
-        kind.values(),
+        &tree.values()[..n],
+        &kind.values()[..n],
         thr,
         |i, pred| {
-            let pred = if slots[i] & RADIANCE_RAW != 0 { [0.0; 3] } else { pred };
-            let v = [0, 1, 2].map(|c| apply(ev[3 * i + c], pred[c]));
-            masked(v, valid(en, i))
+            let f = flags[i];
+            if f & RADIANCE_NULL != 0 {
+                return [0.0; 3];
+            }
+            let pred = if f & RADIANCE_RAW != 0 { [0.0; 3] } else { pred };
+            [0, 1, 2].map(|c| apply(e[c][i], pred[c]))
         },
         &mut out,
     );
-    let values = Float32Array::from(out.into_iter().flatten().collect::<Vec<f32>>());
-    let item = Arc::new(Field::new("item", DataType::Float32, false));
-    Ok(Arc::new(FixedSizeListArray::new(item, 3, Arc::new(values), en.cloned())))
+    Ok(rgb_array(out, nulls_of(flags, RADIANCE_NULL)))
 }
 
 /// Re-cuts `batches` of a ray file (in file order, from a tree's first row) so that each ends at
@@ -515,29 +551,45 @@ mod tests {
         Arc::new(FixedSizeListArray::new(item, 3, Arc::new(values), nulls.map(NullBuffer::from)))
     }
 
-    fn batch_with(tree: &[u64], kind: &[u8], enc: ArrayRef, raw: &[bool]) -> RecordBatch {
-        let schema = Schema::new(vec![
+    /// The path payload encoded into a ray-file batch (with `tree_id` and `kind_code`).
+    fn encoded(tree: &[u64], kind: &[u8], thr: &ArrayRef, rad: &ArrayRef, learner: &mut ChromaLearner) -> RecordBatch {
+        let cols = encode_path(tree, kind, thr, rad, learner).unwrap();
+        let mut fields = vec![
             Field::new("tree_id", DataType::UInt64, false),
             Field::new(crate::codec::KIND_CODE, DataType::UInt8, false),
-            Field::new(ENC_RADIANCE, enc.data_type().clone(), true),
-            Field::new(ENC_CHROMA, DataType::UInt16, false),
-        ]);
-        let chroma: Vec<u16> = raw.iter().map(|&r| if r { RADIANCE_RAW } else { 0 }).collect();
-        RecordBatch::try_new(
-            Arc::new(schema),
-            vec![
-                Arc::new(arrow::array::UInt64Array::from(tree.to_vec())),
-                Arc::new(arrow::array::UInt8Array::from(kind.to_vec())),
-                enc,
-                Arc::new(arrow::array::UInt16Array::from(chroma)),
-            ],
-        )
-        .unwrap()
+        ];
+        let mut arrays: Vec<ArrayRef> = vec![
+            Arc::new(arrow::array::UInt64Array::from(tree.to_vec())),
+            Arc::new(arrow::array::UInt8Array::from(kind.to_vec())),
+        ];
+        for (name, a) in encoded_columns().zip(cols) {
+            fields.push(Field::new(name, a.data_type().clone(), false));
+            arrays.push(a);
+        }
+        RecordBatch::try_new(Arc::new(Schema::new(fields)), arrays).unwrap()
     }
 
-    fn batch(tree: &[u64], kind: &[u8], enc: ArrayRef) -> RecordBatch {
-        let n = tree.len();
-        batch_with(tree, kind, enc, &vec![false; n])
+    /// The decoded (throughput, radiance) of such a batch.
+    fn decoded(b: &RecordBatch, learner: &ChromaLearner) -> (ArrayRef, ArrayRef) {
+        let thr = decode_throughput(b, learner.chromas(), Path::new("f")).unwrap();
+        let rad = decode(b, &thr, Path::new("f")).unwrap();
+        (thr, rad)
+    }
+
+    /// Every residual of `enc_radiance_*`, row by row.
+    fn radiance_residuals(b: &RecordBatch) -> Vec<u32> {
+        let e = u32_channels(b, ENC_RADIANCE, Path::new("f")).unwrap();
+        (0..b.num_rows()).flat_map(|i| [e[0][i], e[1][i], e[2][i]]).collect()
+    }
+
+    fn bits(a: &ArrayRef) -> Vec<Option<Vec<u32>>> {
+        let l = a.as_fixed_size_list();
+        (0..l.len())
+            .map(|i| {
+                l.is_valid(i)
+                    .then(|| l.value(i).as_primitive::<Float32Type>().values().iter().map(|f| f.to_bits()).collect())
+            })
+            .collect()
     }
 
     /// A path as the path tracer records it: camera ray, then per bounce a shadow ray and the
@@ -588,22 +640,24 @@ mod tests {
             rad.extend(r);
         }
         let (thr, rad) = (rgb(&thr, None), rgb(&rad, None));
-        let (enc, raw) = encode(&tree, &kind, &thr, &rad).unwrap();
-        let (res, _) = u32x3_values(&enc, "enc").unwrap();
+        let mut learner = ChromaLearner::default();
+        let b = encoded(&tree, &kind, &thr, &rad, &mut learner);
+        let res = radiance_residuals(&b);
         assert!(res.iter().enumerate().all(|(i, &r)| kind[i / 3] == 1 || r == 0), "non-shadow rays predicted exactly");
-        assert!(!raw.iter().any(|&r| r), "no ray stored against 0");
-        let back = decode(&batch_with(&tree, &kind, enc, &raw), &thr, Path::new("f")).unwrap();
+        let flags = chroma_column(&b, Path::new("f")).unwrap();
+        assert!(flags.iter().all(|f| f & (RADIANCE_RAW | RADIANCE_NULL | THROUGHPUT_NULL) == 0));
+        let (back_thr, back) = decoded(&b, &learner);
         assert_eq!(back.as_ref(), rad.as_ref());
+        assert_eq!(back_thr.as_ref(), thr.as_ref());
         // Another renderer's convention (radiance 0 on most rays): stored against 0, still exact.
         let other: Vec<[f32; 3]> =
             (0..tree.len()).map(|i| if i % 5 == 0 { [0.5, 0.25, 0.125] } else { [0.0; 3] }).collect();
         let other = rgb(&other, None);
-        let (enc, raw) = encode(&tree, &kind, &thr, &other).unwrap();
-        assert!(raw.iter().any(|&r| r));
-        let (res, _) = u32x3_values(&enc, "enc").unwrap();
+        let b = encoded(&tree, &kind, &thr, &other, &mut learner);
+        assert!(chroma_column(&b, Path::new("f")).unwrap().iter().any(|f| f & RADIANCE_RAW != 0));
+        let res = radiance_residuals(&b);
         assert!(res.iter().filter(|&&r| r == 0).count() > res.len() * 3 / 4, "zeros stay zeros");
-        let back = decode(&batch_with(&tree, &kind, enc, &raw), &thr, Path::new("f")).unwrap();
-        assert_eq!(back.as_ref(), other.as_ref());
+        assert_eq!(decoded(&b, &learner).1.as_ref(), other.as_ref());
     }
 
     #[test]
@@ -617,24 +671,11 @@ mod tests {
         let rad: Vec<[f32; 3]> = (0..n).map(|i| v(i + 2)).collect();
         let nulls = |m: usize| Some((0..n).map(|i| i % m != 0).collect());
         let (thr, rad) = (rgb(&thr, nulls(5)), rgb(&rad, nulls(4)));
-        let (enc, raw) = encode(&tree, &kind, &thr, &rad).unwrap();
-        let back = decode(&batch_with(&tree, &kind, enc, &raw), &thr, Path::new("f")).unwrap();
-        let bits = |a: &ArrayRef| {
-            let l = a.as_fixed_size_list();
-            (0..l.len())
-                .map(|i| {
-                    l.is_valid(i).then(|| {
-                        l.value(i)
-                            .as_primitive::<Float32Type>()
-                            .values()
-                            .iter()
-                            .map(|f| f.to_bits())
-                            .collect::<Vec<_>>()
-                    })
-                })
-                .collect::<Vec<_>>()
-        };
+        let mut learner = ChromaLearner::default();
+        let b = encoded(&tree, &kind, &thr, &rad, &mut learner);
+        let (back_thr, back) = decoded(&b, &learner);
         assert_eq!(bits(&back), bits(&rad));
+        assert_eq!(bits(&back_thr), bits(&thr));
     }
 
     #[test]
@@ -651,33 +692,14 @@ mod tests {
         v[8] = [f32::NAN, 1.0, f32::INFINITY];
         v[9] = [-0.0, f32::from_bits(1), f32::MAX];
         let thr = rgb(&v, Some((0..n).map(|i| i % 11 != 3).collect()));
+        let rad = rgb(&vec![[0.0; 3]; n], None);
+        let tree: Vec<u64> = (0..n as u64).collect();
         let mut learner = ChromaLearner::default();
-        let (enc, slots) = encode_throughput(&thr, &mut learner).unwrap();
-        let slots: ArrayRef = Arc::new(arrow::array::UInt16Array::from(slots));
+        let b = encoded(&tree, &vec![0; n], &thr, &rad, &mut learner);
         let chromas = Chromas::from_metadata(&learner.chromas().to_metadata()).unwrap();
         assert_eq!(&chromas, learner.chromas());
         assert!(chromas.len() <= 6, "{} colours for two (plus rounding at the keys' edges)", chromas.len());
-        let schema = Schema::new(vec![
-            Field::new(ENC_THROUGHPUT, enc.data_type().clone(), true),
-            Field::new(ENC_CHROMA, DataType::UInt16, false),
-        ]);
-        let b = RecordBatch::try_new(Arc::new(schema), vec![enc, slots]).unwrap();
         let back = decode_throughput(&b, &chromas, Path::new("f")).unwrap();
-        let bits = |a: &ArrayRef| {
-            let l = a.as_fixed_size_list();
-            (0..l.len())
-                .map(|i| {
-                    l.is_valid(i).then(|| {
-                        l.value(i)
-                            .as_primitive::<Float32Type>()
-                            .values()
-                            .iter()
-                            .map(|f| f.to_bits())
-                            .collect::<Vec<_>>()
-                    })
-                })
-                .collect::<Vec<_>>()
-        };
         assert_eq!(bits(&back), bits(&thr));
         // A colour the file does not save, and tables that are not triples of usable floats.
         let err = decode_throughput(&b, &Chromas::default(), Path::new("seg.rays.parquet")).unwrap_err().to_string();
@@ -690,7 +712,8 @@ mod tests {
     #[test]
     fn batches_are_recut_at_tree_ends() {
         let ids: Vec<u64> = vec![0, 0, 1, 1, 1, 2, 3, 3, 3, 3, 3, 4];
-        let b = batch(&ids, &vec![0; ids.len()], u32x3(vec![0; 3 * ids.len()], None));
+        let schema = Schema::new(vec![Field::new("tree_id", DataType::UInt64, false)]);
+        let b = RecordBatch::try_new(Arc::new(schema), vec![Arc::new(arrow::array::UInt64Array::from(ids))]).unwrap();
         let parts = [(0, 3), (3, 4), (7, 0), (7, 1), (8, 4)].map(|(s, n)| Ok(b.slice(s, n)));
         let out: Vec<Vec<u64>> = tree_aligned(parts.into_iter(), 0, Path::new("f"))
             .map(|r| r.unwrap().column(0).as_primitive::<UInt64Type>().values().to_vec())

@@ -3,7 +3,7 @@
 //! directions decoded only when asked for).
 
 use super::*;
-use crate::path_payload::ENC_RADIANCE;
+use crate::path_payload::{ENC_CHROMA, ENC_RADIANCE, ENC_THROUGHPUT};
 
 impl Dataset {
     /// Loads the tree an index entry points at.
@@ -229,15 +229,17 @@ impl Dataset {
         }
         // The path payload: throughput predicted by colour, radiance from whole trees'
         // throughput and kinds.
-        let predicted = self.file_schema.index_of(ENC_RADIANCE).is_ok();
+        let predicted = self.file_schema.index_of(ENC_CHROMA).is_ok();
         let want_radiance = predicted && names.iter().any(|n| n == crate::path_payload::RADIANCE);
         let want_throughput =
             predicted && (want_radiance || names.iter().any(|n| n == crate::path_payload::THROUGHPUT));
         if want_throughput {
-            file_names.extend([crate::path_payload::ENC_THROUGHPUT, crate::path_payload::ENC_CHROMA]);
+            file_names.extend(ENC_THROUGHPUT);
+            file_names.push(ENC_CHROMA);
         }
         if want_radiance {
-            file_names.extend([ENC_RADIANCE, crate::schema::col::TREE_ID, crate::codec::KIND_CODE]);
+            file_names.extend(ENC_RADIANCE);
+            file_names.extend([crate::schema::col::TREE_ID, crate::codec::KIND_CODE]);
         }
         let roots: BTreeSet<usize> = file_names.iter().filter_map(|n| self.file_schema.index_of(n).ok()).collect();
         let (path, reader) = self.ray_reader(i, Some(roots.into_iter().collect()), rows, batch_rows.max(1))?;
@@ -301,7 +303,7 @@ impl Dataset {
     ) -> Box<dyn Iterator<Item = Result<RecordBatch>> + Send> {
         let tree = reader.schema().index_of(crate::schema::col::TREE_ID).ok();
         match tree {
-            Some(tree) if wanted && self.file_schema.index_of(ENC_RADIANCE).is_ok() => {
+            Some(tree) if wanted && self.file_schema.index_of(ENC_CHROMA).is_ok() => {
                 Box::new(crate::path_payload::tree_aligned(reader, tree, path))
             }
             _ => Box::new(reader),
