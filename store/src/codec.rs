@@ -32,8 +32,9 @@ use arrow::datatypes::{DataType, Field, Schema, SchemaRef, UInt8Type, UInt32Type
 
 use crate::columns::{NONE_U32, RayColumns, kind_array};
 use crate::planes::{PlaneLearner, Planes};
-use crate::schema::KindTable;
+use crate::schema::{KindTable, file_column};
 use crate::stats::Stats;
+use crate::ulp::{apply, residual};
 use crate::{Error, Result};
 
 /// How a dataset stores the origin and direction columns of its ray files.
@@ -95,8 +96,7 @@ impl<'de> serde::Deserialize<'de> for Encoding {
 pub const ENCODED_COLUMNS: [&str; 7] =
     ["enc_origin_x", "enc_origin_y", "enc_origin_z", "enc_dir_code", "enc_dir_u", "enc_dir_v", "enc_dir_r"];
 
-/// The kind column of encoded ray files: the kind code of each ray.
-pub const KIND_CODE: &str = "kind_code";
+pub use crate::schema::KIND_CODE;
 
 /// The hit-distance column of encoded ray files from format version 3 on (`t` before).
 pub const ENC_T: &str = "enc_t";
@@ -144,30 +144,6 @@ pub fn file_schema(plain: &SchemaRef, encoding: Encoding, format_version: u32) -
         }
     }
     Arc::new(Schema::new_with_metadata(fields, plain.metadata().clone()))
-}
-
-/// The bits of `f` as an integer ordered like the floats (negative floats reversed); branch-free.
-#[inline]
-fn ord(f: f32) -> i32 {
-    let b = f.to_bits() as i32;
-    b ^ (((b >> 31) as u32) >> 1) as i32
-}
-
-#[inline]
-fn unord(i: i32) -> f32 {
-    f32::from_bits((i ^ (((i >> 31) as u32) >> 1) as i32) as u32)
-}
-
-#[inline]
-pub(crate) fn residual(actual: f32, pred: f32) -> u32 {
-    let d = ord(actual).wrapping_sub(ord(pred));
-    ((d << 1) ^ (d >> 31)) as u32
-}
-
-#[inline]
-pub(crate) fn apply(r: u32, pred: f32) -> f32 {
-    let d = ((r >> 1) as i32) ^ -((r & 1) as i32);
-    unord(ord(pred).wrapping_add(d))
 }
 
 /// The predicted largest component of a unit vector from the two others.
@@ -754,49 +730,9 @@ impl Geometry {
     }
 }
 
-/// The column `name` of a ray-file batch, or an error naming the file.
-pub(crate) fn file_column<'a>(batch: &'a RecordBatch, name: &str, path: &Path) -> Result<&'a ArrayRef> {
-    batch.column_by_name(name).ok_or_else(|| Error::Schema {
-        path: path.to_path_buf(),
-        field: name.into(),
-        expected: "an encoded column".into(),
-        found: "no such column".into(),
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn residuals_are_a_bijection_on_bits() {
-        let specials = [
-            0.0f32,
-            -0.0,
-            1.0,
-            -1.0,
-            f32::MIN_POSITIVE,
-            -f32::MIN_POSITIVE,
-            f32::from_bits(1),
-            f32::MAX,
-            f32::MIN,
-            f32::INFINITY,
-            f32::NEG_INFINITY,
-            f32::NAN,
-            f32::from_bits(0x7fc0_1234),
-            f32::from_bits(0xffc0_0001),
-            1e-30,
-            3e30,
-        ];
-        for &a in &specials {
-            for &p in &specials {
-                assert_eq!(apply(residual(a, p), p).to_bits(), a.to_bits(), "{a:e} predicted by {p:e}");
-            }
-        }
-        assert_eq!(residual(1.0, 1.0), 0);
-        assert_eq!(residual(f32::from_bits(1.0f32.to_bits() + 1), 1.0), 2);
-        assert_eq!(residual(0.0, -0.0), 2, "-0.0 and +0.0 are adjacent");
-    }
 
     #[test]
     fn directions_round_trip_bit_exactly() {

@@ -15,6 +15,7 @@ pub mod scene;
 mod schema;
 mod stats;
 mod tree;
+mod ulp;
 mod writer;
 
 pub use check::CheckReport;

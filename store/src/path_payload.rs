@@ -48,8 +48,9 @@ use arrow::array::{Array, ArrayRef, AsArray, FixedSizeListArray, Float32Array, R
 use arrow::buffer::NullBuffer;
 use arrow::datatypes::{DataType, Field, Float32Type, Schema, UInt8Type, UInt32Type, UInt64Type};
 
-use crate::codec::{apply, residual};
 use crate::schema::Kind;
+use crate::schema::{KIND_CODE, file_column};
+use crate::ulp::{apply, residual};
 use crate::{Error, Result};
 
 /// The payload column of each ray's path weight.
@@ -250,7 +251,7 @@ fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Resu
 fn u32_channels<'a>(batch: &'a RecordBatch, names: [&str; 3], path: &Path) -> Result<[&'a [u32]; 3]> {
     let mut out: [&[u32]; 3] = [&[]; 3];
     for (o, name) in out.iter_mut().zip(names) {
-        *o = crate::codec::file_column(batch, name, path)?
+        *o = file_column(batch, name, path)?
             .as_primitive_opt::<UInt32Type>()
             .ok_or_else(|| Error::Corrupt {
                 path: path.to_path_buf(),
@@ -264,7 +265,7 @@ fn u32_channels<'a>(batch: &'a RecordBatch, names: [&str; 3], path: &Path) -> Re
 
 /// The `enc_chroma` column of a batch.
 fn chroma_column<'a>(batch: &'a RecordBatch, path: &Path) -> Result<&'a [u16]> {
-    Ok(crate::codec::file_column(batch, ENC_CHROMA, path)?
+    Ok(file_column(batch, ENC_CHROMA, path)?
         .as_primitive_opt::<arrow::datatypes::UInt16Type>()
         .ok_or_else(|| Error::Corrupt {
             path: path.to_path_buf(),
@@ -439,13 +440,13 @@ fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef)
 /// `enc_radiance_*`, `enc_chroma`, `tree_id` and `kind_code` columns and its decoded `throughput`.
 pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) -> Result<ArrayRef> {
     let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
-    let col = |name: &str| crate::codec::file_column(batch, name, path);
+    let col = |name: &str| file_column(batch, name, path);
     let tree = col(crate::schema::col::TREE_ID)?
         .as_primitive_opt::<UInt64Type>()
         .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
-    let kind = col(crate::codec::KIND_CODE)?
+    let kind = col(KIND_CODE)?
         .as_primitive_opt::<UInt8Type>()
-        .ok_or_else(|| corrupt(format!("column {} is not UInt8", crate::codec::KIND_CODE)))?;
+        .ok_or_else(|| corrupt(format!("column {} is not UInt8", KIND_CODE)))?;
     let thr = rgb_values(throughput, THROUGHPUT).map_err(corrupt)?;
     let e = u32_channels(batch, ENC_RADIANCE, path)?;
     let flags = chroma_column(batch, path)?;
@@ -554,10 +555,8 @@ mod tests {
     /// The path payload encoded into a ray-file batch (with `tree_id` and `kind_code`).
     fn encoded(tree: &[u64], kind: &[u8], thr: &ArrayRef, rad: &ArrayRef, learner: &mut ChromaLearner) -> RecordBatch {
         let cols = encode_path(tree, kind, thr, rad, learner).unwrap();
-        let mut fields = vec![
-            Field::new("tree_id", DataType::UInt64, false),
-            Field::new(crate::codec::KIND_CODE, DataType::UInt8, false),
-        ];
+        let mut fields =
+            vec![Field::new("tree_id", DataType::UInt64, false), Field::new(KIND_CODE, DataType::UInt8, false)];
         let mut arrays: Vec<ArrayRef> = vec![
             Arc::new(arrow::array::UInt64Array::from(tree.to_vec())),
             Arc::new(arrow::array::UInt8Array::from(kind.to_vec())),

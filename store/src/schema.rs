@@ -14,6 +14,23 @@ use serde::{Deserialize, Serialize};
 
 use crate::{Error, Result};
 
+/// The kind column of encoded ray files: the kind code of each ray.
+pub const KIND_CODE: &str = "kind_code";
+
+/// The column `name` of a ray-file batch, or an error naming the file.
+pub(crate) fn file_column<'a>(
+    batch: &'a arrow::array::RecordBatch,
+    name: &str,
+    path: &std::path::Path,
+) -> Result<&'a arrow::array::ArrayRef> {
+    batch.column_by_name(name).ok_or_else(|| Error::Schema {
+        path: path.to_path_buf(),
+        field: name.into(),
+        expected: "an encoded column".into(),
+        found: "no such column".into(),
+    })
+}
+
 /// The kind of a ray: a built-in one or one a client registered by name.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct Kind(pub u8);
