@@ -11,27 +11,8 @@ use store::{
     WriteOptions,
 };
 
-/// A small xorshift generator so the trees are varied but reproducible.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        self.0
-    }
-    fn f(&mut self) -> f32 {
-        (self.next() >> 40) as f32 / (1u64 << 24) as f32
-    }
-    fn unit(&mut self) -> [f32; 3] {
-        let z = self.f() * 2.0 - 1.0;
-        let a = self.f() * std::f32::consts::TAU;
-        let r = (1.0 - z * z).max(0.0).sqrt();
-        let d = [r * a.cos(), r * a.sin(), z];
-        let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-        [d[0] / l, d[1] / l, d[2] / l]
-    }
-}
+mod common;
+use common::Rng;
 
 /// The tree-table row of synthetic tree `id` (pixels laid out 64 wide, sample 0).
 fn tree_row(id: u64, ray_count: u32, max_depth: u16, first_row: u64) -> TreeRow {
