@@ -516,7 +516,7 @@ impl Decoder {
     }
 
     /// Decodes one batch of a ray file at `path` (named in errors). Where the file predicts
-    /// `radiance` (`enc_radiance`), batches must end at tree ends
+    /// `radiance` (`enc_radiance_*`), batches must end at tree ends
     /// ([`crate::Dataset::segment_batches_in`] cuts them so).
     pub fn decode(&mut self, batch: RecordBatch, path: &Path) -> Result<RecordBatch> {
         if self.encoding == Encoding::Plain {
@@ -544,22 +544,23 @@ impl Decoder {
         RecordBatch::try_new(self.plain.clone(), columns).map_err(|e| corrupt(format!("decoded batch: {e}")))
     }
 
-    /// The `throughput` column of a batch of a ray file that predicts it (`enc_throughput`,
+    /// The `throughput` column of a batch of a ray file that predicts it (`enc_throughput_*`,
     /// `enc_chroma`).
     pub(crate) fn decode_throughput(&self, batch: &RecordBatch, path: &Path) -> Result<ArrayRef> {
         crate::path_payload::decode_throughput(batch, &self.chromas, path)
     }
 
     /// The `radiance` column of a batch of whole trees of a ray file that predicts it (columns
-    /// `enc_radiance`, `tree_id`, `kind_code`), with the batch's decoded `throughput`.
+    /// `enc_radiance_*`, `enc_chroma`, `tree_id`, `kind_code`), with the batch's decoded
+    /// `throughput`.
     pub(crate) fn decode_radiance(
         &mut self,
         batch: &RecordBatch,
         throughput: &ArrayRef,
         path: &Path,
     ) -> Result<ArrayRef> {
-        let tree = file_column(batch, crate::schema::col::TREE_ID, path)?.as_primitive_opt::<UInt64Type>();
-        if let Some(ids) = tree.filter(|t| !t.is_empty()) {
+        let ids = crate::schema::typed_column::<UInt64Type>(batch, crate::schema::col::TREE_ID, path)?;
+        if !ids.is_empty() {
             let first = ids.value(0);
             if self.last_tree == Some(first) {
                 return Err(Error::Corrupt {
@@ -570,7 +571,7 @@ impl Decoder {
             }
             self.last_tree = Some(ids.value(ids.len() - 1));
         }
-        crate::path_payload::decode(batch, throughput, path)
+        crate::path_payload::decode_radiance(batch, throughput, path)
     }
 
     /// Decodes the directions of a batch of a ray file, and its origins (and encoded hit

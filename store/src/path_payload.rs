@@ -44,12 +44,11 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use arrow::array::{Array, ArrayRef, AsArray, FixedSizeListArray, Float32Array, RecordBatch, UInt32Array};
+use arrow::array::{Array, ArrayRef, AsArray, FixedSizeListArray, Float32Array, RecordBatch, UInt16Array, UInt32Array};
 use arrow::buffer::NullBuffer;
-use arrow::datatypes::{DataType, Field, Float32Type, Schema, UInt8Type, UInt32Type, UInt64Type};
+use arrow::datatypes::{DataType, Field, Float32Type, Schema, UInt8Type, UInt16Type, UInt32Type, UInt64Type};
 
-use crate::schema::Kind;
-use crate::schema::{KIND_CODE, file_column};
+use crate::schema::{KIND_CODE, Kind, typed_column};
 use crate::ulp::{apply, residual};
 use crate::{Error, Result};
 
@@ -207,29 +206,23 @@ pub(crate) fn encode_path(
     learner: &mut ChromaLearner,
 ) -> Result<Vec<ArrayRef>> {
     let (enc_throughput, mut flags) = encode_throughput(throughput, learner)?;
-    let (enc_radiance, radiance_flags) = encode(tree, kind, throughput, radiance)?;
+    let (enc_radiance, radiance_flags) = encode_radiance(tree, kind, throughput, radiance)?;
     for (s, f) in flags.iter_mut().zip(radiance_flags) {
         *s |= f;
     }
-    let mut out = channels(enc_throughput);
-    out.push(Arc::new(arrow::array::UInt16Array::from(flags)));
-    out.extend(channels(enc_radiance));
+    let flat = |c: Vec<u32>| Arc::new(UInt32Array::from(c)) as ArrayRef;
+    let mut out: Vec<ArrayRef> = enc_throughput.into_iter().map(flat).collect();
+    out.push(Arc::new(UInt16Array::from(flags)));
+    out.extend(enc_radiance.into_iter().map(flat));
     Ok(out)
 }
 
-/// Three flat columns of values stored three per row.
-fn channels(values: Vec<u32>) -> Vec<ArrayRef> {
-    (0..3)
-        .map(|c| Arc::new(UInt32Array::from_iter_values(values.iter().skip(c).step_by(3).copied())) as ArrayRef)
-        .collect()
-}
-
-/// The encoded throughput of a `throughput` column, three values per row, and each row's
+/// The encoded throughput of a `throughput` column, one vector per channel, and each row's
 /// `enc_chroma` (colour, null flag), learning colours.
-fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Result<(Vec<u32>, Vec<u16>)> {
+fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Result<([Vec<u32>; 3], Vec<u16>)> {
     let (tv, tn) = rgb_values(throughput, THROUGHPUT).map_err(Error::Encoding)?;
     let n = tv.len() / 3;
-    let mut enc = vec![0u32; 3 * n];
+    let mut enc = [vec![0u32; n], vec![0u32; n], vec![0u32; n]];
     let mut slots = vec![0u16; n];
     for i in 0..n {
         if !valid(tn, i) {
@@ -239,9 +232,9 @@ fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Resu
         let v = triple(tv, i);
         let s = learner.slot(v);
         let pred = if s == 0 { [0.0; 2] } else { by_colour(v[0], learner.chromas.refs[s as usize - 1]) };
-        enc[3 * i] = v[0].to_bits();
-        enc[3 * i + 1] = residual(v[1], pred[0]);
-        enc[3 * i + 2] = residual(v[2], pred[1]);
+        enc[0][i] = v[0].to_bits();
+        enc[1][i] = residual(v[1], pred[0]);
+        enc[2][i] = residual(v[2], pred[1]);
         slots[i] = s;
     }
     Ok((enc, slots))
@@ -249,30 +242,14 @@ fn encode_throughput(throughput: &ArrayRef, learner: &mut ChromaLearner) -> Resu
 
 /// The three flat `UInt32` columns `names` of a batch.
 fn u32_channels<'a>(batch: &'a RecordBatch, names: [&str; 3], path: &Path) -> Result<[&'a [u32]; 3]> {
-    let mut out: [&[u32]; 3] = [&[]; 3];
-    for (o, name) in out.iter_mut().zip(names) {
-        *o = file_column(batch, name, path)?
-            .as_primitive_opt::<UInt32Type>()
-            .ok_or_else(|| Error::Corrupt {
-                path: path.to_path_buf(),
-                what: "ray file".into(),
-                message: format!("column {name} is not UInt32"),
-            })?
-            .values();
-    }
-    Ok(out)
+    let [r, g, b] = names;
+    let values = |name: &str| Ok(typed_column::<UInt32Type>(batch, name, path)?.values().as_ref());
+    Ok([values(r)?, values(g)?, values(b)?])
 }
 
 /// The `enc_chroma` column of a batch.
 fn chroma_column<'a>(batch: &'a RecordBatch, path: &Path) -> Result<&'a [u16]> {
-    Ok(file_column(batch, ENC_CHROMA, path)?
-        .as_primitive_opt::<arrow::datatypes::UInt16Type>()
-        .ok_or_else(|| Error::Corrupt {
-            path: path.to_path_buf(),
-            what: "ray file".into(),
-            message: format!("column {ENC_CHROMA} is not UInt16"),
-        })?
-        .values())
+    Ok(typed_column::<UInt16Type>(batch, ENC_CHROMA, path)?.values())
 }
 
 /// The validity of rows whose `enc_chroma` lacks `flag` (None when every row is valid).
@@ -400,17 +377,22 @@ fn walk(
     }
 }
 
-/// The encoded radiance of whole trees, three values per row, and each row's `enc_chroma` flags:
-/// radiance null, or stored against 0 instead of its prediction (fewer significant bits in the
-/// residuals).
-fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef) -> Result<(Vec<u32>, Vec<u16>)> {
+/// The encoded radiance of whole trees, one vector per channel, and each row's `enc_chroma`
+/// flags: radiance null, or stored against 0 instead of its prediction (fewer significant bits
+/// in the residuals).
+fn encode_radiance(
+    tree: &[u64],
+    kind: &[u8],
+    throughput: &ArrayRef,
+    radiance: &ArrayRef,
+) -> Result<([Vec<u32>; 3], Vec<u16>)> {
     let thr = rgb_values(throughput, THROUGHPUT).map_err(Error::Encoding)?;
     let (rv, rn) = rgb_values(radiance, RADIANCE).map_err(Error::Encoding)?;
     let n = tree.len();
     if kind.len() != n || thr.0.len() != 3 * n || rv.len() != 3 * n {
         return Err(Error::Encoding(format!("path payload of {n} rows: columns of other lengths")));
     }
-    let mut res = vec![0u32; 3 * n];
+    let mut res = [vec![0u32; n], vec![0u32; n], vec![0u32; n]];
     let mut flags = vec![0u16; n];
     let mut out = vec![0.0f32; 3 * n];
     let bits = |r: [u32; 3]| r.iter().map(|r| 32 - r.leading_zeros()).sum::<u32>();
@@ -424,11 +406,16 @@ fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef)
                 return [0.0; 3];
             }
             let v = triple(rv, i);
-            let p = [0, 1, 2].map(|c| residual(v[c], pred[c]));
-            let z = [0, 1, 2].map(|c| residual(v[c], 0.0));
-            let raw = bits(z) < bits(p);
-            flags[i] = if raw { RADIANCE_RAW } else { 0 };
-            res[3 * i..3 * i + 3].copy_from_slice(if raw { &z } else { &p });
+            let mut r = [0, 1, 2].map(|c| residual(v[c], pred[c]));
+            if pred != [0.0; 3] {
+                let z = [0, 1, 2].map(|c| residual(v[c], 0.0));
+                if bits(z) < bits(r) {
+                    (r, flags[i]) = (z, RADIANCE_RAW);
+                }
+            }
+            for (res, r) in res.iter_mut().zip(r) {
+                res[i] = r;
+            }
             v
         },
         &mut out,
@@ -438,15 +425,10 @@ fn encode(tree: &[u64], kind: &[u8], throughput: &ArrayRef, radiance: &ArrayRef)
 
 /// The `radiance` column of a batch of whole trees of a ray file at `path`, from its
 /// `enc_radiance_*`, `enc_chroma`, `tree_id` and `kind_code` columns and its decoded `throughput`.
-pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) -> Result<ArrayRef> {
+pub(crate) fn decode_radiance(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) -> Result<ArrayRef> {
     let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
-    let col = |name: &str| file_column(batch, name, path);
-    let tree = col(crate::schema::col::TREE_ID)?
-        .as_primitive_opt::<UInt64Type>()
-        .ok_or_else(|| corrupt("column tree_id is not UInt64".into()))?;
-    let kind = col(KIND_CODE)?
-        .as_primitive_opt::<UInt8Type>()
-        .ok_or_else(|| corrupt(format!("column {} is not UInt8", KIND_CODE)))?;
+    let tree = typed_column::<UInt64Type>(batch, crate::schema::col::TREE_ID, path)?;
+    let kind = typed_column::<UInt8Type>(batch, KIND_CODE, path)?;
     let thr = rgb_values(throughput, THROUGHPUT).map_err(corrupt)?;
     let e = u32_channels(batch, ENC_RADIANCE, path)?;
     let flags = chroma_column(batch, path)?;
@@ -470,7 +452,7 @@ pub(crate) fn decode(batch: &RecordBatch, throughput: &ArrayRef, path: &Path) ->
 }
 
 /// Re-cuts `batches` of a ray file (in file order, from a tree's first row) so that each ends at
-/// a tree's end, as [`decode`] needs; `tree` is the position of `tree_id` in them. Each batch's
+/// a tree's end, as [`decode_radiance`] needs; `tree` is the position of `tree_id` in them. Each batch's
 /// last tree is held back and joined to its rows at the head of the next batch (only those rows
 /// are copied; the rest of the batch passes on as slices). A tree longer than a batch waits for
 /// the batches that complete it.
@@ -484,9 +466,10 @@ where
 {
     let path = path.to_path_buf();
     let mut batches = batches.fuse();
-    let mut carry: Option<RecordBatch> = None;
+    // The batch's last tree, held back, and its id.
+    let mut carry: Option<(u64, RecordBatch)> = None;
     let mut ready: std::collections::VecDeque<RecordBatch> = Default::default();
-    let concat = move |a: &RecordBatch, b: &RecordBatch, path: &Path| {
+    let concat = |a: &RecordBatch, b: &RecordBatch, path: &Path| {
         arrow::compute::concat_batches(&a.schema(), [a, b]).map_err(crate::error::arrow_err(path.display().to_string()))
     };
     std::iter::from_fn(move || {
@@ -495,7 +478,7 @@ where
                 return Some(Ok(b));
             }
             let next = match batches.next() {
-                None => return carry.take().map(Ok),
+                None => return carry.take().map(|(_, c)| Ok(c)),
                 Some(Err(e)) => return Some(Err(e)),
                 Some(Ok(b)) if b.num_rows() == 0 => continue,
                 Some(Ok(b)) => b,
@@ -510,13 +493,12 @@ where
             let ids = ids.values();
             let n = ids.len();
             let mut start = 0;
-            if let Some(c) = carry.take() {
+            if let Some((held, c)) = carry.take() {
                 // The held-back tree's rows that open this batch, joined to it.
-                let held = c.column(tree).as_primitive::<UInt64Type>().value(0);
                 let end = ids.iter().position(|&id| id != held).unwrap_or(n);
                 if end == n {
                     match concat(&c, &next, &path) {
-                        Ok(b) => carry = Some(b),
+                        Ok(b) => carry = Some((held, b)),
                         Err(e) => return Some(Err(e)),
                     }
                     continue;
@@ -537,7 +519,7 @@ where
             if cut > start {
                 ready.push_back(next.slice(start, cut - start));
             }
-            carry = Some(next.slice(cut, n - cut));
+            carry = Some((last, next.slice(cut, n - cut)));
         }
     })
 }
@@ -571,7 +553,7 @@ mod tests {
     /// The decoded (throughput, radiance) of such a batch.
     fn decoded(b: &RecordBatch, learner: &ChromaLearner) -> (ArrayRef, ArrayRef) {
         let thr = decode_throughput(b, learner.chromas(), Path::new("f")).unwrap();
-        let rad = decode(b, &thr, Path::new("f")).unwrap();
+        let rad = decode_radiance(b, &thr, Path::new("f")).unwrap();
         (thr, rad)
     }
 

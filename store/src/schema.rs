@@ -31,6 +31,20 @@ pub(crate) fn file_column<'a>(
     })
 }
 
+/// The column `name` of a ray-file batch as a primitive array of `T`, or an error naming the file.
+pub(crate) fn typed_column<'a, T: arrow::datatypes::ArrowPrimitiveType>(
+    batch: &'a arrow::array::RecordBatch,
+    name: &str,
+    path: &std::path::Path,
+) -> Result<&'a arrow::array::PrimitiveArray<T>> {
+    use arrow::array::AsArray;
+    file_column(batch, name, path)?.as_primitive_opt::<T>().ok_or_else(|| Error::Corrupt {
+        path: path.to_path_buf(),
+        what: "ray file".into(),
+        message: format!("column {name} is not {}", T::DATA_TYPE),
+    })
+}
+
 /// The kind of a ray: a built-in one or one a client registered by name.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct Kind(pub u8);

@@ -26,9 +26,6 @@ use crate::pages::{Plan, RayFileWriter};
 use crate::path_payload::{
     CHROMAS_KEY, ChromaLearner, ENC_CHROMA, ENC_THROUGHPUT, RADIANCE, THROUGHPUT, encoded_columns,
 };
-
-const ENC_THROUGHPUT_G: &str = ENC_THROUGHPUT[1];
-const ENC_THROUGHPUT_B: &str = ENC_THROUGHPUT[2];
 use crate::planes::{PLANES_KEY, PlaneLearner};
 use crate::schema::{KindTable, PayloadSchema, ray_schema, tree_schema};
 use crate::stats::Stats;
@@ -322,10 +319,11 @@ impl SegmentWriter {
             ))
         };
         self.stats.merge(&stats);
+        // Whether the file predicts the path payload (throughput and radiance).
+        let predicted = self.schema.index_of(ENC_CHROMA).is_ok();
         if let Some(bits) = self.payload_mantissa_bits {
             // The predicted path payload stays exact: rounded, it would no longer match its
             // predictions (10 bits made a Cornell trace 22.36 instead of 16.67 B/ray).
-            let predicted = self.schema.index_of(ENC_CHROMA).is_ok();
             for (field, buf) in payload.fields.iter().zip(cols.payload.iter_mut()) {
                 if predicted && (field.name == THROUGHPUT || field.name == RADIANCE) {
                     continue;
@@ -338,10 +336,11 @@ impl SegmentWriter {
         if let Some((enc, kind_codes)) = encoded {
             let t_nulls = batch.column_by_name("t").and_then(|t| t.nulls().cloned());
             let mut arrays = enc.into_arrays(t_nulls).into_iter();
-            // The path payload, predicted: [enc_throughput, enc_chroma, enc_radiance].
-            let path_payload = match self.schema.index_of(ENC_CHROMA) {
-                Ok(_) => Some(encode_path_payload(&batch, kind_codes.values(), &mut self.chromas)?),
-                Err(_) => None,
+            // The path payload's columns, in `encoded_columns` order.
+            let path_payload = if predicted {
+                encode_path_payload(&batch, kind_codes.values(), &mut self.chromas)?
+            } else {
+                Vec::new()
             };
             let kind_codes: arrow::array::ArrayRef = std::sync::Arc::new(kind_codes);
             let mut columns = Vec::with_capacity(self.schema.fields().len());
@@ -349,12 +348,11 @@ impl SegmentWriter {
                 let c = match batch.column_by_name(f.name()) {
                     Some(c) => c.clone(),
                     None if f.name() == KIND_CODE => kind_codes.clone(),
-                    None if encoded_columns().any(|n| n == f.name()) => {
-                        let k = encoded_columns().position(|n| n == f.name()).unwrap_or(0);
-                        let arrays = path_payload.as_ref().ok_or_else(|| Error::Encoding("no path payload".into()))?;
-                        arrays.get(k).cloned().ok_or_else(|| Error::Encoding(format!("no column {}", f.name())))?
+                    None => match encoded_columns().position(|n| n == f.name()) {
+                        Some(k) => path_payload.get(k).cloned(),
+                        None => arrays.next(),
                     }
-                    None => arrays.next().ok_or_else(|| Error::Encoding(format!("no encoded column {}", f.name())))?,
+                    .ok_or_else(|| Error::Encoding(format!("no encoded column {}", f.name())))?,
                 };
                 columns.push(c);
             }
@@ -527,12 +525,11 @@ fn column_plan(field: &arrow::datatypes::Field, encoding: Encoding) -> Plan {
     match field.name().as_str() {
         crate::schema::col::TREE_ID => Plan::Delta,
         n if n == ENC_T || ENCODED_COLUMNS.contains(&n) => Plan::Split { stats: false },
-        // Mostly zero residuals and the bits of repeated emitter values: whole triples repeat.
         // The path payload: the colour and the throughput's residual channels byte-split (their
         // high bytes are nearly constant); the first channel's raw bits and the radiance
         // residuals (zeros, and the bits of repeated emitter values) plain: 17.0 instead of 17.8
         // B/ray with all six byte-split on a Cornell trace.
-        ENC_CHROMA | ENC_THROUGHPUT_G | ENC_THROUGHPUT_B => Plan::Split { stats: false },
+        n if n == ENC_CHROMA || ENC_THROUGHPUT[1..].contains(&n) => Plan::Split { stats: false },
         n if encoded_columns().any(|e| e == n) => Plan::Plain { stats: false },
         _ if float => Plan::Plain { stats: true },
         _ => Plan::Split { stats: true },

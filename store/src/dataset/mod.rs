@@ -245,30 +245,21 @@ impl Dataset {
                 message: format!("manifest lists {} rows, file holds {row}", self.segment(i).rays.rows),
             });
         }
-        let planes = match meta
-            .metadata()
-            .file_metadata()
-            .key_value_metadata()
-            .and_then(|kv| kv.iter().find(|e| e.key == PLANES_KEY).and_then(|e| e.value.as_deref()))
-        {
-            Some(v) => Planes::from_metadata(v).map_err(|message| Error::Corrupt {
-                path: path.clone(),
-                what: "ray file metadata".into(),
-                message,
-            })?,
+        // What the writer learned of the segment, in the file's key-value metadata.
+        let learned = |key: &str| {
+            meta.metadata()
+                .file_metadata()
+                .key_value_metadata()
+                .and_then(|kv| kv.iter().find(|e| e.key == key).and_then(|e| e.value.clone()))
+        };
+        let bad_metadata =
+            |message: String| Error::Corrupt { path: path.clone(), what: "ray file metadata".into(), message };
+        let planes = match learned(PLANES_KEY) {
+            Some(v) => Planes::from_metadata(&v).map_err(bad_metadata)?,
             None => Planes::default(),
         };
-        let chromas = match meta
-            .metadata()
-            .file_metadata()
-            .key_value_metadata()
-            .and_then(|kv| kv.iter().find(|e| e.key == CHROMAS_KEY).and_then(|e| e.value.as_deref()))
-        {
-            Some(v) => crate::path_payload::Chromas::from_metadata(v).map_err(|message| Error::Corrupt {
-                path: path.clone(),
-                what: "ray file metadata".into(),
-                message,
-            })?,
+        let chromas = match learned(CHROMAS_KEY) {
+            Some(v) => crate::path_payload::Chromas::from_metadata(&v).map_err(bad_metadata)?,
             None => Default::default(),
         };
         let split_root = balanced_split(&meta);

@@ -125,6 +125,23 @@ impl Dataset {
         }
     }
 
+    /// `reader`'s batches cut to end at tree ends where radiance is decoded (`wanted`) from a
+    /// file that predicts it from whole trees; as they come otherwise.
+    fn tree_aligned_if_needed(
+        &self,
+        reader: Guarded,
+        path: &Path,
+        wanted: bool,
+    ) -> Box<dyn Iterator<Item = Result<RecordBatch>> + Send> {
+        let tree = reader.schema().index_of(crate::schema::col::TREE_ID).ok();
+        match tree {
+            Some(tree) if wanted && self.file_schema.index_of(ENC_CHROMA).is_ok() => {
+                Box::new(crate::path_payload::tree_aligned(reader, tree, path))
+            }
+            _ => Box::new(reader),
+        }
+    }
+
     /// Every ray batch of segment `i`, in file order.
     pub fn segment_batches(&self, i: usize) -> Result<impl Iterator<Item = Result<RecordBatch>> + use<>> {
         self.segment_batches_in(i, None)
@@ -250,34 +267,21 @@ impl Dataset {
             let b = b?;
             let mut fields: Vec<arrow::datatypes::FieldRef> = b.schema().fields().iter().cloned().collect();
             let mut cols = b.columns().to_vec();
+            // Decoded columns, under their ray-table names.
+            let mut decoded: Vec<(&str, arrow::array::ArrayRef)> = Vec::new();
             if want_throughput {
                 let throughput = decoder.decode_throughput(&b, &path)?;
                 if want_radiance {
-                    let radiance = decoder.decode_radiance(&b, &throughput, &path)?;
-                    fields.push(Arc::new(arrow::datatypes::Field::new(
-                        crate::path_payload::RADIANCE,
-                        radiance.data_type().clone(),
-                        true,
-                    )));
-                    cols.push(radiance);
+                    decoded.push((crate::path_payload::RADIANCE, decoder.decode_radiance(&b, &throughput, &path)?));
                 }
-                fields.push(Arc::new(arrow::datatypes::Field::new(
-                    crate::path_payload::THROUGHPUT,
-                    throughput.data_type().clone(),
-                    true,
-                )));
-                cols.push(throughput);
+                decoded.push((crate::path_payload::THROUGHPUT, throughput));
             }
             if want_geometry {
-                let g = decoder.decode_geometry(&b, &path, want_origin)?;
-                for (name, col) in g.columns() {
-                    fields.push(Arc::new(arrow::datatypes::Field::new(
-                        name,
-                        arrow::datatypes::DataType::Float32,
-                        true,
-                    )));
-                    cols.push(col);
-                }
+                decoded.extend(decoder.decode_geometry(&b, &path, want_origin)?.columns());
+            }
+            for (name, col) in decoded {
+                fields.push(Arc::new(arrow::datatypes::Field::new(name, col.data_type().clone(), true)));
+                cols.push(col);
             }
             if let Ok(k) = b.schema().index_of(crate::codec::KIND_CODE) {
                 // The kind codes as the kind column, under its name.
@@ -289,25 +293,6 @@ impl Dataset {
                 .map_err(arrow_err("decoded columns"))?;
             project(b)
         })))
-    }
-}
-
-impl Dataset {
-    /// `reader`'s batches cut to end at tree ends where radiance is decoded (`wanted`) from a
-    /// file that predicts it from whole trees; as they come otherwise.
-    fn tree_aligned_if_needed(
-        &self,
-        reader: Guarded,
-        path: &Path,
-        wanted: bool,
-    ) -> Box<dyn Iterator<Item = Result<RecordBatch>> + Send> {
-        let tree = reader.schema().index_of(crate::schema::col::TREE_ID).ok();
-        match tree {
-            Some(tree) if wanted && self.file_schema.index_of(ENC_CHROMA).is_ok() => {
-                Box::new(crate::path_payload::tree_aligned(reader, tree, path))
-            }
-            _ => Box::new(reader),
-        }
     }
 }
 
