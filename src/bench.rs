@@ -119,8 +119,10 @@ pub enum BenchCommand {
         #[arg(long, default_value_t = 5)]
         runs: usize,
         /// Arguments of `rtvtk record` without `--out`, e.g. `--scene cornell --subdivide 118
-        /// --size 256x256 --spp 8 --threads 1`.
-        #[arg(trailing_var_arg = true, allow_hyphen_values = true, required = true)]
+        /// --size 256x256 --spp 8 --threads 1`. Without them, the standard suite: the Cornell box
+        /// (384²×32) and the 1M-triangle box (`--subdivide 128`, 384²×16) at 1, 2 and all tracing
+        /// threads.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
     /// How time and memory grow with the trace: record a Cornell-box trace of about N rays per
