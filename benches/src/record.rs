@@ -15,8 +15,9 @@ use crate::query::median;
 /// Wall seconds of `rtvtk record ARGS --out OUT --quiet [--no-record]`. Both runs write the same
 /// PNG and EXR beside OUT (a recording writes them into OUT by default, `--no-record` writes none
 /// unless asked: left to the defaults, image output would be counted as recording overhead).
+/// A recording first removes the last one's OUT; `--no-record` leaves OUT as it is.
 fn timed_record(exe: &Path, args: &[String], out: &Path, record: bool) -> Result<f64> {
-    if out.exists() {
+    if record && out.exists() {
         std::fs::remove_dir_all(out).with_context(|| format!("removing {}", out.display()))?;
     }
     let mut cmd = Command::new(exe);
@@ -47,7 +48,7 @@ struct Overhead {
 }
 
 /// Runs `runs` alternating pairs of `rtvtk record ARGS` with and without recording, printing a
-/// row per pair, then records once more to count the rays and bytes.
+/// row per pair; the rays and bytes are those of the last pair's recording.
 fn measure(exe: &Path, args: &[String], runs: usize, out: &Path) -> Result<Overhead> {
     println!("| pair | record s | no-record s | ratio |");
     println!("|---|---|---|---|");
@@ -60,7 +61,6 @@ fn measure(exe: &Path, args: &[String], runs: usize, out: &Path) -> Result<Overh
         norec.push(b);
         ratios.push(a / b);
     }
-    timed_record(exe, args, out, true)?;
     let ds = rl::Dataset::open(out)?;
     let rays = ds.ray_count();
     Ok(Overhead {

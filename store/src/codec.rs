@@ -525,7 +525,7 @@ impl Decoder {
         let corrupt = |message: String| Error::Corrupt { path: path.to_path_buf(), what: "ray file".into(), message };
         let g = self.decode_geometry(&batch, path, true)?;
         let mut floats: Vec<(&str, ArrayRef)> = g.columns();
-        if batch.column_by_name(crate::path_payload::ENC_CHROMA).is_some() {
+        if crate::path_payload::predicted_in(batch.schema_ref()) {
             let throughput = self.decode_throughput(&batch, path)?;
             floats.push((crate::path_payload::RADIANCE, self.decode_radiance(&batch, &throughput, path)?));
             floats.push((crate::path_payload::THROUGHPUT, throughput));

@@ -86,6 +86,11 @@ pub(crate) fn predicts_path_payload(plain: &Schema) -> bool {
     rgb(THROUGHPUT) && rgb(RADIANCE)
 }
 
+/// Whether a ray file of schema `file` predicts the path payload (it has `enc_chroma`).
+pub(crate) fn predicted_in(file: &Schema) -> bool {
+    file.index_of(ENC_CHROMA).is_ok()
+}
+
 /// The ray-file fields standing for the payload field `f` (`throughput` or `radiance`).
 pub(crate) fn encoded_fields(f: &Field) -> Vec<Field> {
     let flat = |name: &str| Field::new(name, DataType::UInt32, false);

@@ -320,7 +320,7 @@ impl SegmentWriter {
         };
         self.stats.merge(&stats);
         // Whether the file predicts the path payload (throughput and radiance).
-        let predicted = self.schema.index_of(ENC_CHROMA).is_ok();
+        let predicted = crate::path_payload::predicted_in(&self.schema);
         if let Some(bits) = self.payload_mantissa_bits {
             // The predicted path payload stays exact: rounded, it would no longer match its
             // predictions (10 bits made a Cornell trace 22.36 instead of 16.67 B/ray).

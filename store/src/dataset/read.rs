@@ -135,7 +135,7 @@ impl Dataset {
     ) -> Box<dyn Iterator<Item = Result<RecordBatch>> + Send> {
         let tree = reader.schema().index_of(crate::schema::col::TREE_ID).ok();
         match tree {
-            Some(tree) if wanted && self.file_schema.index_of(ENC_CHROMA).is_ok() => {
+            Some(tree) if wanted && crate::path_payload::predicted_in(&self.file_schema) => {
                 Box::new(crate::path_payload::tree_aligned(reader, tree, path))
             }
             _ => Box::new(reader),
@@ -246,7 +246,7 @@ impl Dataset {
         }
         // The path payload: throughput predicted by colour, radiance from whole trees'
         // throughput and kinds.
-        let predicted = self.file_schema.index_of(ENC_CHROMA).is_ok();
+        let predicted = crate::path_payload::predicted_in(&self.file_schema);
         let want_radiance = predicted && names.iter().any(|n| n == crate::path_payload::RADIANCE);
         let want_throughput =
             predicted && (want_radiance || names.iter().any(|n| n == crate::path_payload::THROUGHPUT));
