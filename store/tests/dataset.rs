@@ -114,6 +114,28 @@ fn round_trip_with_payload_and_random_access() {
     assert_eq!(report.rays, expected_rays);
 }
 
+/// Fetches on several threads at once share the one fetch helper (one holds it, the others
+/// decode all columns themselves): every thread must get each tree exactly as a fetch alone does.
+#[test]
+fn fetches_on_many_threads_at_once_read_the_same_trees() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    write_dataset(&path, payload_schema(), &[50, 70]);
+    let ds = Dataset::open(&path).unwrap();
+    let alone: Vec<_> = (0..120).map(|i| ds.tree(TreeId(i)).unwrap().batch).collect();
+    std::thread::scope(|s| {
+        for t in 0..4u64 {
+            let (ds, alone) = (&ds, &alone);
+            s.spawn(move || {
+                for k in 0..240u64 {
+                    let i = (k * 7 + t * 31) % 120;
+                    assert_eq!(ds.tree(TreeId(i)).unwrap().batch, alone[i as usize], "tree {i} on thread {t}");
+                }
+            });
+        }
+    });
+}
+
 #[test]
 fn nan_and_infinities_round_trip_bit_exactly() {
     let dir = tempfile::tempdir().unwrap();

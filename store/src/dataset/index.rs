@@ -22,7 +22,7 @@ impl Dataset {
         let mut out = Vec::with_capacity((seg.trees.rows as usize).min(1 << 22));
         for batch in reader {
             let b = batch?;
-            push_tree_entries(&b, i, &mut out, &path)?;
+            push_tree_entries(&b, i, &mut out, &path, None)?;
         }
         if out.len() as u64 != seg.trees.rows {
             return Err(Error::Corrupt {
@@ -88,9 +88,8 @@ impl Dataset {
             .map_err(pq_err(&path))?;
         for batch in Guarded::new(reader, &path) {
             let b = batch?;
-            push_tree_entries(&b, i, &mut out, &path)?;
+            push_tree_entries(&b, i, &mut out, &path, Some(filter))?;
         }
-        out.retain(|e| filter.keeps(&e.info));
         out.sort_unstable_by_key(|e| e.info.id);
         Ok(out)
     }
@@ -318,9 +317,16 @@ pub(super) struct TreeIndex {
     pub(super) by_pixel: Vec<u32>,
 }
 
-/// Appends the tree entries of one tree-table batch, its columns found by name (a file whose
-/// table lacks one, or holds it with another type, is corrupt: named in the error).
-pub(super) fn push_tree_entries(b: &RecordBatch, segment: usize, out: &mut Vec<TreeEntry>, path: &Path) -> Result<()> {
+/// Appends the tree entries of one tree-table batch (those `filter` keeps, when given: a lookup
+/// by id reads a page of 2048 trees to keep one), its columns found by name (a file whose table
+/// lacks one, or holds it with another type, is corrupt: named in the error).
+pub(super) fn push_tree_entries(
+    b: &RecordBatch,
+    segment: usize,
+    out: &mut Vec<TreeEntry>,
+    path: &Path,
+    filter: Option<&TreeFilter>,
+) -> Result<()> {
     use crate::schema::col;
     use crate::tree::primitive as get;
     let id = get::<UInt64Type>(b, col::TREE_ID, path)?;
@@ -330,17 +336,16 @@ pub(super) fn push_tree_entries(b: &RecordBatch, segment: usize, out: &mut Vec<T
     let d = get::<UInt16Type>(b, col::MAX_DEPTH, path)?;
     let first = get::<UInt64Type>(b, col::FIRST_ROW, path)?;
     for r in 0..b.num_rows() {
-        out.push(TreeEntry {
-            info: TreeInfo {
-                id: TreeId(id.value(r)),
-                pixel: [px.value(r), py.value(r)],
-                sample: s.value(r),
-                ray_count: n.value(r),
-                max_depth: d.value(r),
-            },
-            segment: segment as u32,
-            first_row: first.value(r),
-        });
+        let info = TreeInfo {
+            id: TreeId(id.value(r)),
+            pixel: [px.value(r), py.value(r)],
+            sample: s.value(r),
+            ray_count: n.value(r),
+            max_depth: d.value(r),
+        };
+        if filter.is_none_or(|f| f.keeps(&info)) {
+            out.push(TreeEntry { info, segment: segment as u32, first_row: first.value(r) });
+        }
     }
     Ok(())
 }

@@ -65,28 +65,27 @@ impl Dataset {
         let roots = self.file_schema.fields().len();
         let path = self.dir.join(&self.segment(i).rays.path);
         // A few trees' rows cost one page of each column, mostly zstd decompression (and two
-        // codec contexts per column, made anew by the parquet reader): two threads decode the
-        // two halves of the columns at once where there is a second core.
-        let split = roots >= 4 && count <= PARALLEL_READ_ROWS && cores() > 1;
-        let batch = if split {
+        // codec contexts per column, made anew by the parquet reader): this thread decodes the
+        // first half of the columns while the fetch helper decodes the second.
+        let split = roots >= 4 && count <= PARALLEL_READ_ROWS;
+        let helper = if split { FetchHelper::take() } else { None };
+        let batch = if let Some(helper) = helper {
             let half = self.segment_meta(i)?.split_root;
             let second = || self.read_rows_of(i, Some((half..roots).collect()), &one, count);
-            let (a, b) = std::thread::scope(|s| {
-                let other = std::thread::Builder::new().name("rtvtk-fetch".into()).spawn_scoped(s, second);
-                let a = self.read_rows_of(i, Some((0..half).collect()), &one, count);
-                let b = match other {
-                    Ok(h) => h.join().unwrap_or_else(|_| {
-                        Err(Error::Corrupt {
-                            path: path.clone(),
-                            what: "ray file".into(),
-                            message: "the thread decoding half of the columns panicked".into(),
-                        })
-                    }),
-                    // No thread to be had: decode the other half here.
-                    Err(_) => second(),
-                };
-                (a, b)
+            let mut b = None;
+            let a = helper.pool.in_place_scope(|s| {
+                s.spawn(|_| b = Some(std::panic::catch_unwind(std::panic::AssertUnwindSafe(second))));
+                self.read_rows_of(i, Some((0..half).collect()), &one, count)
             });
+            drop(helper);
+            let b = match b {
+                Some(Ok(b)) => b,
+                _ => Err(Error::Corrupt {
+                    path: path.clone(),
+                    what: "ray file".into(),
+                    message: "the thread decoding half of the columns panicked".into(),
+                }),
+            };
             let (a, b) = (a?, b?);
             let columns = a.columns().iter().chain(b.columns()).cloned().collect();
             RecordBatch::try_new(self.file_schema.clone(), columns).map_err(arrow_err(path.display().to_string()))?
@@ -304,6 +303,53 @@ pub(super) const PARALLEL_READ_ROWS: u64 = 64 * 1024;
 /// scan: 42% less memory for a two-column scan), but with 8K rows the viewer's loads of 1M rays
 /// took 13-19% longer.
 pub const READ_BATCH_ROWS: usize = 64 * 1024;
+
+/// The one long-lived thread that decodes the second half of a fetch's columns while the
+/// fetching thread decodes the first. A thread made for each fetch (as before) cost its stack's
+/// page faults, and its exit a TLB shootdown on every core: about a tenth of a fetch's time.
+/// Taken by one fetch at a time; a fetch that finds it taken (or no second core) decodes all
+/// columns itself rather than queue behind another's.
+struct FetchHelper {
+    pool: rayon_core::ThreadPool,
+    busy: std::sync::atomic::AtomicBool,
+}
+
+/// The helper, held by one fetch until dropped.
+struct HeldHelper(&'static FetchHelper);
+
+impl std::ops::Deref for HeldHelper {
+    type Target = FetchHelper;
+    fn deref(&self) -> &FetchHelper {
+        self.0
+    }
+}
+
+impl Drop for HeldHelper {
+    fn drop(&mut self) {
+        self.0.busy.store(false, std::sync::atomic::Ordering::Release);
+    }
+}
+
+impl FetchHelper {
+    /// The helper if this process has a second core, the thread could be started and no other
+    /// fetch holds it.
+    fn take() -> Option<HeldHelper> {
+        static HELPER: std::sync::OnceLock<Option<FetchHelper>> = std::sync::OnceLock::new();
+        let helper = HELPER
+            .get_or_init(|| {
+                if cores() < 2 {
+                    return None;
+                }
+                let pool =
+                    rayon_core::ThreadPoolBuilder::new().num_threads(1).thread_name(|_| "rtvtk-fetch".into()).build();
+                pool.ok().map(|pool| FetchHelper { pool, busy: false.into() })
+            })
+            .as_ref()?;
+        use std::sync::atomic::Ordering;
+        helper.busy.compare_exchange(false, true, Ordering::Acquire, Ordering::Relaxed).ok()?;
+        Some(HeldHelper(helper))
+    }
+}
 
 /// Cores this process may use (asked once).
 pub(crate) fn cores() -> usize {
