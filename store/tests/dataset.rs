@@ -136,6 +136,35 @@ fn fetches_on_many_threads_at_once_read_the_same_trees() {
     });
 }
 
+/// A process forked after a fetch started the fetch helper has no helper thread: its fetches
+/// must decode alone, not wait for a job no thread will run (Python's `multiprocessing` forks).
+#[cfg(target_os = "linux")]
+#[test]
+fn a_forked_process_fetches_without_the_helper_thread() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("ds");
+    write_dataset(&path, payload_schema(), &[50, 70]);
+    let ds = Dataset::open(&path).unwrap();
+    let expected = ds.tree(TreeId(77)).unwrap().batch;
+    // SAFETY: the child only fetches and leaves with `_exit`; the test's process has no other
+    // thread holding a lock the child needs (nextest runs each test in its own process).
+    let pid = unsafe { libc::fork() };
+    assert!(pid >= 0, "fork failed");
+    if pid == 0 {
+        // SAFETY: the default action of SIGALRM ends the child if the fetch hangs.
+        unsafe { libc::alarm(20) };
+        let same = ds.tree(TreeId(77)).map(|t| t.batch == expected).unwrap_or(false);
+        // SAFETY: leaving the child without running the parent's destructors.
+        unsafe { libc::_exit(if same { 0 } else { 1 }) };
+    }
+    let mut status = 0;
+    // SAFETY: waiting for the child made above.
+    let waited = unsafe { libc::waitpid(pid, &mut status, 0) };
+    assert_eq!(waited, pid);
+    assert!(!libc::WIFSIGNALED(status), "the forked fetch hung (ended by signal {})", libc::WTERMSIG(status));
+    assert_eq!(libc::WEXITSTATUS(status), 0, "the forked fetch read a different tree");
+}
+
 #[test]
 fn nan_and_infinities_round_trip_bit_exactly() {
     let dir = tempfile::tempdir().unwrap();

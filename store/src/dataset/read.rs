@@ -308,10 +308,14 @@ pub const READ_BATCH_ROWS: usize = 64 * 1024;
 /// fetching thread decodes the first. A thread made for each fetch (as before) cost its stack's
 /// page faults, and its exit a TLB shootdown on every core: about a tenth of a fetch's time.
 /// Taken by one fetch at a time; a fetch that finds it taken (or no second core) decodes all
-/// columns itself rather than queue behind another's.
+/// columns itself rather than queue behind another's. A process forked from the one that
+/// started it (Python's `multiprocessing`) has no such thread and decodes alone too, rather
+/// than wait for a job no thread will run.
 struct FetchHelper {
     pool: rayon_core::ThreadPool,
     busy: std::sync::atomic::AtomicBool,
+    /// The process that started the thread.
+    pid: u32,
 }
 
 /// The helper, held by one fetch until dropped.
@@ -331,8 +335,8 @@ impl Drop for HeldHelper {
 }
 
 impl FetchHelper {
-    /// The helper if this process has a second core, the thread could be started and no other
-    /// fetch holds it.
+    /// The helper if this process has a second core, the thread could be started (by this
+    /// process, not one it was forked from) and no other fetch holds it.
     fn take() -> Option<HeldHelper> {
         static HELPER: std::sync::OnceLock<Option<FetchHelper>> = std::sync::OnceLock::new();
         let helper = HELPER
@@ -342,9 +346,10 @@ impl FetchHelper {
                 }
                 let pool =
                     rayon_core::ThreadPoolBuilder::new().num_threads(1).thread_name(|_| "rtvtk-fetch".into()).build();
-                pool.ok().map(|pool| FetchHelper { pool, busy: false.into() })
+                pool.ok().map(|pool| FetchHelper { pool, busy: false.into(), pid: std::process::id() })
             })
-            .as_ref()?;
+            .as_ref()
+            .filter(|h| h.pid == std::process::id())?;
         use std::sync::atomic::Ordering;
         helper.busy.compare_exchange(false, true, Ordering::Acquire, Ordering::Relaxed).ok()?;
         Some(HeldHelper(helper))
