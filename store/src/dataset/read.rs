@@ -73,7 +73,7 @@ impl Dataset {
             let half = self.segment_meta(i)?.split_root;
             let second = || self.read_rows_of(i, Some((half..roots).collect()), &one, count);
             let mut b = None;
-            let a = helper.pool.in_place_scope(|s| {
+            let a = helper.0.pool.in_place_scope(|s| {
                 s.spawn(|_| b = Some(std::panic::catch_unwind(std::panic::AssertUnwindSafe(second))));
                 self.read_rows_of(i, Some((0..half).collect()), &one, count)
             });
@@ -320,13 +320,6 @@ struct FetchHelper {
 
 /// The helper, held by one fetch until dropped.
 struct HeldHelper(&'static FetchHelper);
-
-impl std::ops::Deref for HeldHelper {
-    type Target = FetchHelper;
-    fn deref(&self) -> &FetchHelper {
-        self.0
-    }
-}
 
 impl Drop for HeldHelper {
     fn drop(&mut self) {
