@@ -132,14 +132,33 @@ impl Manifest {
     }
 
     /// Adds a sealed segment, updating totals and the used kinds.
-    pub fn add_segment(&mut self, seg: SegmentEntry, kinds: &KindTable) {
+    pub fn add_segment(&mut self, mut seg: SegmentEntry, kinds: &KindTable) {
+        // A code recorded before a name was registered for it was counted as `kindN` by the
+        // statistics of what was written before. From the name's registration on, the code goes
+        // by that name, in this segment and in those committed before: the files hold the code,
+        // and the manifest must name it once (found by the C ABI fuzz harness: the file read
+        // `kind17` where the manifest counted `b`).
+        let renamed: Vec<(String, String)> = seg
+            .stats
+            .rays_by_kind_depth
+            .keys()
+            .chain(self.kinds.keys())
+            .filter_map(|name| Some((name.clone(), registered_name(name, kinds)?)))
+            .collect();
+        for (from, to) in &renamed {
+            seg.stats.rename_kind(from, to);
+            self.stats.rename_kind(from, to);
+            for s in &mut self.segments {
+                s.stats.rename_kind(from, to);
+            }
+            self.kinds.remove(from);
+        }
         self.stats.merge(&seg.stats);
         for name in seg.stats.rays_by_kind_depth.keys() {
             // A code recorded without a name (neither built in nor registered) is counted as
             // `kindN` by the statistics, and declared by that name, so its rays stay readable
             // (found by the C ABI fuzz harness: such rays made the dataset fail `check`).
-            let unnamed = name.strip_prefix("kind").and_then(|n| n.parse::<u8>().ok()).map(Kind);
-            if let Some(kind) = kinds.lookup(name).or(unnamed) {
+            if let Some(kind) = kinds.lookup(name).or(unnamed_code(name)) {
                 self.kinds.insert(name.clone(), kind.0);
             }
         }
@@ -216,4 +235,18 @@ pub fn segment_file(id: u32, table: &str) -> String {
 
 fn plain_encoding() -> Encoding {
     Encoding::Plain
+}
+
+/// The code of a `kindN` name: how the statistics count a code that had no name.
+fn unnamed_code(name: &str) -> Option<Kind> {
+    name.strip_prefix("kind").and_then(|n| n.parse::<u8>().ok()).map(Kind)
+}
+
+/// The name registered since for the code of an unnamed `kindN` (None for any other name, and
+/// for a `kindN` that is itself a registered name).
+fn registered_name(name: &str, kinds: &KindTable) -> Option<String> {
+    if kinds.lookup(name).is_some() {
+        return None;
+    }
+    kinds.name(unnamed_code(name)?).map(str::to_string)
 }

@@ -309,6 +309,16 @@ impl Stats {
         self.pixel_bounds.merge(&other.pixel_bounds);
     }
 
+    /// Counts the rays of kind `from` under the name `to` (added to those already there).
+    pub fn rename_kind(&mut self, from: &str, to: &str) {
+        if let Some(counts) = self.rays_by_kind_depth.remove(from) {
+            let mine = self.rays_by_kind_depth.entry(to.to_string()).or_default();
+            for (d, c) in counts.iter().enumerate() {
+                bump(mine, d, *c);
+            }
+        }
+    }
+
     /// Ray counts per kind.
     pub fn rays_by_kind(&self) -> BTreeMap<String, u64> {
         self.rays_by_kind_depth
