@@ -167,6 +167,17 @@ mod fuzz {
         run(0, &[Op::Begin(0, 0, 0), ray, Op::Begin(0, 0, 0), Op::End, Op::End]).unwrap();
     }
 
+    /// Found by the harness: a code recorded without a name, then named after its segment was
+    /// sealed, was left undeclared when the last segment (one empty tree) did not use it.
+    #[test]
+    fn a_code_named_after_its_segment_stays_declared() {
+        let ray =
+            Op::Add { origin: Some([0.0; 3]), dir: Some([0.0, 0.0, 1.0]), t: 1.0, kind: 16, prim: 0, payload: None };
+        let ops =
+            [Op::Begin(0, 0, 0), ray, Op::End, Op::Flush, Op::Begin(0, 0, 0), Op::End, Op::Kind(Some("a".into()))];
+        run(0, &ops).unwrap();
+    }
+
     fn run(payload_size: usize, ops: &[Op]) -> Result<(), TestCaseError> {
         {
             let dir = tempfile::tempdir().unwrap();

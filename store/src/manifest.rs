@@ -151,7 +151,12 @@ impl Manifest {
             for s in &mut self.segments {
                 s.stats.rename_kind(from, to);
             }
-            self.kinds.remove(from);
+            // The code stays declared under its name even when this segment does not use it
+            // (found by the harness: a segment of only an empty tree sealed after the
+            // registration left the code undeclared).
+            if let Some(code) = self.kinds.remove(from) {
+                self.kinds.insert(to.clone(), code);
+            }
         }
         self.stats.merge(&seg.stats);
         for name in seg.stats.rays_by_kind_depth.keys() {
