@@ -16,8 +16,8 @@ pub enum ClusterCommand {
         #[arg(long, default_value = "127.0.0.1:50050")]
         addr: SocketAddr,
         /// Seconds without a heartbeat before an executor is taken for dead and its tasks run
-        /// elsewhere.
-        #[arg(long, default_value_t = 15)]
+        /// elsewhere (at least 10: a busy executor reports only every 5 s).
+        #[arg(long, default_value_t = 15, value_parser = executor_timeout)]
         executor_timeout: u64,
     },
     /// An executor: runs tasks of the scheduler at `--scheduler` on `--cores` slots and serves
@@ -37,6 +37,15 @@ pub enum ClusterCommand {
         #[arg(long)]
         work_dir: Option<String>,
     },
+}
+
+/// `--executor-timeout`: whole seconds, at least [`cluster::MIN_EXECUTOR_TIMEOUT_S`].
+fn executor_timeout(text: &str) -> Result<u64, String> {
+    let given: u64 = text.trim().parse().map_err(|_| format!("{text:?} is not a whole number of seconds"))?;
+    if given < cluster::MIN_EXECUTOR_TIMEOUT_S {
+        return Err(cluster::Error::ExecutorTimeout { given }.to_string());
+    }
+    Ok(given)
 }
 
 pub fn run(cmd: &ClusterCommand) -> Result<()> {

@@ -173,7 +173,7 @@ fn queries_run_on_a_cluster_with_the_in_process_answers() {
     let sources = slt_db::sources(tmp.path());
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
 
-    let (scheduler, line) = start(&["cluster", "scheduler", "--addr", "127.0.0.1:0", "--executor-timeout", "4"]);
+    let (scheduler, line) = start(&["cluster", "scheduler", "--addr", "127.0.0.1:0", "--executor-timeout", "10"]);
     let mut procs = Procs(vec![scheduler]);
     let addr = line.strip_prefix("scheduler listening on ").unwrap().split_whitespace().next().unwrap().to_string();
     let url = format!("df://{addr}");
@@ -329,6 +329,11 @@ fn a_cluster_nobody_runs_is_a_clear_error() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cannot reach the scheduler at 127.0.0.1:1"), "{err}");
     assert_eq!(err.matches("os error").count(), 1, "the cause once: {err}");
+    // A timeout a busy executor cannot meet is refused, naming the flag and the floor.
+    let out = common::rtvtk(&["cluster", "scheduler", "--addr", "127.0.0.1:0", "--executor-timeout", "4"]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--executor-timeout") && err.contains("at least 10 s"), "{err}");
     let out = common::rtvtk(&["sql", ds.to_str().unwrap(), "SELECT 1", "--cluster", "http://x:1"]);
     assert!(String::from_utf8_lossy(&out.stderr).contains("expected df://HOST:PORT"));
     let out = common::rtvtk(&["cluster", "executor", "--scheduler", "nowhere"]);

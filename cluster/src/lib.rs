@@ -41,6 +41,10 @@ pub enum Error {
     Url { url: String, message: String },
     #[error("cannot reach the scheduler at {addr} (is `rtvtk cluster scheduler` running there?)")]
     Unreachable { addr: String, source: std::io::Error },
+    #[error(
+        "executor timeout {given} s is too short: a busy executor reports only every 5 s, so it must be at least {MIN_EXECUTOR_TIMEOUT_S} s"
+    )]
+    ExecutorTimeout { given: u64 },
 }
 
 pub type Result<T, E = Error> = std::result::Result<T, E>;
@@ -90,11 +94,18 @@ fn scheduler_session(config: SessionConfig) -> datafusion::common::Result<Sessio
         .build())
 }
 
+/// The shortest executor timeout a scheduler accepts. Under pull scheduling an executor's poll
+/// for work is its heartbeat, and an executor whose every task slot is taken polls only every
+/// 5 s (Ballista's `HEARTBEAT_POLL_INTERVAL`). A shorter timeout takes a busy executor for dead
+/// while it works, and resets its stages again and again: a CI run's query, with one of two
+/// executors killed and a 4 s timeout, retried its join stage 18 times in 240 s and never ended.
+pub const MIN_EXECUTOR_TIMEOUT_S: u64 = 10;
+
 /// Settings of a scheduler.
 #[derive(Clone, Debug)]
 pub struct SchedulerOptions {
     /// Seconds without a heartbeat after which an executor is taken for dead (its tasks run again
-    /// elsewhere).
+    /// elsewhere); at least [`MIN_EXECUTOR_TIMEOUT_S`].
     pub executor_timeout_s: u64,
 }
 
@@ -109,14 +120,17 @@ pub async fn run_scheduler(listener: tokio::net::TcpListener, options: &Schedule
     use ballista_scheduler::cluster::BallistaCluster;
     use ballista_scheduler::config::SchedulerConfig;
     use datafusion_proto::protobuf::{LogicalPlanNode, PhysicalPlanNode};
+    if options.executor_timeout_s < MIN_EXECUTOR_TIMEOUT_S {
+        return Err(Error::ExecutorTimeout { given: options.executor_timeout_s });
+    }
     let addr = listener.local_addr().map_err(BallistaError::from)?;
     let config = SchedulerConfig {
         bind_host: addr.ip().to_string(),
         bind_port: addr.port(),
         external_host: addr.ip().to_string(),
-        executor_timeout_seconds: options.executor_timeout_s.max(2),
+        executor_timeout_seconds: options.executor_timeout_s,
         expire_dead_executor_interval_seconds: 1,
-        no_executors_grace_period_seconds: options.executor_timeout_s.max(2),
+        no_executors_grace_period_seconds: options.executor_timeout_s,
         override_logical_codec: Some(logical_codec()),
         override_physical_codec: Some(physical_codec()),
         override_session_builder: Some(Arc::new(scheduler_session)),
