@@ -200,7 +200,30 @@ impl Manifest {
                 supported: FORMAT_VERSION,
             });
         }
-        serde_json::from_value(head).map_err(|e| Error::Manifest { path, message: e.to_string() })
+        let manifest: Manifest =
+            serde_json::from_value(head).map_err(|e| Error::Manifest { path: path.clone(), message: e.to_string() })?;
+        manifest.check_paths().map_err(|message| Error::Manifest { path, message })?;
+        Ok(manifest)
+    }
+
+    /// Every file the manifest lists must lie inside the dataset directory: a relative path of
+    /// plain names (found by the reader's fuzz harness: a segment path of "/" read the root
+    /// directory as a ray file).
+    fn check_paths(&self) -> std::result::Result<(), String> {
+        let files = self.segments.iter().enumerate().flat_map(|(i, s)| {
+            [(format!("segments[{i}].rays.path"), &s.rays.path), (format!("segments[{i}].trees.path"), &s.trees.path)]
+        });
+        let tables = self.tables.iter().map(|(name, f)| (format!("tables.{name}.path"), &f.path));
+        for (field, path) in files.chain(tables) {
+            let inside =
+                !path.is_empty() && Path::new(path).components().all(|c| matches!(c, std::path::Component::Normal(_)));
+            if !inside {
+                return Err(format!(
+                    "field `{field}` is {path:?}: expected a relative path inside the dataset directory"
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Atomically replaces the manifest of the dataset at `dir`.

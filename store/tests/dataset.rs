@@ -300,6 +300,26 @@ fn newer_format_version_is_refused() {
     assert!(err.to_string().contains("manifest.json"));
 }
 
+/// Found by the reader's fuzz harness: a segment path of "/" read the root directory as a ray
+/// file. A listed file must lie inside the dataset.
+#[test]
+fn a_listed_file_outside_the_dataset_is_refused() {
+    let (_d, path) = sample_dataset();
+    let m = path.join("manifest.json");
+    let good: serde_json::Value = serde_json::from_slice(&fs::read(&m).unwrap()).unwrap();
+    for bad in ["/", "/etc/passwd", "../elsewhere.parquet", "segments/../../x", ""] {
+        let mut json = good.clone();
+        json["segments"][1]["rays"]["path"] = serde_json::Value::String(bad.into());
+        fs::write(&m, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
+        let err = Dataset::open(&path).err().unwrap();
+        assert!(matches!(err, Error::Manifest { .. }), "{bad}: {err}");
+        let text = err.to_string();
+        assert!(text.contains("manifest.json") && text.contains("segments[1].rays.path"), "{bad}: {text}");
+    }
+    fs::write(&m, serde_json::to_vec_pretty(&good).unwrap()).unwrap();
+    assert!(Dataset::open(&path).is_ok());
+}
+
 #[test]
 fn malformed_manifest_is_named() {
     let (_d, path) = sample_dataset();
