@@ -42,10 +42,7 @@ pub enum ClusterCommand {
 /// `--executor-timeout`: whole seconds, at least [`cluster::MIN_EXECUTOR_TIMEOUT_S`].
 fn executor_timeout(text: &str) -> Result<u64, String> {
     let given: u64 = text.trim().parse().map_err(|_| format!("{text:?} is not a whole number of seconds"))?;
-    if given < cluster::MIN_EXECUTOR_TIMEOUT_S {
-        return Err(cluster::Error::ExecutorTimeout { given }.to_string());
-    }
-    Ok(given)
+    cluster::executor_timeout(given).map_err(|e| e.to_string())
 }
 
 pub fn run(cmd: &ClusterCommand) -> Result<()> {

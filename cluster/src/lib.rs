@@ -101,6 +101,14 @@ fn scheduler_session(config: SessionConfig) -> datafusion::common::Result<Sessio
 /// executors killed and a 4 s timeout, retried its join stage 18 times in 240 s and never ended.
 pub const MIN_EXECUTOR_TIMEOUT_S: u64 = 10;
 
+/// `seconds` when it is a timeout a scheduler accepts (at least [`MIN_EXECUTOR_TIMEOUT_S`]).
+pub fn executor_timeout(seconds: u64) -> Result<u64> {
+    if seconds < MIN_EXECUTOR_TIMEOUT_S {
+        return Err(Error::ExecutorTimeout { given: seconds });
+    }
+    Ok(seconds)
+}
+
 /// Settings of a scheduler.
 #[derive(Clone, Debug)]
 pub struct SchedulerOptions {
@@ -120,17 +128,15 @@ pub async fn run_scheduler(listener: tokio::net::TcpListener, options: &Schedule
     use ballista_scheduler::cluster::BallistaCluster;
     use ballista_scheduler::config::SchedulerConfig;
     use datafusion_proto::protobuf::{LogicalPlanNode, PhysicalPlanNode};
-    if options.executor_timeout_s < MIN_EXECUTOR_TIMEOUT_S {
-        return Err(Error::ExecutorTimeout { given: options.executor_timeout_s });
-    }
+    let executor_timeout_s = executor_timeout(options.executor_timeout_s)?;
     let addr = listener.local_addr().map_err(BallistaError::from)?;
     let config = SchedulerConfig {
         bind_host: addr.ip().to_string(),
         bind_port: addr.port(),
         external_host: addr.ip().to_string(),
-        executor_timeout_seconds: options.executor_timeout_s,
+        executor_timeout_seconds: executor_timeout_s,
         expire_dead_executor_interval_seconds: 1,
-        no_executors_grace_period_seconds: options.executor_timeout_s,
+        no_executors_grace_period_seconds: executor_timeout_s,
         override_logical_codec: Some(logical_codec()),
         override_physical_codec: Some(physical_codec()),
         override_session_builder: Some(Arc::new(scheduler_session)),

@@ -138,7 +138,7 @@ impl Manifest {
         // by that name, in this segment and in those committed before: the files hold the code,
         // and the manifest must name it once (found by the C ABI fuzz harness: the file read
         // `kind17` where the manifest counted `b`).
-        let renamed: Vec<(String, String)> = seg
+        let renamed: std::collections::BTreeSet<(String, String)> = seg
             .stats
             .rays_by_kind_depth
             .keys()
