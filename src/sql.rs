@@ -31,7 +31,7 @@ pub struct SqlArgs {
     #[arg(long)]
     explain: bool,
     /// Memory the query's operators may hold, e.g. `2GiB` or `512MiB` (default: 80% of this
-    /// machine's memory; beyond it sorts and joins spill to disk, group-bys fail with an error).
+    /// machine's memory; beyond it sorts, joins and group-bys spill to disk).
     #[arg(long, value_parser = parse_bytes)]
     memory_limit: Option<usize>,
     /// Print the query's wall time (seconds, after the session is open) to stderr.

@@ -336,9 +336,30 @@ fn pushed_filters_prune_and_keep_answers() {
     let ours = answer(&[]);
     assert!(ours.lines().count() > 5, "{ours}");
     assert_eq!(ours, answer(&["--stock-aggregation"]));
-    // Its tables are charged to the memory limit: over it, an error that says so, not a crash.
-    let every_ray = "SELECT CAST(tree_id AS BIGINT) * 4096 + ray AS id, count(*) FROM rays GROUP BY id";
-    let out = rtvtk(&["sql", d, every_ray, "--memory-limit", "64KiB"]);
+    // Its tables are charged to the memory limit. Over it, the counting group-by spills them to
+    // disk and answers as it does without one; under a limit too small for one batch's keys, an
+    // error that says so, not a crash.
+    let every_ray = "SELECT CAST(tree_id AS BIGINT) * 4096 + ray AS id, count(*) AS n FROM rays GROUP BY id";
+    let sorted = |extra: &[&str]| {
+        let out = rtvtk(&[&["sql", d, every_ray, "--format", "csv"], extra].concat());
+        assert!(out.status.success(), "{extra:?}: {}", String::from_utf8_lossy(&out.stderr));
+        let mut lines: Vec<String> = String::from_utf8_lossy(&out.stdout).lines().map(str::to_string).collect();
+        lines.sort();
+        lines
+    };
+    let unlimited = sorted(&[]);
+    assert!(unlimited.len() > 1000, "{} groups", unlimited.len());
+    assert_eq!(sorted(&["--memory-limit", "512KiB"]), unlimited);
+    let analyzed = rtvtk(&["sql", d, &format!("EXPLAIN ANALYZE {every_ray}"), "--memory-limit", "512KiB"]);
+    let shown = String::from_utf8_lossy(&analyzed.stdout);
+    let line = shown.lines().find(|l| l.contains("CountByKeyExec")).unwrap_or_else(|| panic!("{shown}"));
+    let spills: u64 = line
+        .split("spill_count=")
+        .nth(1)
+        .and_then(|r| r.split(|c: char| !c.is_ascii_digit()).next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no spill count in {line}"));
+    assert!(spills > 0, "{line}");
+    let out = rtvtk(&["sql", d, every_ray, "--memory-limit", "1"]);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && stderr.contains("CountByKeyExec") && !stderr.contains("panicked"), "{stderr}");
 }

@@ -10,11 +10,18 @@
 //! the keys in 256 radix buckets (by the top bits of a hash) and, every few million rows, adds
 //! them to the bucket's open-addressing table, one bucket at a time, so that each table (the key
 //! and its counts side by side in a slot) is read into cache once per flush rather than missed on
-//! every row; the workers' tables are then merged bucket by bucket, in parallel. Memory is charged
-//! to the session's memory pool, so a memory limit is an error, not an out-of-memory kill.
+//! every row; the workers' tables are then merged bucket by bucket, in parallel.
+//!
+//! Memory is charged to the session's memory pool. When the pool refuses a worker more, the
+//! worker writes its tables to a spill file in the session's temporary directory (one run, bucket
+//! by bucket), empties them and goes on; the merge then reads each bucket's runs back and merges
+//! that bucket alone, so it holds about 1/256 of the groups per merging task. Only a limit too
+//! small for one bucket's groups is an error (resources exhausted, naming the operator), never an
+//! out-of-memory kill. `EXPLAIN ANALYZE` shows `spill_count` (runs written) and `spilled_bytes`.
 
 use std::borrow::Cow;
 use std::fmt;
+use std::io::{BufWriter, Read, Seek, SeekFrom, Write};
 use std::sync::Arc;
 
 use arrow::array::{Array, ArrayRef, AsArray, Int64Array, RecordBatch, UInt64Array};
@@ -25,21 +32,23 @@ use datafusion::common::config::ConfigOptions;
 use datafusion::common::runtime::SpawnedTask;
 use datafusion::common::tree_node::TreeNodeRecursion;
 use datafusion::error::{DataFusionError, Result};
-use datafusion::execution::TaskContext;
-use datafusion::execution::memory_pool::{MemoryConsumer, MemoryReservation};
+use datafusion::execution::memory_pool::{MemoryConsumer, MemoryLimit, MemoryPool, MemoryReservation};
+use datafusion::execution::{DiskManager, SpillFile, SpillWriter, TaskContext};
 use datafusion::physical_expr::expressions::Literal;
 use datafusion::physical_expr::{EquivalenceProperties, PhysicalExpr};
 use datafusion::physical_optimizer::PhysicalOptimizerRule;
 use datafusion::physical_plan::aggregates::{AggregateExec, AggregateMode};
 use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
-use datafusion::physical_plan::metrics::{BaselineMetrics, ExecutionPlanMetricsSet, MetricsSet};
+use datafusion::physical_plan::metrics::{BaselineMetrics, Count, ExecutionPlanMetricsSet, MetricBuilder, MetricsSet};
+use datafusion::physical_plan::stream::RecordBatchReceiverStreamBuilder;
 use datafusion::physical_plan::{
     DisplayAs, DisplayFormatType, ExecutionPlan, ExecutionPlanProperties, Partitioning, PlanProperties,
     SendableRecordBatchStream,
 };
 use futures::StreamExt;
+use tokio::sync::mpsc::Sender;
 
-use crate::plan_util::{Walk, batches_stream, replace_nodes};
+use crate::plan_util::{Walk, replace_nodes};
 
 /// Radix buckets per partition (the top bits of a key's hash).
 const BUCKET_BITS: u32 = 8;
@@ -246,32 +255,47 @@ impl ExecutionPlan for CountByKeyExec {
         // segment would multiply the memory and the merging).
         let parts = self.input.output_partitioning().partition_count();
         let workers = context.session_config().target_partitions().clamp(1, parts.max(1));
+        let spill = SpillTo {
+            disk: context.runtime_env().disk_manager.clone(),
+            runs: MetricBuilder::new(&self.metrics).spill_count(partition),
+            bytes: MetricBuilder::new(&self.metrics).spilled_bytes(partition),
+        };
+        let limit = match context.memory_pool().memory_limit() {
+            MemoryLimit::Finite(limit) => limit,
+            _ => usize::MAX,
+        };
+        let share = limit / workers;
         let mut tasks = Vec::with_capacity(workers);
         for w in 0..workers {
             let streams = (w..parts).step_by(workers).map(|p| self.input.execute(p, context.clone()));
             let streams = streams.collect::<Result<Vec<_>>>()?;
             let reservation = MemoryConsumer::new(format!("CountByKeyExec[{w}]")).register(context.memory_pool());
+            let budget = Budget { reservation, share };
             let (key, args, stride) = (self.key.clone(), self.args.clone(), self.stride());
-            tasks.push(SpawnedTask::spawn(count_partitions(streams, key, args, stride, reservation)));
+            let counting = count_partitions(streams, key, args, stride, budget, spill.clone());
+            tasks.push(SpawnedTask::spawn(counting));
         }
-        let schema = self.schema.clone();
-        let outputs = self.outputs.clone();
-        let stride = self.stride();
-        let batch_size = context.session_config().batch_size();
-        let baseline = BaselineMetrics::new(&self.metrics, partition);
-        let answer = async move {
+        let out = Output {
+            schema: self.schema.clone(),
+            outputs: self.outputs.clone(),
+            stride: self.stride(),
+            batch_size: context.session_config().batch_size().max(1),
+            baseline: BaselineMetrics::new(&self.metrics, partition),
+            limit,
+        };
+        let pool = context.memory_pool().clone();
+        let mut stream = RecordBatchReceiverStreamBuilder::new(self.schema.clone(), 2);
+        let tx = stream.tx();
+        stream.spawn(async move {
             let mut counted = Vec::with_capacity(tasks.len());
             for t in tasks {
                 counted.push(t.join().await.map_err(|e| DataFusionError::ExecutionJoin(Box::new(e)))??);
             }
-            let timer = baseline.elapsed_compute().timer();
-            let batches = merge(counted, stride, &schema, &outputs, batch_size).await?;
-            timer.done();
-            baseline.record_output(batches.iter().map(RecordBatch::num_rows).sum());
-            baseline.done();
-            Ok::<_, DataFusionError>(batches)
-        };
-        Ok(batches_stream(self.schema.clone(), answer))
+            merge(counted, &out, &spill, &pool, &tx).await?;
+            out.baseline.done();
+            Ok(())
+        });
+        Ok(stream.build())
     }
 }
 
@@ -316,6 +340,15 @@ impl Table {
         while (self.len + additional) * 2 > self.capacity(stride) {
             self.grow(stride);
         }
+    }
+
+    /// The bytes [`Table::reserve`] would add for `additional` new keys.
+    fn growth(&self, additional: usize, stride: usize) -> usize {
+        let (old, mut capacity) = (self.capacity(stride), self.capacity(stride));
+        while (self.len + additional) * 2 > capacity {
+            capacity = (capacity * 2).max(64);
+        }
+        (capacity - old) * stride * 8
     }
 
     /// [`Table::slot`] without the growth check: room must have been reserved.
@@ -394,6 +427,15 @@ impl Narrow {
         }
     }
 
+    /// The bytes [`Narrow::reserve`] would add for `additional` new keys.
+    fn growth(&self, additional: usize) -> usize {
+        let mut capacity = self.words.len();
+        while (self.len + additional) * 2 > capacity {
+            capacity = (capacity * 2).max(64);
+        }
+        (capacity - self.words.len()) * 8
+    }
+
     /// Adds `n` rows to `key` (below 2^32); room must have been reserved.
     #[inline(always)]
     fn add(&mut self, key: u64, n: u64) {
@@ -422,6 +464,9 @@ impl Narrow {
 /// each bucket's table is then read into cache once per flush, not missed on every row.
 const PENDING_KEYS: usize = 4 << 20;
 
+/// The fewest keys buffered per flush, however often the tables are spilled.
+const MIN_PENDING_KEYS: usize = 1 << 12;
+
 /// Bytes a worker's single direct table may reach before the worker switches to radix buckets:
 /// a table this size stays in a core's L2 cache (1 MiB of the 2 MiB here), where counting straight
 /// into it is faster than buffering (with 16K distinct keys the buffered path was 3x slower than
@@ -442,11 +487,19 @@ struct Counts {
     rows: u64,
     pending: Vec<Vec<u64>>,
     pending_rows: usize,
+    /// Rows buffered before a flush: at most [`PENDING_KEYS`], fewer under a memory limit (see
+    /// [`Counts::new`]), halved at every spill.
+    pending_limit: usize,
     null_key: Vec<u64>,
 }
 
 impl Counts {
-    fn new(stride: usize) -> Self {
+    /// Counts with `stride`-word slots, whose worker may hold about `share` bytes of the memory
+    /// limit: the keys buffered between flushes are capped to an eighth of it (their buffers grow
+    /// a batch at a time, before the pool is asked).
+    fn new(stride: usize, share: usize) -> Self {
+        let per_key = if stride > 2 { 16 } else { 8 };
+        let pending_limit = (share / 8 / per_key).clamp(MIN_PENDING_KEYS, PENDING_KEYS);
         Self {
             stride,
             direct: Some(Table::default()),
@@ -456,6 +509,7 @@ impl Counts {
             rows: 0,
             pending: vec![Vec::new(); BUCKETS],
             pending_rows: 0,
+            pending_limit,
             null_key: vec![0; stride - 1],
         }
     }
@@ -477,56 +531,86 @@ impl Counts {
         }
     }
 
-    /// Adds the pending keys to the tables, one bucket at a time.
-    fn flush(&mut self) {
+    /// Adds the pending keys to the tables, one bucket at a time. Before a table grows, what it
+    /// grows by is asked of `reservation`; when the pool refuses, its error is returned and the
+    /// keys not yet added stay pending (the caller spills the tables and flushes again).
+    fn flush(&mut self, reservation: &mut Budget) -> Result<()> {
         let stride = self.stride;
         if self.too_wide() {
             self.widen();
         }
-        if let Some(narrow) = self.narrow.as_mut() {
-            for (t, pending) in narrow.iter_mut().zip(&mut self.pending) {
-                std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
-                for chunk in pending.chunks(1024) {
-                    t.reserve(chunk.len());
-                    for &key in chunk {
-                        t.add(key, 1);
-                    }
-                }
-                pending.clear();
+        let per = if stride > 2 { 2 } else { 1 };
+        // Buffers far larger than the pending limit now needs are given back.
+        let keep = (self.pending_limit / BUCKETS * per * 2).max(16);
+        for b in 0..BUCKETS {
+            let pending = &mut self.pending[b];
+            if pending.is_empty() {
+                continue;
             }
-            self.pending_rows = 0;
-            return;
-        }
-        for (t, pending) in self.tables.iter_mut().zip(&mut self.pending) {
-            // Read the table into cache in order (at the prefetcher's pace) before the random probes.
-            std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
-            // Room is reserved per chunk, not checked per key (at most a chunk's worth of slack).
-            let per = if stride > 2 { 2 } else { 1 };
-            for chunk in pending.chunks(1024 * per) {
-                t.reserve(chunk.len() / per, stride);
-                if per == 1 {
-                    for &key in chunk {
-                        let w = t.slot_reserved(key, mix(key), stride);
-                        t.words[w + 1] += 1;
-                    }
-                    continue;
-                }
-                for row in chunk.chunks_exact(per) {
-                    let w = t.slot_reserved(row[0], mix(row[0]), stride);
-                    t.words[w + 1] += 1;
-                    for j in 2..stride {
-                        t.words[w + j] += (row[1] >> (j - 2)) & 1;
+            let mut done = 0;
+            let mut refused = None;
+            match self.narrow.as_mut() {
+                Some(narrow) => {
+                    let t = &mut narrow[b];
+                    std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
+                    for chunk in pending.chunks(1024) {
+                        if let Err(e) = reservation.try_grow(t.growth(chunk.len())) {
+                            refused = Some(e);
+                            break;
+                        }
+                        t.reserve(chunk.len());
+                        for &key in chunk {
+                            t.add(key, 1);
+                        }
+                        done += chunk.len();
                     }
                 }
+                None => {
+                    let t = &mut self.tables[b];
+                    // Read the table into cache in order (at the prefetcher's pace) before the
+                    // random probes.
+                    std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
+                    // Room is reserved per chunk, not checked per key (at most a chunk's slack).
+                    for chunk in pending.chunks(1024 * per) {
+                        if let Err(e) = reservation.try_grow(t.growth(chunk.len() / per, stride)) {
+                            refused = Some(e);
+                            break;
+                        }
+                        t.reserve(chunk.len() / per, stride);
+                        if per == 1 {
+                            for &key in chunk {
+                                let w = t.slot_reserved(key, mix(key), stride);
+                                t.words[w + 1] += 1;
+                            }
+                        } else {
+                            for row in chunk.chunks_exact(per) {
+                                let w = t.slot_reserved(row[0], mix(row[0]), stride);
+                                t.words[w + 1] += 1;
+                                for j in 2..stride {
+                                    t.words[w + j] += (row[1] >> (j - 2)) & 1;
+                                }
+                            }
+                        }
+                        done += chunk.len();
+                    }
+                }
+            }
+            if let Some(e) = refused {
+                pending.drain(..done);
+                return Err(e);
             }
             pending.clear();
+            if pending.capacity() > keep {
+                *pending = Vec::new();
+            }
         }
         self.pending_rows = 0;
+        Ok(())
     }
 
     /// Moves the direct table's keys into the radix buckets' tables (for good: later rows are
     /// buffered) once it has outgrown [`DIRECT_BYTES`], or always when `all`.
-    fn spill(&mut self, all: bool) {
+    fn bucket_direct(&mut self, all: bool) {
         let stride = self.stride;
         if !all && self.direct.as_ref().is_none_or(|t| t.len * 2 * stride * 8 <= DIRECT_BYTES) {
             return;
@@ -550,6 +634,50 @@ impl Counts {
                 *b += v;
             }
         }
+    }
+
+    /// Empties the tables once they have been written out (see [`Spilled`]); keys still pending
+    /// stay, to be flushed into the empty tables.
+    fn clear(&mut self) {
+        self.direct = None;
+        self.tables = (0..BUCKETS).map(|_| Table::default()).collect();
+        if self.narrow.is_some() {
+            self.narrow = Some((0..BUCKETS).map(|_| Narrow::default()).collect());
+        }
+        self.pending_limit = (self.pending_limit / 2).max(MIN_PENDING_KEYS);
+    }
+
+    /// Whether the tables hold no key (the NULL key's counts are kept apart), pending keys aside.
+    fn is_empty_but_pending(&self) -> bool {
+        self.direct.as_ref().is_none_or(|t| t.len == 0)
+            && match &self.narrow {
+                Some(n) => n.iter().all(|t| t.len == 0),
+                None => self.tables.iter().all(|t| t.len == 0),
+            }
+    }
+
+    /// Writes bucket `b`'s entries (`stride` words each: the key, then its counts), once the
+    /// direct table and the pending keys are in the buckets; returns how many.
+    fn write_bucket(&self, b: usize, w: &mut impl Write) -> std::io::Result<u64> {
+        let mut n = 0;
+        match &self.narrow {
+            Some(narrow) => {
+                for &word in narrow[b].words.iter().filter(|&&w| w != 0) {
+                    w.write_all(&(word >> 32).to_le_bytes())?;
+                    w.write_all(&(word & LOW).to_le_bytes())?;
+                    n += 1;
+                }
+            }
+            None => {
+                for s in self.tables[b].words.chunks_exact(self.stride).filter(|s| s[1] != 0) {
+                    for v in s {
+                        w.write_all(&v.to_le_bytes())?;
+                    }
+                    n += 1;
+                }
+            }
+        }
+        Ok(n)
     }
 
     fn bytes(&self) -> usize {
@@ -578,16 +706,18 @@ fn key_words(a: &ArrayRef) -> Result<(Cow<'_, [u64]>, Option<NullBuffer>)> {
     Ok((words, nulls))
 }
 
-/// Counts input partitions, one after the other, into one set of tables.
+/// Counts input partitions, one after the other, into one set of tables; when the memory pool
+/// refuses them more, writes them to a spill file and starts again with empty ones.
 async fn count_partitions(
     streams: Vec<SendableRecordBatchStream>,
     key: Arc<dyn PhysicalExpr>,
     args: Vec<Arc<dyn PhysicalExpr>>,
     stride: usize,
-    reservation: MemoryReservation,
-) -> Result<(Counts, MemoryReservation)> {
-    let mut c = Counts::new(stride);
-    let mut bytes = 0usize;
+    mut reservation: Budget,
+    spill: SpillTo,
+) -> Result<(Counts, Option<Spilled>, Budget)> {
+    let mut c = Counts::new(stride, reservation.share);
+    let mut spilled = None;
     let mut batches = futures::stream::iter(streams).flatten();
     while let Some(batch) = batches.next().await {
         let batch = batch?;
@@ -622,22 +752,53 @@ async fn count_partitions(
             add_rows(&mut c, &keys, key_nulls.as_ref(), &mask, args.len());
         }
         if c.direct.is_some() {
-            c.spill(false);
+            c.bucket_direct(false);
         } else {
             c.pending_rows += rows;
         }
-        if c.pending_rows >= PENDING_KEYS {
-            c.flush();
+        if c.pending_rows >= c.pending_limit {
+            flush_or_spill(&mut c, &mut reservation, &spill, &mut spilled)?;
         }
         let now = c.bytes();
-        if now != bytes {
-            reservation.try_resize(now)?;
-            bytes = now;
+        if now != reservation.size()
+            && let Err(refused) = reservation.try_resize(now)
+        {
+            // Over the limit: the pending keys go into the tables (spilled as they fill) and
+            // their buffers are given back; then, if that is still too much, the tables are spilled.
+            if c.pending_rows > 0 {
+                flush_or_spill(&mut c, &mut reservation, &spill, &mut spilled)?;
+                c.pending.iter_mut().for_each(|p| *p = Vec::new());
+            }
+            if reservation.try_resize(c.bytes()).is_err() {
+                if c.is_empty_but_pending() {
+                    return Err(refused);
+                }
+                spill.run(&mut c, &mut spilled, || refused)?;
+                reservation.try_resize(c.bytes())?;
+            }
         }
     }
-    c.spill(true);
-    c.flush();
-    Ok((c, reservation))
+    c.bucket_direct(true);
+    flush_or_spill(&mut c, &mut reservation, &spill, &mut spilled)?;
+    Ok((c, spilled, reservation))
+}
+
+/// Flushes the pending keys into the tables; each time the pool refuses a table's growth, spills
+/// the tables and goes on with empty ones. An error when even empty tables are refused.
+fn flush_or_spill(
+    c: &mut Counts,
+    reservation: &mut Budget,
+    spill: &SpillTo,
+    spilled: &mut Option<Spilled>,
+) -> Result<()> {
+    loop {
+        let Err(refused) = c.flush(reservation) else { return Ok(()) };
+        if c.is_empty_but_pending() {
+            return Err(refused);
+        }
+        spill.run(c, spilled, || refused)?;
+        reservation.try_resize(c.bytes())?;
+    }
 }
 
 /// Adds rows whose keys may be NULL, or with the validity bits of counted expressions.
@@ -668,71 +829,244 @@ fn add_rows(c: &mut Counts, keys: &[u64], key_nulls: Option<&NullBuffer>, mask: 
     }
 }
 
-/// Merges the partitions' counts bucket by bucket (ranges of buckets in parallel) into batches of
-/// the output schema.
-async fn merge(
-    counted: Vec<(Counts, MemoryReservation)>,
+/// A worker's (or a merging task's) reservation, held to its share of the memory limit even
+/// where the pool would give it more: a greedy pool lets the first task to grow take it all, and
+/// the others then could not hold even one table.
+struct Budget {
+    reservation: MemoryReservation,
+    share: usize,
+}
+
+impl Budget {
+    fn size(&self) -> usize {
+        self.reservation.size()
+    }
+
+    fn over(&self, bytes: usize) -> DataFusionError {
+        DataFusionError::ResourcesExhausted(format!(
+            "{} would hold {bytes} bytes, over its share of the memory limit ({} bytes)",
+            self.reservation.consumer().name(),
+            self.share
+        ))
+    }
+
+    fn try_grow(&mut self, more: usize) -> Result<()> {
+        let want = self.size().saturating_add(more);
+        if more > 0 && want > self.share {
+            return Err(self.over(want));
+        }
+        self.reservation.try_grow(more)
+    }
+
+    fn try_resize(&mut self, bytes: usize) -> Result<()> {
+        if bytes > self.size() && bytes > self.share {
+            return Err(self.over(bytes));
+        }
+        self.reservation.try_resize(bytes)
+    }
+}
+
+/// Where a worker writes its tables when the memory pool refuses them more: the session's disk
+/// manager (its temporary directory and its limit on spilled bytes), and the operator's spill
+/// metrics (`EXPLAIN ANALYZE` shows `spill_count` and `spilled_bytes`).
+#[derive(Clone)]
+struct SpillTo {
+    disk: Arc<DiskManager>,
+    runs: Count,
+    bytes: Count,
+}
+
+impl SpillTo {
+    /// Writes `c`'s tables out as a new run of `spilled` (the worker's spill file, created on its
+    /// first run) and empties them. Without a temporary directory (a disk manager disabled),
+    /// `refused` is the error: the memory pool's, naming the limit.
+    fn run(
+        &self,
+        c: &mut Counts,
+        spilled: &mut Option<Spilled>,
+        refused: impl FnOnce() -> DataFusionError,
+    ) -> Result<()> {
+        let s = match spilled {
+            Some(s) => s,
+            None => {
+                if !self.disk.tmp_files_enabled() {
+                    return Err(refused());
+                }
+                let file = self.disk.create_tmp_file("CountByKeyExec")?;
+                let writer = BufWriter::with_capacity(1 << 20, file.open_writer()?);
+                spilled.insert(Spilled { file, writer: Some(writer), len: 0, runs: Vec::new() })
+            }
+        };
+        c.bucket_direct(true);
+        let before = s.len;
+        s.write_run(c)?;
+        self.runs.add(1);
+        self.bytes.add((s.len - before) as usize);
+        c.clear();
+        Ok(())
+    }
+}
+
+/// A worker's spill file: runs of its tables, each written bucket by bucket, `stride`
+/// little-endian words an entry (the key, then its counts). A key may be in several runs; the
+/// merge adds them up.
+struct Spilled {
+    file: Arc<dyn SpillFile>,
+    writer: Option<BufWriter<Box<dyn SpillWriter>>>,
+    /// Bytes written.
+    len: u64,
+    runs: Vec<Run>,
+}
+
+/// One run of a spill file: where it starts, each bucket's entry count, and whether its keys
+/// and counts fit the narrow tables' 32 bits.
+struct Run {
+    start: u64,
+    entries: Vec<u64>,
+    narrow: bool,
+}
+
+impl Run {
+    /// Bucket `b`'s byte offset in the file and entry count.
+    fn bucket(&self, b: usize, stride: usize) -> (u64, u64) {
+        let before: u64 = self.entries[..b].iter().sum();
+        (self.start + before * stride as u64 * 8, self.entries[b])
+    }
+}
+
+impl Spilled {
+    fn write_run(&mut self, c: &Counts) -> Result<()> {
+        let Some(w) = self.writer.as_mut() else {
+            return Err(DataFusionError::Internal("CountByKeyExec wrote to a spill file it had finished".into()));
+        };
+        let mut entries = Vec::with_capacity(BUCKETS);
+        for b in 0..BUCKETS {
+            entries.push(c.write_bucket(b, w).map_err(|e| spill_error("writing", self.file.as_ref(), &e))?);
+        }
+        let start = self.len;
+        self.len += entries.iter().sum::<u64>() * c.stride as u64 * 8;
+        self.runs.push(Run { start, entries, narrow: c.narrow.is_some() });
+        Ok(())
+    }
+
+    /// Flushes the writer: the file is then only read.
+    fn finish(mut self) -> Result<Written> {
+        if let Some(mut w) = self.writer.take() {
+            w.flush().map_err(|e| spill_error("writing", self.file.as_ref(), &e))?;
+            w.into_inner().map_err(|e| spill_error("writing", self.file.as_ref(), e.error()))?.finish()?;
+        }
+        Ok(Written { file: self.file, runs: self.runs })
+    }
+}
+
+/// A spill file once written: read back bucket by bucket by the merge.
+struct Written {
+    file: Arc<dyn SpillFile>,
+    runs: Vec<Run>,
+}
+
+impl Written {
+    /// Bucket `b`'s entries in `run` (none when it has none).
+    fn read_bucket(&self, f: &mut std::fs::File, run: &Run, b: usize, stride: usize) -> Result<Option<Part>> {
+        let (at, n) = run.bucket(b, stride);
+        if n == 0 {
+            return Ok(None);
+        }
+        let mut bytes = vec![0u8; (n as usize) * stride * 8];
+        f.seek(SeekFrom::Start(at))
+            .and_then(|_| f.read_exact(&mut bytes))
+            .map_err(|e| spill_error("reading", self.file.as_ref(), &e))?;
+        let words = bytes.chunks_exact(8).map(|w| u64::from_le_bytes(w.try_into().unwrap_or_default())).collect();
+        Ok(Some(Part::Entries { words, narrow: run.narrow }))
+    }
+}
+
+fn spill_error(doing: &str, file: &dyn SpillFile, e: &std::io::Error) -> DataFusionError {
+    let path = file.path().map_or_else(|| "(no path)".to_string(), |p| p.display().to_string());
+    DataFusionError::Execution(format!("CountByKeyExec: {doing} its spill file {path}: {e}"))
+}
+
+/// What the merge needs to make output batches.
+struct Output {
+    schema: SchemaRef,
+    outputs: Vec<(Counted, String)>,
     stride: usize,
-    schema: &SchemaRef,
-    outputs: &[(Counted, String)],
     batch_size: usize,
-) -> Result<Vec<RecordBatch>> {
+    baseline: BaselineMetrics,
+    /// The memory pool's limit (`usize::MAX` when it has none).
+    limit: usize,
+}
+
+/// Merges the workers' counts bucket by bucket (ranges of buckets in parallel) and sends them
+/// as batches of the output schema. When any worker spilled, every worker's tables are spilled
+/// too, their reservations freed, and each bucket is read back and merged alone, charged to the
+/// pool: the merge then holds one bucket's groups (1/256 of them) per task.
+async fn merge(
+    mut counted: Vec<(Counts, Option<Spilled>, Budget)>,
+    out: &Output,
+    spill: &SpillTo,
+    pool: &Arc<dyn MemoryPool>,
+    tx: &Sender<Result<RecordBatch>>,
+) -> Result<()> {
+    let stride = out.stride;
     let mut null_key = vec![0u64; stride - 1];
+    let mut rows = 0u64;
+    let spilling = counted.iter().any(|(_, s, _)| s.is_some());
+    let mut files = Vec::new();
     let mut by_bucket: Vec<Vec<Part>> = (0..BUCKETS).map(|_| Vec::new()).collect();
     let mut reservations = Vec::new();
-    let mut rows = 0u64;
-    for (c, r) in counted {
+    for (c, s, r) in &mut counted {
         for (n, v) in null_key.iter_mut().zip(&c.null_key) {
             *n += v;
         }
         rows += c.rows;
+        if spilling {
+            if !c.is_empty_but_pending() {
+                let refused = || DataFusionError::Internal("CountByKeyExec spilled with no disk manager".into());
+                spill.run(c, s, refused)?;
+            }
+            r.reservation.free();
+            if let Some(s) = s.take() {
+                files.push(s.finish()?);
+            }
+        }
+    }
+    for (c, _, r) in counted {
+        if spilling {
+            continue;
+        }
         match c.narrow {
             Some(narrow) => narrow.into_iter().enumerate().for_each(|(b, t)| by_bucket[b].push(Part::Narrow(t))),
             None => c.tables.into_iter().enumerate().for_each(|(b, t)| by_bucket[b].push(Part::Wide(t))),
         }
         reservations.push(r);
     }
+    let files = Arc::new(files);
     // Narrow tables merge into a narrow table while the sum of their counts fits its low half.
     let narrow_ok = rows < LOW;
     let workers = std::thread::available_parallelism().map_or(1, |n| n.get()).clamp(1, 16);
     let per = BUCKETS.div_ceil(workers);
     let mut tasks = Vec::new();
+    let mut first = 0;
     while !by_bucket.is_empty() {
         let rest = by_bucket.split_off(per.min(by_bucket.len()));
         let chunk = std::mem::replace(&mut by_bucket, rest);
-        tasks.push(SpawnedTask::spawn(async move { merge_buckets(chunk, stride, narrow_ok) }));
+        let range = first..first + chunk.len();
+        first = range.end;
+        let (files, tx) = (files.clone(), tx.clone());
+        let reservation = MemoryConsumer::new(format!("CountByKeyExec merge[{}]", tasks.len())).register(pool);
+        let reservation = Budget { reservation, share: out.limit / workers };
+        let ctx = MergeTask { out: out.clone_parts(), narrow_ok, reservation };
+        tasks.push(SpawnedTask::spawn(async move { ctx.run(chunk, range, &files, &tx).await }));
     }
-    let mut columns: Vec<(Vec<u64>, Vec<Vec<i64>>)> = Vec::new();
     for t in tasks {
-        columns.push(t.join().await.map_err(|e| DataFusionError::ExecutionJoin(Box::new(e)))?);
+        t.join().await.map_err(|e| DataFusionError::ExecutionJoin(Box::new(e)))??;
     }
     drop(reservations);
-    let key_type = schema.field(0).data_type().clone();
-    let mut batches = Vec::new();
-    for (keys, counts) in columns {
-        let mut start = 0;
-        while start < keys.len() {
-            let end = (start + batch_size.max(1)).min(keys.len());
-            let key: ArrayRef = Arc::new(UInt64Array::from(keys[start..end].to_vec()));
-            let cols = |c: &Vec<Vec<i64>>| -> Vec<ArrayRef> {
-                outputs
-                    .iter()
-                    .map(|(what, _)| {
-                        let j = match what {
-                            Counted::Rows => 0,
-                            Counted::Valid(i) => 1 + i,
-                        };
-                        Arc::new(Int64Array::from(c[j][start..end].to_vec())) as ArrayRef
-                    })
-                    .collect()
-            };
-            batches.push(batch(schema, &key_type, key, cols(&counts))?);
-            start = end;
-        }
-    }
     if null_key[0] > 0 {
         let key: ArrayRef = Arc::new(UInt64Array::from(vec![None::<u64>]));
-        let cols = outputs
+        let cols = out
+            .outputs
             .iter()
             .map(|(what, _)| {
                 let n = match what {
@@ -742,13 +1076,131 @@ async fn merge(
                 Arc::new(Int64Array::from(vec![n as i64])) as ArrayRef
             })
             .collect();
-        batches.push(batch(schema, &key_type, key, cols)?);
+        let b = batch(&out.schema, key, cols)?;
+        out.baseline.record_output(b.num_rows());
+        // A closed channel: the stream was dropped, nobody wants the rest.
+        let _ = tx.send(Ok(b)).await;
     }
-    Ok(batches)
+    Ok(())
+}
+
+impl Output {
+    fn clone_parts(&self) -> Self {
+        Self {
+            schema: self.schema.clone(),
+            outputs: self.outputs.clone(),
+            stride: self.stride,
+            batch_size: self.batch_size,
+            baseline: self.baseline.clone(),
+            limit: self.limit,
+        }
+    }
+
+    /// The counts of `keys`, as output batches.
+    fn batches(&self, keys: &[u64], counts: &[Vec<i64>]) -> Result<Vec<RecordBatch>> {
+        let mut batches = Vec::new();
+        let mut start = 0;
+        while start < keys.len() {
+            let end = (start + self.batch_size).min(keys.len());
+            let key: ArrayRef = Arc::new(UInt64Array::from(keys[start..end].to_vec()));
+            let cols = self
+                .outputs
+                .iter()
+                .map(|(what, _)| {
+                    let j = match what {
+                        Counted::Rows => 0,
+                        Counted::Valid(i) => 1 + i,
+                    };
+                    Arc::new(Int64Array::from(counts[j][start..end].to_vec())) as ArrayRef
+                })
+                .collect();
+            batches.push(batch(&self.schema, key, cols)?);
+            start = end;
+        }
+        Ok(batches)
+    }
+}
+
+/// One merging task: a range of buckets, from the workers' tables in memory or their spill files.
+struct MergeTask {
+    out: Output,
+    narrow_ok: bool,
+    /// What the task holds while it merges a bucket read back from spill files.
+    reservation: Budget,
+}
+
+impl MergeTask {
+    async fn run(
+        mut self,
+        in_memory: Vec<Vec<Part>>,
+        range: std::ops::Range<usize>,
+        files: &[Written],
+        tx: &Sender<Result<RecordBatch>>,
+    ) -> Result<()> {
+        let stride = self.out.stride;
+        let mut readers = Vec::with_capacity(files.len());
+        for s in files {
+            let Some(path) = s.file.path() else {
+                return Err(DataFusionError::NotImplemented(
+                    "CountByKeyExec reads its spill files back by path; this disk manager's have none".into(),
+                ));
+            };
+            readers.push(std::fs::File::open(path).map_err(|e| spill_error("opening", s.file.as_ref(), &e))?);
+        }
+        let narrow_runs = files.iter().all(|f| f.runs.iter().all(|r| r.narrow));
+        let mut keys = Vec::new();
+        let mut counts: Vec<Vec<i64>> = vec![Vec::new(); stride - 1];
+        for (parts, b) in in_memory.into_iter().zip(range) {
+            let timer = self.out.baseline.elapsed_compute().timer();
+            let mut merged = Merged::new(self.narrow_ok && narrow_runs && parts.iter().all(Part::is_narrow));
+            for p in parts {
+                merged.add(p, stride);
+            }
+            // Runs read back one at a time: the merged table and one run's part of the bucket.
+            for (s, f) in files.iter().zip(&mut readers) {
+                for run in &s.runs {
+                    if let Some(p) = s.read_bucket(f, run, b, stride)? {
+                        self.reservation.try_resize(merged.bytes() + p.bytes())?;
+                        merged.add(p, stride);
+                    }
+                }
+            }
+            merged.list(stride, &mut keys, &mut counts);
+            timer.done();
+            // Buckets are gathered into batches of about the session's batch size.
+            if keys.len() >= self.out.batch_size && !self.send(&mut keys, &mut counts, tx).await? {
+                return Ok(());
+            }
+        }
+        self.send(&mut keys, &mut counts, tx).await?;
+        Ok(())
+    }
+
+    /// Sends the merged keys and counts as batches and empties them; false when the stream was
+    /// dropped (nobody wants the rest).
+    async fn send(
+        &mut self,
+        keys: &mut Vec<u64>,
+        counts: &mut [Vec<i64>],
+        tx: &Sender<Result<RecordBatch>>,
+    ) -> Result<bool> {
+        let batches = self.out.batches(keys, counts)?;
+        keys.clear();
+        counts.iter_mut().for_each(Vec::clear);
+        self.reservation.reservation.free();
+        for b in batches {
+            self.out.baseline.record_output(b.num_rows());
+            if tx.send(Ok(b)).await.is_err() {
+                return Ok(false);
+            }
+        }
+        Ok(true)
+    }
 }
 
 /// One output batch: the keys back in their type (signed keys from their bits), then the counts.
-fn batch(schema: &SchemaRef, key_type: &DataType, key: ArrayRef, counts: Vec<ArrayRef>) -> Result<RecordBatch> {
+fn batch(schema: &SchemaRef, key: ArrayRef, counts: Vec<ArrayRef>) -> Result<RecordBatch> {
+    let key_type = schema.field(0).data_type();
     let key = if key_type.is_signed_integer() {
         let signed: Int64Array = key.as_primitive::<UInt64Type>().unary(|v| v as i64);
         cast(&signed, key_type)?
@@ -760,66 +1212,117 @@ fn batch(schema: &SchemaRef, key_type: &DataType, key: ArrayRef, counts: Vec<Arr
     Ok(RecordBatch::try_new(schema.clone(), columns)?)
 }
 
-/// One worker's table of one bucket.
+/// What one bucket's merge adds up.
 enum Part {
+    /// A worker's table.
     Wide(Table),
     Narrow(Narrow),
+    /// A run's entries read back from a spill file: `stride` words each (the key, its counts);
+    /// `narrow` when they fit a [`Narrow`] table.
+    Entries {
+        words: Vec<u64>,
+        narrow: bool,
+    },
 }
 
-/// Merges each bucket's tables into one and lists the keys and counts.
-fn merge_buckets(buckets: Vec<Vec<Part>>, stride: usize, narrow_ok: bool) -> (Vec<u64>, Vec<Vec<i64>>) {
-    let mut keys = Vec::new();
-    let mut counts: Vec<Vec<i64>> = vec![Vec::new(); stride - 1];
-    for parts in buckets {
-        if narrow_ok && parts.iter().all(|p| matches!(p, Part::Narrow(_))) {
-            let mut it = parts.into_iter().filter_map(|p| match p {
-                Part::Narrow(n) => Some(n),
-                Part::Wide(_) => None,
-            });
-            let Some(mut base) = it.next() else { continue };
-            for n in it {
+impl Part {
+    fn bytes(&self) -> usize {
+        match self {
+            Part::Wide(t) => t.bytes(),
+            Part::Narrow(n) => n.bytes(),
+            Part::Entries { words, .. } => words.len() * 8,
+        }
+    }
+
+    fn is_narrow(&self) -> bool {
+        matches!(self, Part::Narrow(_) | Part::Entries { narrow: true, .. })
+    }
+}
+
+/// One bucket's merged table, narrow while every part is.
+enum Merged {
+    Narrow(Narrow),
+    Wide(Table),
+}
+
+impl Merged {
+    fn new(narrow: bool) -> Self {
+        if narrow { Merged::Narrow(Narrow::default()) } else { Merged::Wide(Table::default()) }
+    }
+
+    /// Adds a part's counts (a narrow table takes only narrow parts).
+    fn add(&mut self, p: Part, stride: usize) {
+        match (self, p) {
+            (Merged::Narrow(base), Part::Narrow(n)) if base.len == 0 => *base = n,
+            (Merged::Narrow(base), Part::Narrow(n)) => {
                 base.reserve(n.len);
                 for w in n.words.into_iter().filter(|&w| w != 0) {
                     base.add(w >> 32, w & LOW);
                 }
             }
-            keys.reserve(base.len);
-            for w in base.words.into_iter().filter(|&w| w != 0) {
-                keys.push(w >> 32);
-                counts[0].push((w & LOW) as i64);
-            }
-            continue;
-        }
-        let mut base = Table::default();
-        for p in parts {
-            match p {
-                Part::Wide(t) if base.len == 0 => base = t,
-                Part::Wide(t) => {
-                    for s in t.words.chunks_exact(stride).filter(|s| s[1] != 0) {
-                        let w = base.slot(s[0], mix(s[0]), stride);
-                        for (b, v) in base.words[w + 1..w + stride].iter_mut().zip(&s[1..]) {
-                            *b += v;
-                        }
-                    }
-                }
-                Part::Narrow(n) => {
-                    base.reserve(n.len, stride);
-                    for w in n.words.into_iter().filter(|&w| w != 0) {
-                        let slot = base.slot_reserved(w >> 32, mix(w >> 32), stride);
-                        base.words[slot + 1] += w & LOW;
+            (Merged::Narrow(base), Part::Entries { words, .. }) => {
+                for chunk in words.chunks(2048) {
+                    base.reserve(chunk.len() / 2);
+                    for e in chunk.chunks_exact(2) {
+                        base.add(e[0], e[1]);
                     }
                 }
             }
-        }
-        keys.reserve(base.len);
-        for s in base.words.chunks_exact(stride).filter(|s| s[1] != 0) {
-            keys.push(s[0]);
-            for (j, c) in counts.iter_mut().enumerate() {
-                c.push(s[1 + j] as i64);
+            // Never met: a table is narrow only when all its parts are (`MergeTask::run`).
+            (Merged::Narrow(_), Part::Wide(_)) => debug_assert!(false, "a wide part in a narrow merge"),
+            (Merged::Wide(base), Part::Wide(t)) if base.len == 0 => *base = t,
+            (Merged::Wide(base), Part::Wide(t)) => {
+                add_entries(base, t.words.chunks_exact(stride).filter(|s| s[1] != 0), stride);
+            }
+            (Merged::Wide(base), Part::Entries { words, .. }) => add_entries(base, words.chunks_exact(stride), stride),
+            (Merged::Wide(base), Part::Narrow(n)) => {
+                base.reserve(n.len, stride);
+                for w in n.words.into_iter().filter(|&w| w != 0) {
+                    let slot = base.slot_reserved(w >> 32, mix(w >> 32), stride);
+                    base.words[slot + 1] += w & LOW;
+                }
             }
         }
     }
-    (keys, counts)
+
+    fn bytes(&self) -> usize {
+        match self {
+            Merged::Narrow(n) => n.bytes(),
+            Merged::Wide(t) => t.bytes(),
+        }
+    }
+
+    /// Appends the keys and their counts.
+    fn list(&self, stride: usize, keys: &mut Vec<u64>, counts: &mut [Vec<i64>]) {
+        match self {
+            Merged::Narrow(base) => {
+                keys.reserve(base.len);
+                for w in base.words.iter().copied().filter(|&w| w != 0) {
+                    keys.push(w >> 32);
+                    counts[0].push((w & LOW) as i64);
+                }
+            }
+            Merged::Wide(base) => {
+                keys.reserve(base.len);
+                for s in base.words.chunks_exact(stride).filter(|s| s[1] != 0) {
+                    keys.push(s[0]);
+                    for (j, c) in counts.iter_mut().enumerate() {
+                        c.push(s[1 + j] as i64);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// Adds entries (`stride` words each: a key, its counts) to a table.
+fn add_entries<'a>(base: &mut Table, entries: impl Iterator<Item = &'a [u64]>, stride: usize) {
+    for s in entries {
+        let w = base.slot(s[0], mix(s[0]), stride);
+        for (b, v) in base.words[w + 1..w + stride].iter_mut().zip(&s[1..]) {
+            *b += v;
+        }
+    }
 }
 
 #[cfg(test)]
@@ -848,26 +1351,32 @@ mod tests {
         assert_eq!(seen, 10_000);
     }
 
-    /// Few keys (counted in the direct table throughout) and many (spilled into the radix
+    /// Few keys (counted in the direct table throughout) and many (moved into the radix
     /// buckets part way); `count(*)` alone (one-word narrow tables) and with a nullable counted
     /// column; keys beyond 32 bits arriving late in one input partition only (that worker's
-    /// narrow tables widen, the other's stay narrow, and the merge meets both): every group's
-    /// counts are the true ones.
+    /// narrow tables widen, the other's stay narrow, and the merge meets both); with no memory
+    /// limit, and under one far below the tables' size (the workers spill their tables to disk
+    /// again and again, and the merge reads them back bucket by bucket): every group's counts
+    /// are the true ones.
     #[test]
     fn direct_and_bucketed_counts_are_exact() -> Result<()> {
         use arrow::datatypes::{Field, Schema};
         use datafusion::datasource::MemTable;
+        use datafusion::execution::memory_pool::GreedyMemoryPool;
+        use datafusion::execution::runtime_env::RuntimeEnvBuilder;
         use datafusion::execution::session_state::SessionStateBuilder;
         use datafusion::prelude::{SessionConfig, SessionContext};
         let rt = tokio::runtime::Runtime::new()?;
-        for (distinct, wide, sql) in [
+        let cases = [
             (37u64, false, "SELECT k, count(*), count(v) FROM t GROUP BY k"),
             (200_000, false, "SELECT k, count(*), count(v) FROM t GROUP BY k"),
             (37, false, "SELECT k, count(*), count(*) AS n FROM t GROUP BY k"),
             (200_000, false, "SELECT k, count(*), count(*) AS n FROM t GROUP BY k"),
             (200_000, true, "SELECT k, count(*), count(*) AS n FROM t GROUP BY k"),
             (200_000, true, "SELECT k, count(*), count(v) FROM t GROUP BY k"),
-        ] {
+        ];
+        let limits = [None, Some(1 << 20)];
+        for ((distinct, wide, sql), limit) in cases.into_iter().flat_map(|c| limits.map(|l| (c, l))) {
             let schema = Arc::new(Schema::new(vec![
                 Field::new("k", DataType::UInt64, false),
                 Field::new("v", DataType::Int32, true),
@@ -885,20 +1394,31 @@ mod tests {
                 let b = RecordBatch::try_new(schema.clone(), vec![Arc::new(k), Arc::new(v)])?;
                 parts[(start / 8192 % 3) as usize].push(b);
             }
+            let mut runtime = RuntimeEnvBuilder::new();
+            if let Some(l) = limit {
+                runtime = runtime.with_memory_pool(Arc::new(GreedyMemoryPool::new(l)));
+            }
             let state = SessionStateBuilder::new()
                 .with_config(SessionConfig::new().with_target_partitions(2))
+                .with_runtime_env(runtime.build_arc()?)
                 .with_default_features()
                 .with_physical_optimizer_rules(crate::physical_optimizer_rules())
                 .build();
             let ctx = SessionContext::new_with_state(state);
             ctx.register_table("t", Arc::new(MemTable::try_new(schema, parts)?))?;
-            let batches = rt.block_on(async {
-                let df = ctx.sql(sql).await?;
-                let plan = df.clone().create_physical_plan().await?;
-                let shown = datafusion::physical_plan::displayable(plan.as_ref()).indent(true).to_string();
-                assert!(shown.contains("CountByKeyExec"), "{shown}");
-                df.collect().await
+            let (batches, spills) = rt.block_on(async {
+                let plan = ctx.sql(sql).await?.create_physical_plan().await?;
+                let batches = datafusion::physical_plan::collect(plan.clone(), ctx.task_ctx()).await?;
+                let mut node = plan;
+                while node.downcast_ref::<CountByKeyExec>().is_none() {
+                    let shown = datafusion::physical_plan::displayable(node.as_ref()).indent(true).to_string();
+                    let child = node.children().first().map(|c| (*c).clone());
+                    node = child.unwrap_or_else(|| panic!("no CountByKeyExec in {shown}"));
+                }
+                let spills = node.metrics().and_then(|m| m.spill_count()).unwrap_or(0);
+                Ok::<_, DataFusionError>((batches, spills))
             })?;
+            assert_eq!(spills > 0, limit.is_some() && distinct > 37, "{sql} under {limit:?}: {spills} spills");
             let mut expected = std::collections::HashMap::<u64, (i64, i64)>::new();
             for i in 0..rows {
                 let e = expected.entry(key(i)).or_default();
@@ -915,7 +1435,7 @@ mod tests {
                     groups += 1;
                 }
             }
-            assert_eq!(groups, expected.len());
+            assert_eq!(groups, expected.len(), "{sql} under {limit:?}");
         }
         Ok(())
     }

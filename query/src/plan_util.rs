@@ -1,16 +1,10 @@
-//! Pieces rtvtk's own physical operators share: replacing plan nodes from an optimizer rule, and
-//! streaming the batches an operator computes all at once.
+//! What rtvtk's own physical operators share: replacing plan nodes from an optimizer rule.
 
-use std::future::Future;
 use std::sync::Arc;
 
-use arrow::array::RecordBatch;
-use arrow::datatypes::SchemaRef;
 use datafusion::common::tree_node::{Transformed, TreeNode};
 use datafusion::error::Result;
-use datafusion::physical_plan::stream::RecordBatchStreamAdapter;
-use datafusion::physical_plan::{ExecutionPlan, SendableRecordBatchStream};
-use futures::StreamExt;
+use datafusion::physical_plan::ExecutionPlan;
 
 /// Which way [`replace_nodes`] walks the plan.
 pub(crate) enum Walk {
@@ -35,16 +29,4 @@ pub(crate) fn replace_nodes<E: ExecutionPlan + 'static>(
         Walk::Up => plan.transform_up(f),
     }
     .map(|t| t.data)
-}
-
-/// A stream of the batches `answer` computes (its error, if any, as the only item).
-pub(crate) fn batches_stream(
-    schema: SchemaRef,
-    answer: impl Future<Output = Result<Vec<RecordBatch>>> + Send + 'static,
-) -> SendableRecordBatchStream {
-    let stream = futures::stream::once(answer).flat_map(|r| match r {
-        Ok(batches) => futures::stream::iter(batches.into_iter().map(Ok)).left_stream(),
-        Err(e) => futures::stream::iter(vec![Err(e)]).right_stream(),
-    });
-    Box::pin(RecordBatchStreamAdapter::new(schema, stream))
 }

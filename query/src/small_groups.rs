@@ -32,14 +32,15 @@ use datafusion::physical_expr::{EquivalenceProperties, PhysicalExpr};
 use datafusion::physical_optimizer::PhysicalOptimizerRule;
 use datafusion::physical_plan::aggregates::{AggregateExec, AggregateMode, PhysicalGroupBy};
 use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
-use datafusion::physical_plan::metrics::{BaselineMetrics, ExecutionPlanMetricsSet, MetricsSet};
+use datafusion::physical_plan::metrics::{BaselineMetrics, ExecutionPlanMetricsSet, MetricBuilder, MetricsSet};
+use datafusion::physical_plan::stream::RecordBatchReceiverStreamBuilder;
 use datafusion::physical_plan::{
     DisplayAs, DisplayFormatType, ExecutionPlan, ExecutionPlanProperties, InputOrderMode, Partitioning, PlanProperties,
     SendableRecordBatchStream,
 };
 use futures::StreamExt;
 
-use crate::plan_util::{Walk, batches_stream, replace_nodes};
+use crate::plan_util::{Walk, replace_nodes};
 
 /// Packed keys up to this many bits index a dense table (4 MiB of group numbers at most).
 pub const DENSE_BITS: u32 = 20;
@@ -246,6 +247,7 @@ impl ExecutionPlan for SmallGroupsExec {
             groups: 0,
             accumulators: self.aggr.iter().map(|a| a.create_groups_accumulator()).collect::<Result<_>>()?,
             args: self.aggr.iter().map(|a| a.expressions()).collect(),
+            aggr: self.aggr.clone(),
             filters: self.filters.clone(),
             reservation: MemoryConsumer::new(format!("SmallGroupsExec[{partition}]")).register(context.memory_pool()),
             scratch: Scratch::default(),
@@ -253,21 +255,49 @@ impl ExecutionPlan for SmallGroupsExec {
         let schema = self.schema.clone();
         let batch_size = context.session_config().batch_size();
         let baseline = BaselineMetrics::new(&self.metrics, partition);
-        let answer = async move {
+        let early = MetricBuilder::new(&self.metrics).counter("early_emits", partition);
+        let mut out = RecordBatchReceiverStreamBuilder::new(self.schema.clone(), 2);
+        let tx = out.tx();
+        out.spawn(async move {
+            let send = async |batches: Vec<RecordBatch>| {
+                for b in batches {
+                    baseline.record_output(b.num_rows());
+                    if tx.send(Ok(b)).await.is_err() {
+                        return false;
+                    }
+                }
+                true
+            };
             while let Some(batch) = input.next().await {
                 let batch = batch?;
                 let timer = baseline.elapsed_compute().timer();
                 state.add(&batch)?;
+                // Over the memory limit, the groups so far are sent on as they are (this is the
+                // partial half: the final aggregation adds a group's states up however many
+                // times it comes), and counting starts again from none.
+                let refused = state.reserve().err();
                 timer.done();
+                if let Some(e) = refused {
+                    if state.groups == 0 {
+                        return Err(e);
+                    }
+                    let batches = state.emit(&schema, batch_size)?;
+                    state.reset()?;
+                    state.reserve()?;
+                    early.add(1);
+                    if !send(batches).await {
+                        return Ok(());
+                    }
+                }
             }
             let timer = baseline.elapsed_compute().timer();
             let batches = state.emit(&schema, batch_size)?;
             timer.done();
-            baseline.record_output(batches.iter().map(RecordBatch::num_rows).sum());
+            send(batches).await;
             baseline.done();
-            Ok::<_, DataFusionError>(batches)
-        };
-        Ok(batches_stream(self.schema.clone(), answer))
+            Ok(())
+        });
+        Ok(out.build())
     }
 }
 
@@ -415,6 +445,8 @@ struct Grouper {
     group_keys: Vec<u32>,
     groups: usize,
     accumulators: Vec<Box<dyn GroupsAccumulator>>,
+    /// The aggregates, to make fresh accumulators after an early emission.
+    aggr: Vec<Arc<AggregateFunctionExpr>>,
     /// Each accumulator's argument expressions.
     args: Vec<Vec<Arc<dyn PhysicalExpr>>>,
     filters: Vec<Option<Arc<dyn PhysicalExpr>>>,
@@ -520,12 +552,26 @@ impl Grouper {
             acc.update_batch(&values, &scratch.group_indices, filter, self.groups)?;
         }
         self.scratch = scratch;
+        Ok(())
+    }
+
+    /// Charges the groups' memory to the pool; an error when it refuses.
+    fn reserve(&mut self) -> Result<()> {
         let table = match &self.table {
             Table::Dense(t) => t.capacity() * 4,
             Table::Hashed(m) => m.capacity() * 16,
         };
         let accs: usize = self.accumulators.iter().map(|a| a.size()).sum();
-        self.reservation.try_resize(table + accs + self.group_keys.capacity() * 4)?;
+        self.reservation.try_resize(table + accs + self.group_keys.capacity() * 4)
+    }
+
+    /// Forgets every group, once [`Grouper::emit`] has sent their states on (the key columns'
+    /// numbering of strings is kept).
+    fn reset(&mut self) -> Result<()> {
+        self.groups = 0;
+        self.group_keys = Vec::new();
+        self.accumulators = self.aggr.iter().map(|a| a.create_groups_accumulator()).collect::<Result<_>>()?;
+        self.rebuild();
         Ok(())
     }
 
@@ -656,6 +702,101 @@ mod tests {
             assert!(!out[0].is_empty());
             assert_eq!(out[0], out[1], "{sql}");
         }
+        Ok(())
+    }
+
+    /// A pool that limits SmallGroupsExec alone: the final aggregation above it draws on a pool of
+    /// its own, without a limit, so that only the partial half's early emission is tested.
+    #[derive(Debug)]
+    struct PartialsLimited {
+        partials: datafusion::execution::memory_pool::GreedyMemoryPool,
+        rest: datafusion::execution::memory_pool::UnboundedMemoryPool,
+    }
+
+    impl PartialsLimited {
+        fn pool(&self, r: &MemoryReservation) -> &dyn datafusion::execution::memory_pool::MemoryPool {
+            if r.consumer().name().starts_with("SmallGroupsExec") { &self.partials } else { &self.rest }
+        }
+    }
+
+    impl fmt::Display for PartialsLimited {
+        fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+            write!(f, "SmallGroupsExec limited: {}", self.partials)
+        }
+    }
+
+    impl datafusion::execution::memory_pool::MemoryPool for PartialsLimited {
+        fn name(&self) -> &str {
+            "partials limited"
+        }
+        fn grow(&self, r: &MemoryReservation, n: usize) {
+            self.pool(r).grow(r, n);
+        }
+        fn shrink(&self, r: &MemoryReservation, n: usize) {
+            self.pool(r).shrink(r, n);
+        }
+        fn try_grow(&self, r: &MemoryReservation, n: usize) -> Result<()> {
+            self.pool(r).try_grow(r, n)
+        }
+        fn reserved(&self) -> usize {
+            self.partials.reserved() + self.rest.reserved()
+        }
+    }
+
+    /// Under a memory limit below its groups' size, a partition's partial state is sent on early,
+    /// again and again, and the final aggregation above still gives DataFusion's answers.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn over_the_memory_limit_groups_are_sent_on_early() -> Result<()> {
+        use datafusion::execution::memory_pool::GreedyMemoryPool;
+        use datafusion::execution::runtime_env::RuntimeEnvBuilder;
+        let dict = DataType::Dictionary(Box::new(DataType::UInt8), Box::new(DataType::Utf8));
+        let schema = Arc::new(Schema::new(vec![
+            Field::new("kind", dict, true),
+            Field::new("depth", DataType::UInt16, true),
+            Field::new("small", DataType::Int8, true),
+            Field::new("flag", DataType::Boolean, true),
+            Field::new("wide", DataType::UInt16, false),
+            Field::new("cost", DataType::UInt32, true),
+        ]));
+        let a = [Some("camera"), Some("shadow"), None, Some("diffuse")];
+        let parts: Vec<Vec<RecordBatch>> =
+            (0..2).map(|p| (1..=4).map(|seed| batch(&schema, &a, seed + 4 * p)).collect()).collect();
+        let sql = "SELECT wide, small, count(*), max(cost), avg(cost) FROM t GROUP BY wide, small";
+        let (stock, _) = answers(sql, parts.clone(), schema.clone()).await?;
+        let state = datafusion::execution::SessionStateBuilder::new()
+            .with_config(SessionConfig::new().with_target_partitions(2))
+            .with_runtime_env(
+                RuntimeEnvBuilder::new()
+                    .with_memory_pool(Arc::new(PartialsLimited {
+                        partials: GreedyMemoryPool::new(LIMIT),
+                        rest: Default::default(),
+                    }))
+                    .build_arc()?,
+            )
+            .with_default_features()
+            .with_physical_optimizer_rules({
+                let mut rules = datafusion::physical_optimizer::optimizer::PhysicalOptimizer::new().rules;
+                rules.push(Arc::new(SmallGroups));
+                rules
+            })
+            .build();
+        const LIMIT: usize = 512 << 10;
+        let ctx = SessionContext::new_with_state(state);
+        ctx.register_table("t", Arc::new(MemTable::try_new(schema.clone(), parts)?))?;
+        let plan = ctx.sql(sql).await?.create_physical_plan().await?;
+        let got = datafusion::physical_plan::collect(plan.clone(), ctx.task_ctx()).await?;
+        let text = arrow::util::pretty::pretty_format_batches(&got)?.to_string();
+        let mut lines: Vec<String> = text.lines().filter(|l| l.starts_with("| ")).map(str::to_string).collect();
+        lines.sort();
+        assert_eq!(lines.join("\n"), stock[0]);
+        let shown = datafusion::physical_plan::displayable(plan.as_ref()).indent(true).to_string();
+        let mut node = plan;
+        while node.downcast_ref::<SmallGroupsExec>().is_none() {
+            let child = node.children().first().map(|c| (*c).clone());
+            node = child.unwrap_or_else(|| panic!("no SmallGroupsExec in {shown}"));
+        }
+        let early = node.metrics().and_then(|m| m.sum_by_name("early_emits")).map_or(0, |v| v.as_usize());
+        assert!(early > 0, "no early emission under {LIMIT} bytes: {shown}");
         Ok(())
     }
 
