@@ -464,7 +464,7 @@ impl Narrow {
 /// each bucket's table is then read into cache once per flush, not missed on every row.
 const PENDING_KEYS: usize = 4 << 20;
 
-/// The fewest keys buffered per flush, however often the tables are spilled.
+/// The fewest keys buffered per flush, however small the memory limit.
 const MIN_PENDING_KEYS: usize = 1 << 12;
 
 /// Bytes a worker's single direct table may reach before the worker switches to radix buckets:
@@ -488,7 +488,7 @@ struct Counts {
     pending: Vec<Vec<u64>>,
     pending_rows: usize,
     /// Rows buffered before a flush: at most [`PENDING_KEYS`], fewer under a memory limit (see
-    /// [`Counts::new`]), halved at every spill.
+    /// [`Counts::new`]).
     pending_limit: usize,
     null_key: Vec<u64>,
 }
@@ -552,7 +552,9 @@ impl Counts {
             match self.narrow.as_mut() {
                 Some(narrow) => {
                     let t = &mut narrow[b];
-                    std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
+                    if pending.len() * 64 >= t.words.len() {
+                        std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
+                    }
                     for chunk in pending.chunks(1024) {
                         if let Err(e) = reservation.try_grow(t.growth(chunk.len())) {
                             refused = Some(e);
@@ -568,8 +570,10 @@ impl Counts {
                 None => {
                     let t = &mut self.tables[b];
                     // Read the table into cache in order (at the prefetcher's pace) before the
-                    // random probes.
-                    std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
+                    // random probes, when they are enough to touch most of its cache lines.
+                    if pending.len() * 64 >= t.words.len() {
+                        std::hint::black_box(t.words.iter().step_by(8).fold(0u64, |a, &w| a ^ w));
+                    }
                     // Room is reserved per chunk, not checked per key (at most a chunk's slack).
                     for chunk in pending.chunks(1024 * per) {
                         if let Err(e) = reservation.try_grow(t.growth(chunk.len() / per, stride)) {
@@ -638,13 +642,38 @@ impl Counts {
 
     /// Empties the tables once they have been written out (see [`Spilled`]); keys still pending
     /// stay, to be flushed into the empty tables.
+    /// The tables keep their room (zeroed), so the next run does not grow them again.
     fn clear(&mut self) {
         self.direct = None;
+        for t in &mut self.tables {
+            t.words.fill(0);
+            t.len = 0;
+        }
+        for t in self.narrow.iter_mut().flatten() {
+            t.words.fill(0);
+            t.len = 0;
+        }
+    }
+
+    /// Resizes the reservation to what the counts hold after a spill; when the emptied tables'
+    /// room and the pending keys together are over the share, the room is given back.
+    fn fit(&mut self, reservation: &mut Budget) -> Result<()> {
+        if reservation.try_resize(self.bytes()).is_ok() {
+            return Ok(());
+        }
+        self.release_room();
+        reservation.try_resize(self.bytes())
+    }
+
+    /// Gives back the room of emptied tables; false when they had none.
+    fn release_room(&mut self) -> bool {
+        let room = self.tables.iter().any(|t| !t.words.is_empty())
+            || self.narrow.iter().flatten().any(|t| !t.words.is_empty());
         self.tables = (0..BUCKETS).map(|_| Table::default()).collect();
         if self.narrow.is_some() {
             self.narrow = Some((0..BUCKETS).map(|_| Narrow::default()).collect());
         }
-        self.pending_limit = (self.pending_limit / 2).max(MIN_PENDING_KEYS);
+        room
     }
 
     /// Whether the tables hold no key (the NULL key's counts are kept apart), pending keys aside.
@@ -770,11 +799,12 @@ async fn count_partitions(
                 c.pending.iter_mut().for_each(|p| *p = Vec::new());
             }
             if reservation.try_resize(c.bytes()).is_err() {
-                if c.is_empty_but_pending() {
+                if !c.is_empty_but_pending() {
+                    spill.run(&mut c, &mut spilled, || refused)?;
+                } else if !c.release_room() {
                     return Err(refused);
                 }
-                spill.run(&mut c, &mut spilled, || refused)?;
-                reservation.try_resize(c.bytes())?;
+                c.fit(&mut reservation)?;
             }
         }
     }
@@ -794,10 +824,15 @@ fn flush_or_spill(
     loop {
         let Err(refused) = c.flush(reservation) else { return Ok(()) };
         if c.is_empty_but_pending() {
-            return Err(refused);
+            // Emptied tables kept their room for the next run: given back, the room may do.
+            if !c.release_room() {
+                return Err(refused);
+            }
+            reservation.try_resize(c.bytes())?;
+            continue;
         }
         spill.run(c, spilled, || refused)?;
-        reservation.try_resize(c.bytes())?;
+        c.fit(reservation)?;
     }
 }
 
@@ -1156,6 +1191,12 @@ impl MergeTask {
             for p in parts {
                 merged.add(p, stride);
             }
+            // Room for every spilled entry of the bucket at once (they are its distinct keys when
+            // no key is in two runs), where the share allows: no doubling and rehashing.
+            let spilled: usize = files.iter().flat_map(|f| &f.runs).map(|r| r.entries[b] as usize).sum();
+            if spilled > 0 && self.reservation.try_resize(merged.bytes() + merged.growth(spilled, stride)).is_ok() {
+                merged.reserve(spilled, stride);
+            }
             // Runs read back one at a time: the merged table and one run's part of the bucket.
             for (s, f) in files.iter().zip(&mut readers) {
                 for run in &s.runs {
@@ -1289,6 +1330,20 @@ impl Merged {
         match self {
             Merged::Narrow(n) => n.bytes(),
             Merged::Wide(t) => t.bytes(),
+        }
+    }
+
+    fn growth(&self, additional: usize, stride: usize) -> usize {
+        match self {
+            Merged::Narrow(n) => n.growth(additional),
+            Merged::Wide(t) => t.growth(additional, stride),
+        }
+    }
+
+    fn reserve(&mut self, additional: usize, stride: usize) {
+        match self {
+            Merged::Narrow(n) => n.reserve(additional),
+            Merged::Wide(t) => t.reserve(additional, stride),
         }
     }
 
