@@ -640,6 +640,19 @@ mod tests {
         .expect("batch")
     }
 
+    /// The columns [`batch`] fills.
+    fn schema() -> SchemaRef {
+        let dict = DataType::Dictionary(Box::new(DataType::UInt8), Box::new(DataType::Utf8));
+        Arc::new(Schema::new(vec![
+            Field::new("kind", dict, true),
+            Field::new("depth", DataType::UInt16, true),
+            Field::new("small", DataType::Int8, true),
+            Field::new("flag", DataType::Boolean, true),
+            Field::new("wide", DataType::UInt16, false),
+            Field::new("cost", DataType::UInt32, true),
+        ]))
+    }
+
     async fn answers(sql: &str, batches: Vec<Vec<RecordBatch>>, schema: SchemaRef) -> Result<(Vec<String>, String)> {
         let mut out = Vec::new();
         let mut plan = String::new();
@@ -672,15 +685,7 @@ mod tests {
 
     #[tokio::test]
     async fn same_answers_as_datafusion() -> Result<()> {
-        let dict = DataType::Dictionary(Box::new(DataType::UInt8), Box::new(DataType::Utf8));
-        let schema = Arc::new(Schema::new(vec![
-            Field::new("kind", dict, true),
-            Field::new("depth", DataType::UInt16, true),
-            Field::new("small", DataType::Int8, true),
-            Field::new("flag", DataType::Boolean, true),
-            Field::new("wide", DataType::UInt16, false),
-            Field::new("cost", DataType::UInt32, true),
-        ]));
+        let schema = schema();
         // Batches with different dictionaries (and NULLs) in each partition.
         let a = [Some("camera"), Some("shadow"), None, Some("diffuse")];
         let b = [Some("diffuse"), Some("specular"), Some("shadow")];
@@ -749,15 +754,7 @@ mod tests {
     async fn over_the_memory_limit_groups_are_sent_on_early() -> Result<()> {
         use datafusion::execution::memory_pool::GreedyMemoryPool;
         use datafusion::execution::runtime_env::RuntimeEnvBuilder;
-        let dict = DataType::Dictionary(Box::new(DataType::UInt8), Box::new(DataType::Utf8));
-        let schema = Arc::new(Schema::new(vec![
-            Field::new("kind", dict, true),
-            Field::new("depth", DataType::UInt16, true),
-            Field::new("small", DataType::Int8, true),
-            Field::new("flag", DataType::Boolean, true),
-            Field::new("wide", DataType::UInt16, false),
-            Field::new("cost", DataType::UInt32, true),
-        ]));
+        let schema = schema();
         let a = [Some("camera"), Some("shadow"), None, Some("diffuse")];
         let parts: Vec<Vec<RecordBatch>> =
             (0..2).map(|p| (1..=4).map(|seed| batch(&schema, &a, seed + 4 * p)).collect()).collect();
