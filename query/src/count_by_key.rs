@@ -15,9 +15,9 @@
 //! Memory is charged to the session's memory pool. When the pool refuses a worker more, the
 //! worker writes its tables to a spill file in the session's temporary directory (one run, bucket
 //! by bucket), empties them and goes on; the merge then reads each bucket's runs back and merges
-//! that bucket alone, so it holds about 1/256 of the groups per merging task. Only a limit too
-//! small for one bucket's groups is an error (resources exhausted, naming the operator), never an
-//! out-of-memory kill. `EXPLAIN ANALYZE` shows `spill_count` (runs written) and `spilled_bytes`.
+//! that bucket alone, so it holds about 1/256 of the groups per merging task. Each worker and
+//! merging task is held to its share of the limit. Only a share too small for one batch's keys is
+//! an error (resources exhausted, naming the operator), never an out-of-memory kill. `EXPLAIN ANALYZE` shows `spill_count` (runs written) and `spilled_bytes`.
 
 use std::borrow::Cow;
 use std::fmt;
@@ -80,6 +80,16 @@ enum Counted {
     Rows,
     /// The rows where the `i`-th counted expression is not NULL.
     Valid(usize),
+}
+
+impl Counted {
+    /// Which of a slot's counts (after the key) it is: the row count, then one per expression.
+    fn column(self) -> usize {
+        match self {
+            Counted::Rows => 0,
+            Counted::Valid(i) => 1 + i,
+        }
+    }
 }
 
 /// `SELECT key, count(..), .. GROUP BY key` over its input's partitions, one output partition.
@@ -640,9 +650,9 @@ impl Counts {
         }
     }
 
-    /// Empties the tables once they have been written out (see [`Spilled`]); keys still pending
-    /// stay, to be flushed into the empty tables.
-    /// The tables keep their room (zeroed), so the next run does not grow them again.
+    /// Empties the tables once they have been written out (see [`Spilled`]), keeping their room
+    /// (zeroed) so that the next run does not grow them again; keys still pending stay, to be
+    /// flushed into the empty tables.
     fn clear(&mut self) {
         self.direct = None;
         for t in &mut self.tables {
@@ -877,6 +887,10 @@ impl Budget {
         self.reservation.size()
     }
 
+    fn free(&mut self) {
+        self.reservation.free();
+    }
+
     fn over(&self, bytes: usize) -> DataFusionError {
         DataFusionError::ResourcesExhausted(format!(
             "{} would hold {bytes} bytes, over its share of the memory limit ({} bytes)",
@@ -953,19 +967,22 @@ struct Spilled {
     runs: Vec<Run>,
 }
 
-/// One run of a spill file: where it starts, each bucket's entry count, and whether its keys
-/// and counts fit the narrow tables' 32 bits.
+/// One run of a spill file: where it starts, where each bucket starts in it (in entries, with the
+/// run's end last), and whether its keys and counts fit the narrow tables' 32 bits.
 struct Run {
     start: u64,
-    entries: Vec<u64>,
+    offsets: Vec<u64>,
     narrow: bool,
 }
 
 impl Run {
+    fn entries(&self, b: usize) -> u64 {
+        self.offsets[b + 1] - self.offsets[b]
+    }
+
     /// Bucket `b`'s byte offset in the file and entry count.
     fn bucket(&self, b: usize, stride: usize) -> (u64, u64) {
-        let before: u64 = self.entries[..b].iter().sum();
-        (self.start + before * stride as u64 * 8, self.entries[b])
+        (self.start + self.offsets[b] * stride as u64 * 8, self.entries(b))
     }
 }
 
@@ -974,13 +991,15 @@ impl Spilled {
         let Some(w) = self.writer.as_mut() else {
             return Err(DataFusionError::Internal("CountByKeyExec wrote to a spill file it had finished".into()));
         };
-        let mut entries = Vec::with_capacity(BUCKETS);
+        let mut offsets = Vec::with_capacity(BUCKETS + 1);
+        offsets.push(0);
         for b in 0..BUCKETS {
-            entries.push(c.write_bucket(b, w).map_err(|e| spill_error("writing", self.file.as_ref(), &e))?);
+            let n = c.write_bucket(b, w).map_err(|e| spill_error("writing", self.file.as_ref(), &e))?;
+            offsets.push(offsets[b] + n);
         }
         let start = self.len;
-        self.len += entries.iter().sum::<u64>() * c.stride as u64 * 8;
-        self.runs.push(Run { start, entries, narrow: c.narrow.is_some() });
+        self.len += offsets[BUCKETS] * c.stride as u64 * 8;
+        self.runs.push(Run { start, offsets, narrow: c.narrow.is_some() });
         Ok(())
     }
 
@@ -1022,6 +1041,7 @@ fn spill_error(doing: &str, file: &dyn SpillFile, e: &std::io::Error) -> DataFus
 }
 
 /// What the merge needs to make output batches.
+#[derive(Clone)]
 struct Output {
     schema: SchemaRef,
     outputs: Vec<(Counted, String)>,
@@ -1037,7 +1057,7 @@ struct Output {
 /// too, their reservations freed, and each bucket is read back and merged alone, charged to the
 /// pool: the merge then holds one bucket's groups (1/256 of them) per task.
 async fn merge(
-    mut counted: Vec<(Counts, Option<Spilled>, Budget)>,
+    counted: Vec<(Counts, Option<Spilled>, Budget)>,
     out: &Output,
     spill: &SpillTo,
     pool: &Arc<dyn MemoryPool>,
@@ -1050,7 +1070,7 @@ async fn merge(
     let mut files = Vec::new();
     let mut by_bucket: Vec<Vec<Part>> = (0..BUCKETS).map(|_| Vec::new()).collect();
     let mut reservations = Vec::new();
-    for (c, s, r) in &mut counted {
+    for (mut c, mut s, mut r) in counted {
         for (n, v) in null_key.iter_mut().zip(&c.null_key) {
             *n += v;
         }
@@ -1058,16 +1078,12 @@ async fn merge(
         if spilling {
             if !c.is_empty_but_pending() {
                 let refused = || DataFusionError::Internal("CountByKeyExec spilled with no disk manager".into());
-                spill.run(c, s, refused)?;
+                spill.run(&mut c, &mut s, refused)?;
             }
-            r.reservation.free();
-            if let Some(s) = s.take() {
+            r.free();
+            if let Some(s) = s {
                 files.push(s.finish()?);
             }
-        }
-    }
-    for (c, _, r) in counted {
-        if spilling {
             continue;
         }
         match c.narrow {
@@ -1091,7 +1107,7 @@ async fn merge(
         let (files, tx) = (files.clone(), tx.clone());
         let reservation = MemoryConsumer::new(format!("CountByKeyExec merge[{}]", tasks.len())).register(pool);
         let reservation = Budget { reservation, share: out.limit / workers };
-        let ctx = MergeTask { out: out.clone_parts(), narrow_ok, reservation };
+        let ctx = MergeTask { out: out.clone(), narrow_ok, reservation };
         tasks.push(SpawnedTask::spawn(async move { ctx.run(chunk, range, &files, &tx).await }));
     }
     for t in tasks {
@@ -1103,13 +1119,7 @@ async fn merge(
         let cols = out
             .outputs
             .iter()
-            .map(|(what, _)| {
-                let n = match what {
-                    Counted::Rows => null_key[0],
-                    Counted::Valid(i) => null_key[1 + i],
-                };
-                Arc::new(Int64Array::from(vec![n as i64])) as ArrayRef
-            })
+            .map(|(what, _)| Arc::new(Int64Array::from(vec![null_key[what.column()] as i64])) as ArrayRef)
             .collect();
         let b = batch(&out.schema, key, cols)?;
         out.baseline.record_output(b.num_rows());
@@ -1120,17 +1130,6 @@ async fn merge(
 }
 
 impl Output {
-    fn clone_parts(&self) -> Self {
-        Self {
-            schema: self.schema.clone(),
-            outputs: self.outputs.clone(),
-            stride: self.stride,
-            batch_size: self.batch_size,
-            baseline: self.baseline.clone(),
-            limit: self.limit,
-        }
-    }
-
     /// The counts of `keys`, as output batches.
     fn batches(&self, keys: &[u64], counts: &[Vec<i64>]) -> Result<Vec<RecordBatch>> {
         let mut batches = Vec::new();
@@ -1141,13 +1140,7 @@ impl Output {
             let cols = self
                 .outputs
                 .iter()
-                .map(|(what, _)| {
-                    let j = match what {
-                        Counted::Rows => 0,
-                        Counted::Valid(i) => 1 + i,
-                    };
-                    Arc::new(Int64Array::from(counts[j][start..end].to_vec())) as ArrayRef
-                })
+                .map(|(what, _)| Arc::new(Int64Array::from(counts[what.column()][start..end].to_vec())) as ArrayRef)
                 .collect();
             batches.push(batch(&self.schema, key, cols)?);
             start = end;
@@ -1193,7 +1186,7 @@ impl MergeTask {
             }
             // Room for every spilled entry of the bucket at once (they are its distinct keys when
             // no key is in two runs), where the share allows: no doubling and rehashing.
-            let spilled: usize = files.iter().flat_map(|f| &f.runs).map(|r| r.entries[b] as usize).sum();
+            let spilled: usize = files.iter().flat_map(|f| &f.runs).map(|r| r.entries(b) as usize).sum();
             if spilled > 0 && self.reservation.try_resize(merged.bytes() + merged.growth(spilled, stride)).is_ok() {
                 merged.reserve(spilled, stride);
             }
@@ -1228,7 +1221,7 @@ impl MergeTask {
         let batches = self.out.batches(keys, counts)?;
         keys.clear();
         counts.iter_mut().for_each(Vec::clear);
-        self.reservation.reservation.free();
+        self.reservation.free();
         for b in batches {
             self.out.baseline.record_output(b.num_rows());
             if tx.send(Ok(b)).await.is_err() {
@@ -1464,13 +1457,8 @@ mod tests {
             let (batches, spills) = rt.block_on(async {
                 let plan = ctx.sql(sql).await?.create_physical_plan().await?;
                 let batches = datafusion::physical_plan::collect(plan.clone(), ctx.task_ctx()).await?;
-                let mut node = plan;
-                while node.downcast_ref::<CountByKeyExec>().is_none() {
-                    let shown = datafusion::physical_plan::displayable(node.as_ref()).indent(true).to_string();
-                    let child = node.children().first().map(|c| (*c).clone());
-                    node = child.unwrap_or_else(|| panic!("no CountByKeyExec in {shown}"));
-                }
-                let spills = node.metrics().and_then(|m| m.spill_count()).unwrap_or(0);
+                let metrics = crate::plan_util::metrics_of::<CountByKeyExec>(&plan);
+                let spills = metrics.unwrap_or_else(|| panic!("no CountByKeyExec")).spill_count().unwrap_or(0);
                 Ok::<_, DataFusionError>((batches, spills))
             })?;
             assert_eq!(spills > 0, limit.is_some() && distinct > 37, "{sql} under {limit:?}: {spills} spills");

@@ -30,3 +30,21 @@ pub(crate) fn replace_nodes<E: ExecutionPlan + 'static>(
     }
     .map(|t| t.data)
 }
+
+/// The metrics of the first node of type `E` in `plan` (tests read an operator's counters).
+#[cfg(test)]
+pub(crate) fn metrics_of<E: ExecutionPlan + 'static>(
+    plan: &Arc<dyn ExecutionPlan>,
+) -> Option<datafusion::physical_plan::metrics::MetricsSet> {
+    use datafusion::common::tree_node::TreeNodeRecursion;
+    let mut found = None;
+    plan.apply(|n| {
+        if n.downcast_ref::<E>().is_some() {
+            found = n.metrics();
+            return Ok(TreeNodeRecursion::Stop);
+        }
+        Ok(TreeNodeRecursion::Continue)
+    })
+    .ok()?;
+    found
+}

@@ -787,12 +787,9 @@ mod tests {
         lines.sort();
         assert_eq!(lines.join("\n"), stock[0]);
         let shown = datafusion::physical_plan::displayable(plan.as_ref()).indent(true).to_string();
-        let mut node = plan;
-        while node.downcast_ref::<SmallGroupsExec>().is_none() {
-            let child = node.children().first().map(|c| (*c).clone());
-            node = child.unwrap_or_else(|| panic!("no SmallGroupsExec in {shown}"));
-        }
-        let early = node.metrics().and_then(|m| m.sum_by_name("early_emits")).map_or(0, |v| v.as_usize());
+        let metrics = crate::plan_util::metrics_of::<SmallGroupsExec>(&plan);
+        let metrics = metrics.unwrap_or_else(|| panic!("no SmallGroupsExec in {shown}"));
+        let early = metrics.sum_by_name("early_emits").map_or(0, |v| v.as_usize());
         assert!(early > 0, "no early emission under {LIMIT} bytes: {shown}");
         Ok(())
     }
