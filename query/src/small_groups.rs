@@ -754,6 +754,7 @@ mod tests {
     async fn over_the_memory_limit_groups_are_sent_on_early() -> Result<()> {
         use datafusion::execution::memory_pool::GreedyMemoryPool;
         use datafusion::execution::runtime_env::RuntimeEnvBuilder;
+        const LIMIT: usize = 512 << 10;
         let schema = schema();
         let a = [Some("camera"), Some("shadow"), None, Some("diffuse")];
         let parts: Vec<Vec<RecordBatch>> =
@@ -777,7 +778,6 @@ mod tests {
                 rules
             })
             .build();
-        const LIMIT: usize = 512 << 10;
         let ctx = SessionContext::new_with_state(state);
         ctx.register_table("t", Arc::new(MemTable::try_new(schema.clone(), parts)?))?;
         let plan = ctx.sql(sql).await?.create_physical_plan().await?;

@@ -121,8 +121,8 @@ pub fn session_config() -> SessionConfig {
 /// The memory a session's operators may hold when none is given: 80% of this machine's memory
 /// (or of the control group's limit, when lower), as DuckDB's default is; beyond it a sort, join
 /// or aggregation (DataFusion's, or rtvtk's counting group-by) spills to the temporary directory,
-/// and rtvtk's small-key group-by fails with a resources-exhausted error naming the limit, instead
-/// of the process being killed for memory. None (unlimited) where the machine's memory is not known (outside Linux).
+/// and rtvtk's small-key group-by sends its partial groups on early, instead of the process being
+/// killed for memory. None (unlimited) where the machine's memory is not known (outside Linux).
 pub fn default_memory_limit() -> Option<usize> {
     let total = std::fs::read_to_string("/proc/meminfo").ok().and_then(|m| {
         let kb = m

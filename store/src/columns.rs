@@ -144,6 +144,7 @@ macro_rules! le_into {
         }
     };
 }
+pub(crate) use le_into;
 
 /// Writes a value that [`fits`] its column into `out` (exactly its row width).
 #[cfg(test)]

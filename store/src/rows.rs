@@ -7,7 +7,8 @@
 //! encoded anyway, off the tracing threads.
 
 use crate::columns::{
-    BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value, write_fitting,
+    BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value, le_into,
+    write_fitting,
 };
 use crate::schema::{PayloadSchema, Storage};
 use crate::{Error, Result};
@@ -88,9 +89,7 @@ impl Common {
                 if s.len() * 4 != out.len() {
                     return None;
                 }
-                for (o, v) in out.chunks_exact_mut(4).zip(s) {
-                    o.copy_from_slice(&v.to_le_bytes());
-                }
+                le_into!(out, s, 4);
             }
             Common::U32 => {
                 let Value::U32(v) = value else { return None };
@@ -313,18 +312,16 @@ impl RayRows {
             .enumerate()
             .map(|(i, s)| {
                 let mut bytes = vec![0; n * s.width];
-                let rows = &self.payload;
+                let (rows, stride) = (&self.payload, layout.stride.max(1));
+                // The widths of a float32[3] and of a 4-byte scalar given as constants, so that
+                // the inlined copy is a move, not a memcpy call per value.
                 match s.width {
-                    4 => gather::<4>(rows, layout.stride, s.offset, &mut bytes),
-                    12 => gather::<12>(rows, layout.stride, s.offset, &mut bytes),
-                    w => {
-                        for (o, row) in bytes.chunks_exact_mut(w.max(1)).zip(rows.chunks_exact(layout.stride.max(1))) {
-                            o.copy_from_slice(&row[s.offset..s.offset + w]);
-                        }
-                    }
+                    4 => gather(rows, stride, s.offset, 4, &mut bytes),
+                    12 => gather(rows, stride, s.offset, 12, &mut bytes),
+                    w => gather(rows, stride, s.offset, w, &mut bytes),
                 }
                 let at = layout.valid_at + i;
-                let valid = rows.chunks_exact(layout.stride.max(1)).map(|row| row[at] != 0).collect();
+                let valid = rows.chunks_exact(stride).map(|row| row[at] != 0).collect();
                 PayloadBuf { bytes, valid }
             })
             .collect();
@@ -346,12 +343,15 @@ impl RayRows {
     }
 }
 
-/// Copies the `W` bytes at `offset` of every `stride`-byte row into `out`, row after row: the
-/// transposition of one payload column, with its width known to the compiler (a copy of a
-/// run-time width per row was a memcpy call per value).
-fn gather<const W: usize>(rows: &[u8], stride: usize, offset: usize, out: &mut [u8]) {
-    for (o, row) in out.chunks_exact_mut(W).zip(rows.chunks_exact(stride)) {
-        o.copy_from_slice(&row[offset..offset + W]);
+/// Copies the `width` bytes at `offset` of every `stride`-byte row into `out`, row after row:
+/// the transposition of one payload column. Inlined, so a constant `width` makes each copy a move.
+#[inline(always)]
+fn gather(rows: &[u8], stride: usize, offset: usize, width: usize, out: &mut [u8]) {
+    if width == 0 {
+        return;
+    }
+    for (o, row) in out.chunks_exact_mut(width).zip(rows.chunks_exact(stride)) {
+        o.copy_from_slice(&row[offset..offset + width]);
     }
 }
 
