@@ -42,6 +42,17 @@ fn left_out(ds: &Dataset) -> Vec<(String, &'static str)> {
     out
 }
 
+/// The tables the recording wrote, each with why it cannot be read (None when it can): its file
+/// checked whole (size, checksum, columns), the segments' tree tables too.
+fn tables(ds: &Dataset) -> Vec<(String, Option<String>)> {
+    let mut out: Vec<(String, Option<String>)> =
+        ds.table_names().into_iter().map(|t| (t.clone(), ds.verify_table(&t).err().map(|e| e.to_string()))).collect();
+    let broken: Vec<String> =
+        (0..ds.manifest().segments.len()).filter_map(|i| ds.verify_trees(i).err().map(|e| e.to_string())).collect();
+    out.push(("trees".into(), (!broken.is_empty()).then(|| broken.join("; "))));
+    out
+}
+
 fn dataset_bytes(ds: &Dataset) -> u64 {
     ds.manifest().segments.iter().map(|s| s.rays.bytes + s.trees.bytes).sum()
 }
@@ -78,6 +89,10 @@ pub fn run(dir: &Path, as_json: bool) -> Result<()> {
             "origin_bounds": (!s.origin_bounds.is_empty()).then_some(s.origin_bounds),
             "hit_bounds": (!s.hit_bounds.is_empty()).then_some(s.hit_bounds),
             "left_out": left_out(&ds).iter().map(|(what, why)| json!({"what": what, "why": why})).collect::<Vec<_>>(),
+            "tables": tables(&ds)
+                .iter()
+                .map(|(name, broken)| json!({"name": name, "available": broken.is_none(), "unavailable_because": broken}))
+                .collect::<Vec<_>>(),
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
@@ -128,6 +143,13 @@ pub fn run(dir: &Path, as_json: bool) -> Result<()> {
     };
     println!("origin bounds  {}", b(&s.origin_bounds));
     println!("hit bounds     {}", b(&s.hit_bounds));
+    let tables = tables(&ds);
+    println!("tables         {}", tables.iter().map(|(t, _)| t.as_str()).collect::<Vec<_>>().join(", "));
+    for (t, broken) in &tables {
+        if let Some(why) = broken {
+            println!("  unavailable  {t}: {why}");
+        }
+    }
     let left = left_out(&ds);
     if left.is_empty() {
         println!("left out       nothing");

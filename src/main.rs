@@ -121,7 +121,7 @@ enum Command {
     /// SQL over datasets: `rtvtk sql TRACE "SELECT kind, count(*) FROM rays GROUP BY kind"`.
     #[cfg(feature = "sql")]
     Sql(sql::SqlArgs),
-    /// Canned analyses (coherence, bvh, bugs, diff) as a markdown report with PNG heatmaps.
+    /// Canned analyses (coherence, bvh, numerics, diff) as a markdown report with PNG heatmaps.
     #[cfg(feature = "sql")]
     Analyze(analyze::AnalyzeArgs),
     /// The read-only query service: Arrow Flight SQL over datasets (any Flight SQL client: ADBC,

@@ -372,7 +372,7 @@ pub fn run(
         None
     };
     // The bounds `morton3` uses, so DuckDB's arithmetic quantizes the same way.
-    let (lo, hi) = query::SceneContext::of(&ds)?.bounds.unwrap_or(([0.0; 3], [1.0; 3]));
+    let (lo, hi) = query::SceneContext::of(&ds).bounds.unwrap_or(([0.0; 3], [1.0; 3]));
     let tree = ds.tree_entry_at(ds.tree_count() as usize / 2)?.map_or(0, |e| e.info.id.0);
     let encoded = ds.encoding() != store::Encoding::Plain && plain != dataset;
     println!(
@@ -504,7 +504,7 @@ impl LocalCluster {
 #[cfg(feature = "cluster")]
 pub fn run_cluster(dataset: &Path, counts: &[usize], cores: usize, runs: usize) -> Result<()> {
     let ds = store::Dataset::open(dataset).with_context(|| format!("opening {}", dataset.display()))?;
-    let (lo, hi) = query::SceneContext::of(&ds)?.bounds.unwrap_or(([0.0; 3], [1.0; 3]));
+    let (lo, hi) = query::SceneContext::of(&ds).bounds.unwrap_or(([0.0; 3], [1.0; 3]));
     let tree = ds.tree_entry_at(ds.tree_count() as usize / 2)?.map_or(0, |e| e.info.id.0);
     let dataset = std::path::absolute(dataset)?;
     println!(

@@ -76,7 +76,7 @@ impl EngineReader {
                 Ok(Some(Ok(b))) => return Some(Ok(b)),
                 Ok(Some(Err(e))) => {
                     let message = e.to_string();
-                    return self.fail(QueryError::new_err(message.clone()), &message);
+                    return self.fail(work::query_err(&message), &message);
                 }
                 Err(_) => {
                     if let Some(interrupt) = Python::attach(|py| py.check_signals().err()) {
@@ -208,7 +208,7 @@ impl Session {
     fn stream(&self, py: Python<'_>, sql: String) -> PyResult<ArrowStream> {
         let engine = self.engine.clone();
         let job = on_engine(&self.engine, async move { engine.stream(&sql).await.map_err(|e| e.to_string()) });
-        let stream = job.wait(py, None)?.map_err(QueryError::new_err)?;
+        let stream = job.wait(py, None)?.map_err(work::query_err)?;
         let schema = stream.schema();
         let failure = Failure::default();
         let reader = EngineReader { engine: self.engine.clone(), stream, schema, failure: failure.clone() };
@@ -308,8 +308,7 @@ impl Session {
         let e = self.engine.clone();
         let what = format!("analyze {name}");
         let poll = move || Some((what.clone(), e.queries_run() - start, 0u64));
-        let report =
-            job.wait(py, progress.as_ref().map(|cb| (cb, &poll as work::Poll)))?.map_err(QueryError::new_err)?;
+        let report = job.wait(py, progress.as_ref().map(|cb| (cb, &poll as work::Poll)))?.map_err(work::query_err)?;
         Ok(NativeReport { report })
     }
 

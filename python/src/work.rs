@@ -24,6 +24,14 @@ pub(crate) fn err(e: impl std::fmt::Display) -> PyErr {
     Error::new_err(e.to_string())
 }
 
+/// The error of a failed query: `rtvtk.DatasetError` when it failed because a table of the
+/// dataset cannot be read (a broken table is unavailable alone: its queries name it, the rest
+/// answer), otherwise `rtvtk.QueryError`, with the engine's message.
+pub(crate) fn query_err(e: impl std::fmt::Display) -> PyErr {
+    let message = e.to_string();
+    if message.contains("is unavailable: ") { DatasetError::new_err(message) } else { QueryError::new_err(message) }
+}
+
 /// An `rtvtk.RecordError` with `e`'s message.
 pub(crate) fn record_err(e: impl std::fmt::Display) -> PyErr {
     RecordError::new_err(e.to_string())

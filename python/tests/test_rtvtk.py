@@ -356,3 +356,27 @@ def test_sites_name_the_python_line_that_added_each_ray(tmp_path):
     plain.finish()
     with pytest.raises(rtvtk.QueryError, match="site"):
         rtvtk.open(tmp_path / "p").sql("SELECT site FROM rays")
+
+
+@pytest.mark.parametrize("table", ["lights", "triangles"])
+def test_a_broken_table_raises_dataset_error_for_that_table_alone(tmp_path, traced, table):
+    """A table whose file was changed behind the manifest's back (a flipped byte): the session
+    opens, the rays answer, the picture draws, and only queries of that table (and what is made
+    from it) raise `rtvtk.DatasetError`, naming it."""
+    out, _ = traced
+    copy = tmp_path / "t"
+    shutil.copytree(out, copy)
+    f = copy / "tables" / f"{table}.parquet"
+    data = bytearray(f.read_bytes())
+    data[len(data) // 2] ^= 0x5A
+    f.write_bytes(bytes(data))
+    s = rtvtk.open(copy)
+    n = s.sql("SELECT count(*) AS n FROM rays").column("n").to_pylist()[0]
+    assert n == rtvtk.open(out).sql("SELECT count(*) AS n FROM rays").column("n").to_pylist()[0]
+    with pytest.raises(rtvtk.DatasetError, match=f"`{table}`"):
+        s.sql(f"SELECT * FROM {table}")
+    checks = s.sql("SELECT problem, missing FROM numerics_checks").to_pylist()
+    needs = {"lights": "wrong_shadow", "triangles": "leak"}[table]
+    assert any(c["problem"] == needs and f"`{table}` table is unavailable" in (c["missing"] or "") for c in checks)
+    pic = s.render(layers=["rays"], size=(64, 48))
+    assert pic.size == (64, 48)

@@ -682,7 +682,7 @@ pub async fn numerics(ctx: &Engine) -> Result<Report> {
         let n = counts.get(c.name).copied().unwrap_or(0.0);
         if c.name == "wrong_shadow" {
             // Its count is the view's, already taken with the others.
-            wrong_shadow(ctx, &mut rep, missing.is_none().then_some(n), size).await?;
+            wrong_shadow(ctx, &mut rep, missing.as_deref().map_or(Ok(n), Err), size).await?;
             continue;
         }
         if missing.is_some() || n == 0.0 {
@@ -711,13 +711,21 @@ pub async fn numerics(ctx: &Engine) -> Result<Report> {
 }
 
 /// The paper's Figure-1 bug in detail: shadow rays aiming at no light, by depth and by the ray
-/// they leave from, the pixels with the most, and their heatmap; `wrong` is their count (None:
-/// the trace has no lights).
-async fn wrong_shadow(ctx: &Engine, rep: &mut Report, wrong: Option<f64>, size: (usize, usize)) -> Result<()> {
+/// they leave from, the pixels with the most, and their heatmap; `wrong` is their count, or why
+/// the check did not run (no `lights` table, or a broken one).
+async fn wrong_shadow(
+    ctx: &Engine,
+    rep: &mut Report,
+    wrong: std::result::Result<f64, &str>,
+    size: (usize, usize),
+) -> Result<()> {
     rep.heading("Shadow rays aiming at no light (the paper's Figure 1 bug)");
-    let Some(n) = wrong else {
-        rep.para("*(the trace has no `lights` table: this check needs the emitters)*");
-        return Ok(());
+    let n = match wrong {
+        Ok(n) => n,
+        Err(why) => {
+            rep.para(&format!("*(not run: {why}; this check needs the emitters)*"));
+            return Ok(());
+        }
     };
     let all = scalar(ctx, "SELECT count(*) FROM rays WHERE kind = 'shadow'").await?;
     rep.para(&format!(

@@ -151,6 +151,9 @@ struct SceneNode {
     /// The dataset directory `scene_hit` reads the triangles from; empty when none.
     #[prost(string, tag = "4")]
     triangles_dir: String,
+    /// Why the scene's `lights` table is unavailable; empty when it is not broken.
+    #[prost(string, tag = "5")]
+    lights_unavailable: String,
 }
 
 /// The codec: rtvtk's nodes, everything else through `logical` / `physical`.
@@ -228,12 +231,19 @@ fn path_text(ds: &Dataset) -> Result<String> {
 
 fn encode_scene(scene: Option<&SceneContext>) -> SceneNode {
     match scene {
-        None => SceneNode { has_scene: false, bounds: Vec::new(), lights: Vec::new(), triangles_dir: String::new() },
+        None => SceneNode {
+            has_scene: false,
+            bounds: Vec::new(),
+            lights: Vec::new(),
+            triangles_dir: String::new(),
+            lights_unavailable: String::new(),
+        },
         Some(s) => SceneNode {
             has_scene: true,
             bounds: s.bounds.map(|(lo, hi)| [lo, hi].concat()).unwrap_or_default(),
             lights: s.lights.iter().flat_map(|t| t.iter().flatten().copied()).collect(),
             triangles_dir: s.triangles.as_ref().map(|t| t.dir.to_string_lossy().into_owned()).unwrap_or_default(),
+            lights_unavailable: s.lights_unavailable.clone().unwrap_or_default(),
         },
     }
 }
@@ -251,7 +261,8 @@ fn decode_scene(n: &SceneNode) -> Result<SceneContext> {
         n.lights.chunks_exact(9).map(|c| [[c[0], c[1], c[2]], [c[3], c[4], c[5]], [c[6], c[7], c[8]]]).collect();
     let triangles = (!n.triangles_dir.is_empty())
         .then(|| crate::functions::SceneTriangles::shared(std::path::Path::new(&n.triangles_dir)));
-    Ok(SceneContext { bounds, lights, triangles })
+    let lights_unavailable = (!n.lights_unavailable.is_empty()).then(|| n.lights_unavailable.clone());
+    Ok(SceneContext { bounds, lights, lights_unavailable, triangles })
 }
 
 fn encode_scan(exec: &RaysScanExec) -> Result<ScanNode> {

@@ -62,30 +62,71 @@ pub const TRANSMISSION_BOUND: f64 = 4.0;
 /// A firefly is above this many times its pixel's median and the image's mean.
 pub const FIREFLY_K: f64 = 10.0;
 
+/// Whether a dataset has a table the checks read, and whether it can be read.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Presence {
+    /// The recording wrote no such table.
+    Absent,
+    /// It is there but cannot be read (the reason, naming the table).
+    Broken(String),
+    /// It is there and sound.
+    Present,
+}
+
+impl Presence {
+    /// The presence of `table` in `ds` (its schema read and its file checked whole, once per
+    /// process: a table a check reads is a table whose checksum is verified).
+    pub fn of(ds: &store::Dataset, table: &str) -> Self {
+        match ds.verify_table(table) {
+            Ok(false) => Self::Absent,
+            Ok(true) => Self::Present,
+            Err(e) => Self::Broken(e.to_string()),
+        }
+    }
+
+    /// Why a check that needs this table cannot run (None when it can).
+    fn missing(&self, table: &str) -> Option<String> {
+        match self {
+            Self::Absent => Some(format!("the trace has no `{table}` table")),
+            Self::Broken(why) => Some(format!("the `{table}` table is unavailable: {why}")),
+            Self::Present => None,
+        }
+    }
+}
+
 /// What the view of one dataset can check.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct Scope {
     /// The session's scene functions (`aims_at_light`, `scene_hit`) are this dataset's.
     pub scene: bool,
-    /// It has a `lights` table.
-    pub lights: bool,
-    /// It has a `triangles` table.
-    pub triangles: bool,
+    /// Its `lights` table.
+    pub lights: Presence,
+    /// Its `triangles` table.
+    pub triangles: Presence,
 }
 
 /// The checks a dataset with `rays` schema `schema` and `scope` can run, and for the others why
 /// not.
-pub fn available(schema: &Schema, scope: Scope) -> Vec<(Check, Option<&'static str>)> {
+pub fn available(schema: &Schema, scope: &Scope) -> Vec<(Check, Option<String>)> {
     let has = |c: &str| schema.column_with_name(c).is_some();
+    let scene = |p: &Presence, table: &str| match p.missing(table) {
+        Some(why) => Some(why),
+        None if !scope.scene => Some("the session's scene functions are another dataset's".to_string()),
+        None => None,
+    };
     CHECKS
         .iter()
         .map(|c| {
             let missing = match c.name {
-                "self_hit" | "detached_origin" if !has("prim") => Some("the rays record no `prim`"),
-                "leak" if !(scope.scene && scope.triangles) => Some("the trace has no `triangles` table"),
-                "energy" if float_parts(schema, "throughput").is_empty() => Some("the rays record no `throughput`"),
-                "wrong_shadow" if !(scope.scene && scope.lights) => Some("the trace has no `lights` table"),
-                "firefly" if float_parts(schema, "radiance").is_empty() => Some("the rays record no `radiance`"),
+                "self_hit" | "detached_origin" if !has("prim") => Some("the rays record no `prim`".to_string()),
+                "leak" => scene(&scope.triangles, store::scene::TRIANGLES_TABLE),
+                "energy" if float_parts(schema, "throughput").is_empty() => {
+                    Some("the rays record no `throughput`".to_string())
+                }
+                "wrong_shadow" => scene(&scope.lights, store::scene::LIGHTS_TABLE),
+                "firefly" if float_parts(schema, "radiance").is_empty() => {
+                    Some("the rays record no `radiance`".to_string())
+                }
                 _ => None,
             };
             (*c, missing)
@@ -128,7 +169,7 @@ fn row(problem: &str, value: &str, detail: &str) -> String {
 }
 
 /// The `numerics` view's SQL over `rays` (a table name, qualified or not).
-pub fn view_sql(schema: &Schema, rays: &str, scope: Scope) -> String {
+pub fn view_sql(schema: &Schema, rays: &str, scope: &Scope) -> String {
     let mut parts = Vec::new();
     let join = format!("FROM {rays} r JOIN {rays} p ON r.tree_id = p.tree_id AND r.parent = p.ray");
     // The parent's hit point, in doubles.
@@ -261,24 +302,36 @@ pub fn view_sql(schema: &Schema, rays: &str, scope: Scope) -> String {
 /// The name of the view.
 pub const VIEW: &str = "numerics";
 
-/// Registers the `numerics` view of dataset `name` (as `NAME.numerics`, and as `numerics` with
-/// `unqualified`); the ray functions must be registered already.
+/// Registers the `numerics` view of dataset `ds` under `name` (as `NAME.numerics`, and as
+/// `numerics` with `unqualified`) and its `numerics_checks` table; the ray functions must be
+/// registered already. A broken table the checks read leaves out the checks that need it (named
+/// in `numerics_checks` with the reason); a view that cannot be planned at all is registered as
+/// unavailable, naming why, so the session opens whatever the dataset's state.
 pub async fn register_view(
     ctx: &SessionContext,
     name: &str,
-    tables: &[String],
+    ds: &store::Dataset,
     scope_scene: bool,
     unqualified: bool,
 ) -> Result<()> {
-    let rays = format!("{name}.rays");
-    let schema = ctx.table(rays.as_str()).await?.schema().as_arrow().clone();
     let scope = Scope {
         scene: scope_scene,
-        lights: tables.iter().any(|t| t == store::scene::LIGHTS_TABLE),
-        triangles: tables.iter().any(|t| t == store::scene::TRIANGLES_TABLE),
+        lights: Presence::of(ds, store::scene::LIGHTS_TABLE),
+        triangles: Presence::of(ds, store::scene::TRIANGLES_TABLE),
     };
-    let view = ctx.sql(&view_sql(&schema, &rays, scope)).await?.into_view();
-    let checks = checks_table(&available(&schema, scope))?;
+    let rays = format!("{name}.rays");
+    let schema = ctx.table(rays.as_str()).await?.schema().as_arrow().clone();
+    let checks = available(&schema, &scope);
+    let view: std::sync::Arc<dyn datafusion::catalog::TableProvider> =
+        match ctx.sql(&view_sql(&schema, &rays, &scope)).await {
+            Ok(df) => df.into_view(),
+            Err(e) => std::sync::Arc::new(crate::tables::Unavailable::new(
+                VIEW,
+                std::sync::Arc::new(Schema::empty()),
+                format!("the view could not be planned: {e}"),
+            )),
+        };
+    let checks = checks_table(&checks)?;
     for (table, provider) in [(VIEW, view), (CHECKS_TABLE, checks)] {
         ctx.register_table(datafusion::common::TableReference::partial(name, table), provider.clone())?;
         if unqualified {
@@ -292,9 +345,7 @@ pub async fn register_view(
 /// `numerics_checks(problem, title, bug, missing)`.
 pub const CHECKS_TABLE: &str = "numerics_checks";
 
-fn checks_table(
-    checks: &[(Check, Option<&'static str>)],
-) -> Result<std::sync::Arc<dyn datafusion::catalog::TableProvider>> {
+fn checks_table(checks: &[(Check, Option<String>)]) -> Result<std::sync::Arc<dyn datafusion::catalog::TableProvider>> {
     use arrow::array::{BooleanArray, RecordBatch, StringArray};
     use arrow::datatypes::Field;
     use std::sync::Arc;
@@ -310,7 +361,7 @@ fn checks_table(
             Arc::new(StringArray::from_iter_values(checks.iter().map(|(c, _)| c.name))),
             Arc::new(StringArray::from_iter_values(checks.iter().map(|(c, _)| c.title))),
             Arc::new(BooleanArray::from_iter(checks.iter().map(|(c, _)| Some(c.bug)))),
-            Arc::new(StringArray::from_iter(checks.iter().map(|(_, m)| *m))),
+            Arc::new(StringArray::from_iter(checks.iter().map(|(_, m)| m.as_deref()))),
         ],
     )
     .map_err(|e| crate::Error::DataFusion(e.into()))?;

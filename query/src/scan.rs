@@ -422,6 +422,10 @@ impl Pushdown {
                 (Some(x), Some(y)) => span(x).saturating_mul(span(y)) <= NARROW_PIXELS,
                 _ => false,
             };
+            // The segment's tree file is checked whole (size, CRC32, columns) once per process
+            // before SQL reads it: a corrupted file is refused naming the segment instead of
+            // answering with damaged pixels or ids.
+            ds.verify_trees(i)?;
             let entries = if narrow_ids || narrow_pixels {
                 let filter = store::TreeFilter {
                     tree_id: self.ranges.get(col::TREE_ID).cloned(),
@@ -655,7 +659,10 @@ impl RaysScanExec {
             let b = b?;
             let entries: &[TreeEntry] = match &mut entries {
                 Some(e) => e,
-                None => entries.insert(ds.segment_tree_entries(segment)?),
+                None => {
+                    ds.verify_trees(segment)?;
+                    entries.insert(ds.segment_tree_entries(segment)?)
+                }
             };
             let ids = b
                 .column_by_name(col::TREE_ID)
@@ -706,10 +713,11 @@ fn site_text_type() -> arrow::datatypes::DataType {
     DataType::Dictionary(Box::new(DataType::UInt32), Box::new(DataType::Utf8))
 }
 
-/// Whether `ds` recorded sites: a `site` payload column and the `sites` table.
+/// Whether `ds` recorded sites: a `site` payload column and a `sites` table whose columns can
+/// be read (a broken one leaves `site` as its ids: the rays stay queryable).
 fn has_sites(ds: &Dataset) -> bool {
     ds.ray_schema().field_with_name(store::scene::SITE_COLUMN).is_ok()
-        && ds.table_names().iter().any(|n| n == store::scene::SITES_TABLE)
+        && matches!(ds.table_schema(store::scene::SITES_TABLE), Ok(Some(_)))
 }
 
 /// `schema` with its `site` column as text (`text`) or as the stored ids.

@@ -174,14 +174,14 @@ pub async fn register_datasets(ctx: &SessionContext, datasets: &[Registered]) ->
         register_dataset(ctx, &d.name, &d.dataset, i == 0).await?;
     }
     let scene = match datasets.first() {
-        Some(d) => SceneContext::of(&d.dataset)?,
+        Some(d) => SceneContext::of(&d.dataset),
         None => SceneContext::default(),
     };
     register_functions(ctx, Arc::new(scene));
     // The `numerics` views read the ray functions; the scene's (lights, triangles) are the first
     // dataset's, so only its view has the checks that need them.
     for (i, d) in datasets.iter().enumerate() {
-        crate::numerics::register_view(ctx, &d.name, &d.dataset.table_names(), i == 0, i == 0).await?;
+        crate::numerics::register_view(ctx, &d.name, &d.dataset, i == 0, i == 0).await?;
     }
     Ok(())
 }
@@ -213,30 +213,52 @@ pub async fn register_dataset(ctx: &SessionContext, name: &str, ds: &Arc<Dataset
     if let Some(catalog) = ctx.catalog(&catalog_name) {
         catalog.register_schema(name, Arc::new(MemorySchemaProvider::new()))?;
     }
-    let mut tables: Vec<(&str, Arc<dyn TableProvider>)> = vec![
-        ("rays", Arc::new(RaysTable::new(ds.clone()))),
-        ("trees", listing(ctx, &ds.dir().join("segments"), ".trees.parquet", Some(store::tree_schema())).await?),
-        ("ray_paths", Arc::new(RayPathsTable::new(ds.clone())?)),
+    // `trees`: every segment's tree file, checked whole before the first scan.
+    let trees: Arc<dyn TableProvider> = {
+        let files = listing(ctx, &ds.dir().join("segments"), ".trees.parquet", Some(store::tree_schema())).await?;
+        let d = ds.clone();
+        let verify =
+            move || (0..d.manifest().segments.len()).try_for_each(|i| d.verify_trees(i)).map_err(|e| e.to_string());
+        Arc::new(Verified { name: "trees".into(), inner: files, verify: Box::new(verify) })
+    };
+    // `ray_paths` marks the rays that reached an emitter: it needs a sound `lights` table.
+    let ray_paths: Arc<dyn TableProvider> = match RayPathsTable::new(ds.clone()) {
+        Ok(t) => Arc::new(t),
+        Err(e) => Arc::new(Unavailable::new("ray_paths", ray_paths_schema(), format!("it is made from {e}"))),
+    };
+    let mut tables: Vec<(String, Arc<dyn TableProvider>)> = vec![
+        ("rays".into(), Arc::new(RaysTable::new(ds.clone()))),
+        ("trees".into(), trees),
+        ("ray_paths".into(), ray_paths),
     ];
     if !ds.table_names().iter().any(|n| n == ATTRIBUTES_TABLE) {
-        tables.push((ATTRIBUTES_TABLE, attributes_table(ds)?));
+        tables.push((ATTRIBUTES_TABLE.into(), attributes_table(ds)?));
     }
     // Every whole-dataset table the recording wrote (`triangles`, `lights`, `bvh_nodes`, ...),
-    // with its file's schema checked against the known one (`store::scene`); a table that fails
-    // the check is unavailable alone, and a query of it says why.
-    let names = ds.table_names();
-    for name in names.iter().filter(|n| !["rays", "trees", "ray_paths"].contains(&n.as_str())) {
-        let table: Arc<dyn TableProvider> = match (ds.table_schema(name), ds.table_path(name)) {
-            (Ok(Some(schema)), Some(path)) => listing(ctx, &path, ".parquet", Some(schema)).await?,
-            (Err(e), _) => Arc::new(Unavailable { name: name.clone(), message: e.to_string() }),
+    // with its file's schema checked against the known one (`store::scene`) now and the file
+    // checked whole before its first scan; a table that fails either is unavailable alone, and
+    // a query of it says why.
+    for table in ds.table_names().into_iter().filter(|n| !["rays", "trees", "ray_paths"].contains(&n.as_str())) {
+        let provider: Arc<dyn TableProvider> = match (ds.table_schema(&table), ds.table_path(&table)) {
+            (Ok(Some(schema)), Some(path)) => {
+                let files = listing(ctx, &path, ".parquet", Some(schema)).await?;
+                let (d, t) = (ds.clone(), table.clone());
+                let verify = move || d.verify_table(&t).map(|_| ()).map_err(|e| e.to_string());
+                Arc::new(Verified { name: table.clone(), inner: files, verify: Box::new(verify) })
+            }
+            (Err(e), _) => {
+                let schema = store::scene::known_table_schema(&table)
+                    .unwrap_or_else(|| Arc::new(arrow::datatypes::Schema::empty()));
+                Arc::new(Unavailable::new(&table, schema, e.to_string()))
+            }
             _ => continue,
         };
-        tables.push((name.as_str(), table));
+        tables.push((table, provider));
     }
     for (table_name, table) in tables {
-        ctx.register_table(TableReference::partial(name, table_name), table.clone())?;
+        ctx.register_table(TableReference::partial(name, table_name.as_str()), table.clone())?;
         if unqualified {
-            ctx.register_table(table_name, table)?;
+            ctx.register_table(table_name.as_str(), table)?;
         }
     }
     Ok(())
@@ -271,19 +293,32 @@ pub(crate) fn attributes_batch<'a>(
     )
 }
 
-/// A table of the dataset that cannot be read (a known table whose file has a missing or
-/// mistyped column): registered so that a query of it fails naming the table and the reason,
-/// while every other table stays queryable.
+/// A table of the dataset that cannot be read (a known table whose file is missing, truncated,
+/// corrupted or has a missing or mistyped column), or one made from such a table (`ray_paths`
+/// from `lights`, the `numerics` view): registered so that a query of it fails naming the table
+/// and the reason, while every other table stays queryable.
 #[derive(Debug)]
-struct Unavailable {
+pub(crate) struct Unavailable {
     name: String,
+    schema: SchemaRef,
     message: String,
+}
+
+impl Unavailable {
+    /// Table `name`, with the schema it would have, unavailable for `message`.
+    pub(crate) fn new(name: &str, schema: SchemaRef, message: String) -> Self {
+        Self { name: name.to_string(), schema, message }
+    }
+
+    fn error(&self) -> datafusion::error::DataFusionError {
+        datafusion::error::DataFusionError::Plan(format!("table `{}` is unavailable: {}", self.name, self.message))
+    }
 }
 
 #[async_trait::async_trait]
 impl TableProvider for Unavailable {
     fn schema(&self) -> SchemaRef {
-        store::scene::known_table_schema(&self.name).unwrap_or_else(|| Arc::new(arrow::datatypes::Schema::empty()))
+        self.schema.clone()
     }
 
     fn table_type(&self) -> datafusion::datasource::TableType {
@@ -297,7 +332,53 @@ impl TableProvider for Unavailable {
         _filters: &[datafusion::logical_expr::Expr],
         _limit: Option<usize>,
     ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
-        Err(datafusion::error::DataFusionError::Plan(format!("table `{}` is unavailable: {}", self.name, self.message)))
+        Err(self.error())
+    }
+}
+
+/// A table whose files are checked whole before its first scan (`verify`: sizes, checksums and
+/// schemas, which the dataset remembers), so a corrupted file is refused naming the table
+/// instead of being read; then `inner` scans as it would.
+pub(crate) struct Verified {
+    name: String,
+    inner: Arc<dyn TableProvider>,
+    verify: Box<dyn Fn() -> std::result::Result<(), String> + Send + Sync>,
+}
+
+impl std::fmt::Debug for Verified {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Verified({})", self.name)
+    }
+}
+
+#[async_trait::async_trait]
+impl TableProvider for Verified {
+    fn schema(&self) -> SchemaRef {
+        self.inner.schema()
+    }
+
+    fn table_type(&self) -> datafusion::datasource::TableType {
+        self.inner.table_type()
+    }
+
+    fn supports_filters_pushdown(
+        &self,
+        filters: &[&datafusion::logical_expr::Expr],
+    ) -> datafusion::error::Result<Vec<datafusion::logical_expr::TableProviderFilterPushDown>> {
+        self.inner.supports_filters_pushdown(filters)
+    }
+
+    async fn scan(
+        &self,
+        state: &dyn datafusion::catalog::Session,
+        projection: Option<&Vec<usize>>,
+        filters: &[datafusion::logical_expr::Expr],
+        limit: Option<usize>,
+    ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
+        (self.verify)().map_err(|message| {
+            datafusion::error::DataFusionError::Plan(format!("table `{}` is unavailable: {message}", self.name))
+        })?;
+        self.inner.scan(state, projection, filters, limit).await
     }
 }
 

@@ -32,7 +32,7 @@ impl CheckReport {
     }
 }
 
-fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
+pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
     let mut f = File::open(path)?;
     let mut h = crc32fast::Hasher::new();
     let mut buf = vec![0u8; 1 << 20];
@@ -279,20 +279,23 @@ fn check_segment(ds: &Dataset, i: usize) -> SegmentCheck {
     let mut c = SegmentCheck::default();
     let r = &mut c.errors;
     // Files: present, same size and checksum as the manifest says.
-    for f in [&seg.rays, &seg.trees] {
+    for (f, what) in [(&seg.rays, "ray file"), (&seg.trees, "tree table")] {
         let path = ds.dir().join(&f.path);
         match crc_of(&path) {
-            Ok((_, n)) if n != f.bytes => {
-                r.push(format!("segment {}: expected {} bytes, found {n} ({})", seg.id, f.bytes, path.display()))
-            }
+            Ok((_, n)) if n != f.bytes => r.push(format!(
+                "segment {}: {what}: expected {} bytes, found {n} ({})",
+                seg.id,
+                f.bytes,
+                path.display()
+            )),
             Ok((crc, _)) if crc != f.crc32 => r.push(format!(
-                "segment {}: expected CRC32 {:08x}, computed {crc:08x}: file is corrupted ({})",
+                "segment {}: {what}: expected CRC32 {:08x}, computed {crc:08x}: file is corrupted ({})",
                 seg.id,
                 f.crc32,
                 path.display()
             )),
             Ok(_) => {}
-            Err(e) => r.push(format!("segment {}: cannot read: {e} ({})", seg.id, path.display())),
+            Err(e) => r.push(format!("segment {}: {what}: cannot read: {e} ({})", seg.id, path.display())),
         }
     }
     if !r.is_empty() {

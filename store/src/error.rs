@@ -32,6 +32,9 @@ pub enum Error {
     #[error("segment {segment} file is corrupted: expected CRC32 {expected:08x}, computed {found:08x} ({path})")]
     Checksum { segment: u32, path: PathBuf, expected: u32, found: u32 },
 
+    #[error("segment {segment}'s tree table is unavailable: {message} ({path})")]
+    TreeTable { segment: u32, path: PathBuf, message: String },
+
     #[error("optional table `{name}`: {message} ({path})")]
     Table { name: String, path: PathBuf, message: String },
 

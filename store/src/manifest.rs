@@ -31,6 +31,16 @@ pub struct FileEntry {
     pub bytes: u64,
     pub crc32: u32,
     pub rows: u64,
+    /// A whole-dataset table's columns as written (`name: type`), so a file whose columns were
+    /// changed is found for tables this build has no schema of too (a renderer's own); absent in
+    /// segment entries and in datasets written before it (then only known tables are checked).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub columns: Option<Vec<String>>,
+}
+
+/// The `columns` a manifest records for a table of `schema`.
+pub fn table_columns(schema: &arrow::datatypes::Schema) -> Vec<String> {
+    schema.fields().iter().map(|f| format!("{}: {}", f.name(), f.data_type())).collect()
 }
 
 /// One sealed segment: a ray file and its tree file.

@@ -238,7 +238,11 @@ impl DatasetWriter {
         }
         let mut m = self.manifest.lock().unwrap_or_else(|p| p.into_inner());
         let mut next = m.clone();
-        next.tables.insert(name.to_string(), FileEntry { path: rel, bytes, crc32: crc, rows: batch.num_rows() as u64 });
+        let columns = Some(crate::manifest::table_columns(&batch.schema()));
+        next.tables.insert(
+            name.to_string(),
+            FileEntry { path: rel, bytes, crc32: crc, rows: batch.num_rows() as u64, columns },
+        );
         next.store(&self.dir, self.options.sync)?;
         *m = next;
         Ok(())
@@ -461,8 +465,14 @@ impl SegmentWriter {
         }
         let entry = SegmentEntry {
             id: self.id,
-            rays: FileEntry { path: rays_rel, bytes: rays.1, crc32: rays.0, rows: self.rows },
-            trees: FileEntry { path: trees_rel, bytes: trees.1, crc32: trees.0, rows: tree_count as u64 },
+            rays: FileEntry { path: rays_rel, bytes: rays.1, crc32: rays.0, rows: self.rows, columns: None },
+            trees: FileEntry {
+                path: trees_rel,
+                bytes: trees.1,
+                crc32: trees.0,
+                rows: tree_count as u64,
+                columns: None,
+            },
             tree_id_min: id_min,
             tree_id_max: id_max,
             stats: std::mem::take(&mut self.stats),

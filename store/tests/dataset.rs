@@ -245,10 +245,55 @@ fn truncated_segment_is_named() {
 #[test]
 fn missing_segment_is_named() {
     let (_d, path) = sample_dataset();
-    fs::remove_file(path.join("segments/000001.trees.parquet")).unwrap();
+    fs::remove_file(path.join("segments/000001.rays.parquet")).unwrap();
     let err = Dataset::open(&path).err().unwrap();
     assert!(matches!(err, Error::MissingFile { segment: 1, .. }), "{err}");
-    assert!(err.to_string().contains("000001.trees.parquet"), "{err}");
+    assert!(err.to_string().contains("000001.rays.parquet"), "{err}");
+}
+
+/// A segment's tree file missing, truncated or corrupted costs that segment's trees alone: the
+/// dataset opens, the segment's rays and every other segment stay readable, and a read of its
+/// trees (or `verify_trees`) names the segment and the file.
+#[test]
+fn a_broken_tree_file_costs_its_segments_trees_alone() {
+    type Damage = fn(&std::path::Path, &std::path::Path);
+    let damages: [(&str, Damage); 3] = [
+        ("missing", |_, f| fs::remove_file(f).unwrap()),
+        ("truncated", |_, f| {
+            let len = fs::metadata(f).unwrap().len();
+            fs::OpenOptions::new().write(true).open(f).unwrap().set_len(len / 2).unwrap();
+        }),
+        ("bad CRC", |_, f| {
+            let mut bytes = fs::read(f).unwrap();
+            let mid = bytes.len() / 3;
+            bytes[mid] ^= 0x5a;
+            fs::write(f, bytes).unwrap();
+        }),
+    ];
+    for (what, damage) in damages {
+        let (_d, path) = sample_dataset();
+        let f = path.join("segments/000001.trees.parquet");
+        damage(&path, &f);
+        let ds = Dataset::open(&path).unwrap_or_else(|e| panic!("{what}: {e}"));
+        let err = ds.verify_trees(0).err().unwrap_or_else(|| panic!("{what}: segment 1 verified"));
+        assert!(matches!(err, Error::TreeTable { segment: 1, .. }), "{what}: {err}");
+        assert!(err.to_string().contains("000001.trees.parquet"), "{what}: {err}");
+        ds.verify_trees(1).unwrap_or_else(|e| panic!("{what}: segment 2: {e}"));
+        // Segment 2's trees and every segment's ray columns are read as before.
+        assert_eq!(ds.segment_tree_entries(1).unwrap().len(), 40, "{what}");
+        for seg in 0..2 {
+            let rows: usize = ds
+                .segment_columns_in(seg, &["tree_id".to_string()], None, 1024)
+                .unwrap()
+                .map(|b| b.unwrap().num_rows())
+                .sum();
+            assert_eq!(rows as u64, ds.manifest().segments[seg].rays.rows, "{what}");
+        }
+        if what != "bad CRC" {
+            let err = ds.segment_tree_entries(0).err().unwrap_or_else(|| panic!("{what}: read"));
+            assert!(err.to_string().contains("segment 1's tree table"), "{what}: {err}");
+        }
+    }
 }
 
 #[test]

@@ -223,11 +223,29 @@ pub fn render_with(
     if let Some(c) = request.camera {
         p.set_camera(c)?;
     }
+    // A layer whose table is broken is left out, saying why: the rest draw. A layer the dataset
+    // cannot feed at all, or asked for with settings it does not take, is an error.
+    let mut left_out = Vec::new();
     for l in &layers {
         let s = request.settings(l, has_query)?;
-        p.add(l, &s).map_err(|e| Error::Settings(format!("adding the {l} layer: {e}")))?;
+        match p.add(l, &s) {
+            Ok(_) => {}
+            Err(e) if crate::error::says_unavailable(&e.to_string()) => {
+                left_out.push(format!("warning: the {l} layer is not drawn: {e}"));
+            }
+            Err(e) => return Err(Error::Settings(format!("adding the {l} layer: {e}"))),
+        }
     }
     while p.idle()? {}
     let img = p.snapshot(request.legend)?;
-    Ok((img, p.report()))
+    // A layer that failed for any other reason than a table it reads being unavailable (a
+    // refused query, for one) fails the render, as asked.
+    for l in p.layers() {
+        if let Some(why) = l.failed().filter(|why| !crate::error::says_unavailable(why)) {
+            return Err(Error::Layer { layer: l.component.kind().into(), message: why.to_string() });
+        }
+    }
+    let mut report = left_out;
+    report.extend(p.report());
+    Ok((img, report))
 }

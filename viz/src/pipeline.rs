@@ -38,6 +38,17 @@ pub struct Layer {
     range: [f32; 2],
     /// Times the component's `render` ran.
     pub renders: u64,
+    /// Why the last render of this layer failed (its data could not be read): the layer is left
+    /// empty and the others draw.
+    failed: Option<String>,
+}
+
+impl Layer {
+    /// Why this layer drew nothing at its last render, if it failed (a broken table, a refused
+    /// query); `Pipeline::report` and the viewer's layer list say it.
+    pub fn failed(&self) -> Option<&str> {
+        self.failed.as_deref()
+    }
 }
 
 #[repr(C)]
@@ -189,6 +200,7 @@ impl Pipeline {
             key: None,
             range: [1.0, 2.0],
             renders: 0,
+            failed: None,
         });
     }
 
@@ -331,7 +343,16 @@ impl Pipeline {
                 preview: key.preview,
                 occluder: occluder.map(|(o, t)| OccluderRef { depth: &t.depth_view, range: o.range }),
             };
-            l.component.render(&mut ctx)?;
+            // A layer whose data cannot be read is left empty, saying why; the others draw. A
+            // device error stops the frame.
+            match l.component.render(&mut ctx) {
+                Ok(()) => l.failed = None,
+                Err(e @ Error::Gpu(_)) => return Err(e),
+                Err(e) => {
+                    crate::draw::clear_layer(&self.gpu, target);
+                    l.failed = Some(e.to_string());
+                }
+            }
             self.gpu.check().map_err(|e| Error::Layer { layer: l.component.kind().into(), message: e.to_string() })?;
             l.range = depth_range(&camera, self.frame);
             l.renders += 1;
@@ -462,7 +483,18 @@ impl Pipeline {
 
     /// What the shown layers report, and what the sources lack.
     pub fn report(&self) -> Vec<String> {
-        let mut r: Vec<String> = self.layers.iter().filter(|l| l.enabled).flat_map(|l| l.component.report()).collect();
+        let mut r: Vec<String> = self
+            .layers
+            .iter()
+            .filter(|l| l.enabled)
+            .flat_map(|l| {
+                let failed = l
+                    .failed
+                    .as_ref()
+                    .map(|why| format!("warning: the {} layer is not drawn: {why}", l.component.kind()));
+                failed.into_iter().chain(l.component.report())
+            })
+            .collect();
         r.extend(self.sources.missing.iter().map(|m| format!("note: {m}")));
         r
     }

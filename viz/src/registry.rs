@@ -17,7 +17,7 @@ pub struct ComponentInfo {
 }
 
 fn needs_scene(s: &Sources) -> Result<(), String> {
-    if s.scene.is_some() { Ok(()) } else { Err("no triangles table".into()) }
+    if s.scene.is_some() { Ok(()) } else { Err(s.why_no_scene()) }
 }
 
 static REGISTRY: [ComponentInfo; 7] = [

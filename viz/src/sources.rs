@@ -152,12 +152,14 @@ impl Sources {
                 }
             }
         };
-        let parts = Parts {
-            attributes: m.attributes.clone(),
-            triangles: ds.table(TRIANGLES_TABLE)?,
-            picture,
-            tables: m.tables.keys().cloned().collect(),
-        };
+        // A broken `triangles` table costs the layers that draw the scene, named in `missing`;
+        // the rays and the other layers draw.
+        let triangles = ds.table(TRIANGLES_TABLE).unwrap_or_else(|e| {
+            missing.push(format!("the scene's triangles are unavailable: {e}"));
+            None
+        });
+        let parts =
+            Parts { attributes: m.attributes.clone(), triangles, picture, tables: m.tables.keys().cloned().collect() };
         let fallback = || {
             let st = ds.stats();
             let mut lo = [f64::INFINITY; 3];
@@ -226,18 +228,26 @@ impl Sources {
                 }
             }
         }
+        let mut missing = vec![format!(
+            "the recorded picture is not served by {}: the image layer traces the view",
+            engine.describe()
+        )];
         let triangles = if tables.iter().any(|t| t == TRIANGLES_TABLE) {
-            let batches = collect(&format!("SELECT * FROM {prefix}{TRIANGLES_TABLE}"))?;
-            let schema = batches.first().map(|b| b.schema()).unwrap_or_else(store::scene::triangles_schema);
-            Some(arrow::compute::concat_batches(&schema, &batches)?)
+            match collect(&format!("SELECT * FROM {prefix}{TRIANGLES_TABLE}")) {
+                Ok(batches) => {
+                    let schema = batches.first().map(|b| b.schema()).unwrap_or_else(store::scene::triangles_schema);
+                    Some(arrow::compute::concat_batches(&schema, &batches)?)
+                }
+                // A broken table on the server costs the scene's layers alone, as it does here.
+                Err(e) => {
+                    missing.push(format!("the scene's triangles are unavailable: {e}"));
+                    None
+                }
+            }
         } else {
             None
         };
         let parts = Parts { attributes, triangles, picture: None, tables };
-        let missing = vec![format!(
-            "the recorded picture is not served by {}: the image layer traces the view",
-            engine.describe()
-        )];
         let fallback = || {
             let b = collect(&format!(
                 "SELECT min(origin_x), min(origin_y), min(origin_z), max(origin_x), max(origin_y), max(origin_z) \
@@ -292,6 +302,8 @@ impl Sources {
                 let name = attrs.get("scene").cloned().unwrap_or_else(|| "dataset".into());
                 Some(Arc::new(Scene::from_triangles_table(&name, t, c)?))
             }
+            // A broken table has said why in `missing` already.
+            None if parts.tables.iter().any(|t| t == TRIANGLES_TABLE) => None,
             None => {
                 missing.push("no triangles table: the geometry and composition layers are not available".into());
                 None
@@ -389,6 +401,17 @@ impl Sources {
     /// Whether there are recorded rays to draw: a dataset open here, or one a service serves.
     pub fn has_rays(&self) -> bool {
         self.dataset.is_some() || self.sql.get().is_some()
+    }
+
+    /// Why the dataset has no scene (its `triangles` table missing, or broken and why): what the
+    /// layers that draw the scene say instead of drawing.
+    pub fn why_no_scene(&self) -> String {
+        const BROKEN: &str = "the scene's triangles are unavailable";
+        self.missing
+            .iter()
+            .find(|m| m.starts_with(BROKEN))
+            .cloned()
+            .unwrap_or_else(|| "the dataset has no triangles table (recorded before scenes were stored)".into())
     }
 
     /// The name of one of the dataset's tables in its engine (`rays`, `NAME.rays`).

@@ -88,10 +88,17 @@ pub(super) fn ray_aabb_hit() -> RayScalar {
 /// `aims_at_light(ox, oy, oz, dx, dy, dz)` over the emitters of `scene`.
 pub(super) fn aims_at_light(scene: &Arc<SceneContext>) -> RayScalar {
     let lights = scene.clone();
-    let kernel = rowwise::<6, _, BooleanArray>("aims_at_light", false, move |v, _| {
-        let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
-        Some(lights.lights.iter().any(|t| aims_at(o, d, t)))
-    });
+    let kernel: Kernel = match &scene.lights_unavailable {
+        // A broken `lights` table: no answer rather than "aims at nothing" for every ray.
+        Some(why) => {
+            let message = format!("aims_at_light needs the scene's `lights` table, which is unavailable: {why}");
+            Arc::new(move |_: &[ColumnarValue]| Err(datafusion::error::DataFusionError::Execution(message.clone())))
+        }
+        None => rowwise::<6, _, BooleanArray>("aims_at_light", false, move |v, _| {
+            let (o, d) = ([v[0], v[1], v[2]], [v[3], v[4], v[5]]);
+            Some(lights.lights.iter().any(|t| aims_at(o, d, t)))
+        }),
+    };
     RayScalar::new("aims_at_light", float_signature(6, false), DataType::Boolean, kernel, doc(
         "Whether the ray's line hits an emitter triangle of the scene (its `lights` table) in front of its origin (Boolean, watertight test; within 2^-19 of the coordinates' magnitude of its edges, the rounding of f32 positions), or passes within 1e-5 rad (0.0006°) of a point light: false for a shadow ray that points at no light, the paper's bug.",
         "aims_at_light(origin_x, origin_y, origin_z, dir_x, dir_y, dir_z)",

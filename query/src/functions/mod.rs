@@ -303,6 +303,7 @@ mod fuzz {
         let scene = SceneContext {
             bounds: Some(([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0])),
             lights: vec![[[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 1.0]], [[0.5; 3], [0.5; 3], [0.5; 3]]],
+            lights_unavailable: None,
             triangles: None,
         };
         let ctx = SessionContext::new();

@@ -14,18 +14,35 @@ pub struct SceneContext {
     pub bounds: Option<([f64; 3], [f64; 3])>,
     /// Emitter triangles (v0, v1, v2).
     pub lights: Vec<[[f64; 3]; 3]>,
+    /// Why the dataset's `lights` table cannot be read, when it is broken: `aims_at_light`
+    /// then fails naming it (instead of answering as if the scene had no emitters), while the
+    /// session and every other function work.
+    pub lights_unavailable: Option<String>,
     /// The dataset's triangles for `scene_hit`, read at first use (None: no dataset).
     pub triangles: Option<std::sync::Arc<SceneTriangles>>,
 }
 
 impl SceneContext {
     /// The scene of a dataset: bounds from its statistics, emitters from its `lights` table
-    /// (`Dataset::table` has checked it against `store::scene::lights_schema`).
-    pub fn of(ds: &Dataset) -> Result<Self> {
-        let lights = ds.table(store::scene::LIGHTS_TABLE)?;
-        let mut scene = Self::from_parts(ds.stats(), lights.as_ref(), &ds.dir().display().to_string())?;
+    /// (`Dataset::table` has checked it whole: size, checksum and `store::scene::lights_schema`).
+    /// A broken `lights` table does not fail it: the scene has no emitters and says why
+    /// (`lights_unavailable`), so only the functions that need emitters fail.
+    pub fn of(ds: &Dataset) -> Self {
+        let place = ds.dir().display().to_string();
+        let from_table = ds
+            .table(store::scene::LIGHTS_TABLE)
+            .map_err(crate::Error::from)
+            .and_then(|lights| Self::from_parts(ds.stats(), lights.as_ref(), &place));
+        let mut scene = match from_table {
+            Ok(s) => s,
+            Err(e) => {
+                let mut s = Self::from_parts(ds.stats(), None, &place).unwrap_or_default();
+                s.lights_unavailable = Some(e.to_string());
+                s
+            }
+        };
         scene.triangles = Some(SceneTriangles::shared(ds.dir()));
-        Ok(scene)
+        scene
     }
 
     /// The scene from a trace's statistics and its `lights` table, if any (`place` names the
@@ -59,7 +76,7 @@ impl SceneContext {
                 lights.push([p(0), p(1), p(2)]);
             }
         }
-        Ok(Self { bounds, lights, triangles: None })
+        Ok(Self { bounds, lights, lights_unavailable: None, triangles: None })
     }
 }
 

@@ -6,12 +6,32 @@ use super::*;
 
 impl Dataset {
     /// A reader of segment `i`'s tree file (its schema checked), with its path.
-    fn tree_file(&self, i: usize) -> Result<(PathBuf, ParquetRecordBatchReaderBuilder<File>)> {
+    pub(super) fn tree_file(&self, i: usize) -> Result<(PathBuf, ParquetRecordBatchReaderBuilder<File>)> {
+        self.tree_fault(i)?;
         let path = self.dir.join(&self.segment(i).trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
-        let builder = guard(&path, || ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path)))?;
-        check_schema(builder.schema(), &tree_schema(), &path)?;
+        let builder = guard(&path, || ParquetRecordBatchReaderBuilder::try_new(file).map_err(pq_err(&path)))
+            .map_err(|e| self.tree_error(i, e))?;
+        check_schema(builder.schema(), &tree_schema(), &path).map_err(|e| self.tree_error(i, e))?;
         Ok((path, builder))
+    }
+
+    /// `e`, a failure to open segment `i`'s tree file (its footer or its columns), as the
+    /// segment's tree table being unavailable, naming the segment.
+    fn tree_error(&self, i: usize, e: Error) -> Error {
+        if let Error::TreeTable { .. } = e {
+            return e;
+        }
+        let path = self.dir.join(&self.segment(i).trees.path);
+        let message = match e {
+            Error::Parquet { source, .. } => format!("cannot be read as Parquet: {source}"),
+            Error::Corrupt { what, message, .. } => format!("inconsistent data in {what}: {message}"),
+            Error::Schema { field, expected, found, .. } => {
+                format!("column `{field}` does not match the tree table's schema: expected {expected}, found {found}")
+            }
+            e => e.to_string(),
+        };
+        Error::TreeTable { segment: self.segment(i).id, path, message }
     }
 
     /// Reads the tree table of segment `i`, sorted by id.
@@ -21,8 +41,8 @@ impl Dataset {
         let reader = Guarded::new(builder.with_batch_size(64 * 1024).build().map_err(pq_err(&path))?, &path);
         let mut out = Vec::with_capacity((seg.trees.rows as usize).min(1 << 22));
         for batch in reader {
-            let b = batch?;
-            push_tree_entries(&b, i, &mut out, &path, None)?;
+            let b = batch.map_err(|e| self.tree_error(i, e))?;
+            push_tree_entries(&b, i, &mut out, &path, None).map_err(|e| self.tree_error(i, e))?;
         }
         if out.len() as u64 != seg.trees.rows {
             return Err(Error::Corrupt {
@@ -61,14 +81,16 @@ impl Dataset {
     /// segment and kept (about 50 bytes per column per page of 2048 trees: a few percent of the
     /// table decoded), so later lookups in the segment read one or two pages.
     pub fn segment_tree_entries_where(&self, i: usize, filter: &TreeFilter) -> Result<Vec<TreeEntry>> {
+        self.tree_fault(i)?;
         let path = self.dir.join(&self.segment(i).trees.path);
         let file = File::open(&path).map_err(io_err("opening a tree file", &path))?;
         let meta = match self.tree_metas.get(i).and_then(|c| c.get()) {
             Some(m) => m.clone(),
             None => {
                 let options = ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Optional);
-                let meta = guard(&path, || ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path)))?;
-                check_schema(meta.schema(), &tree_schema(), &path)?;
+                let meta = guard(&path, || ArrowReaderMetadata::load(&file, options).map_err(pq_err(&path)))
+                    .map_err(|e| self.tree_error(i, e))?;
+                check_schema(meta.schema(), &tree_schema(), &path).map_err(|e| self.tree_error(i, e))?;
                 if let Some(cell) = self.tree_metas.get(i) {
                     let _ = cell.set(meta.clone());
                 }
@@ -87,8 +109,8 @@ impl Dataset {
         let reader = super::pooled::reader(file, &meta, None, Some(groups), Some(selection), 64 * 1024)
             .map_err(pq_err(&path))?;
         for batch in Guarded::new(reader, &path) {
-            let b = batch?;
-            push_tree_entries(&b, i, &mut out, &path, Some(filter))?;
+            let b = batch.map_err(|e| self.tree_error(i, e))?;
+            push_tree_entries(&b, i, &mut out, &path, Some(filter)).map_err(|e| self.tree_error(i, e))?;
         }
         out.sort_unstable_by_key(|e| e.info.id);
         Ok(out)

@@ -64,6 +64,16 @@ pub struct Dataset {
     index: OnceLock<Arc<TreeIndex>>,
     /// Each segment's tree-file footer with its page index, loaded on the first lookup in it.
     tree_metas: Vec<OnceLock<ArrowReaderMetadata>>,
+    /// Why a segment's tree file cannot be read (missing, or not the size the manifest records),
+    /// found at open: that segment's trees are unavailable, its rays and every other segment
+    /// stay readable.
+    tree_faults: Vec<Option<String>>,
+    /// Each segment's tree file checked whole (size, CRC32, schema), once, by
+    /// [`Dataset::verify_trees`].
+    tree_checks: Vec<OnceLock<std::result::Result<(), String>>>,
+    /// Each whole-dataset table checked whole (size, CRC32, schema), once, by
+    /// [`Dataset::verify_table`].
+    table_checks: std::sync::Mutex<HashMap<String, std::result::Result<(), String>>>,
 }
 
 /// Datasets opened by this process so far (see [`Dataset::opened`]).
@@ -83,22 +93,22 @@ impl Dataset {
         let dir = dir.as_ref().to_path_buf();
         let manifest = Manifest::load(&dir)?;
         let payload = manifest.payload_schema(&dir.join(MANIFEST_FILE))?;
+        // A ray file that is missing or of another size refuses the dataset; a tree file only
+        // makes its segment's trees unavailable (`tree_faults`).
+        let mut tree_faults = Vec::with_capacity(manifest.segments.len());
         for seg in &manifest.segments {
-            for file in [&seg.rays, &seg.trees] {
-                let path = dir.join(&file.path);
-                let len = match fs::metadata(&path) {
-                    Ok(m) => m.len(),
-                    Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-                        return Err(Error::MissingFile { segment: seg.id, path });
-                    }
-                    Err(e) => {
-                        return Err(Error::Io { action: "reading segment file metadata", path, source: e });
-                    }
-                };
-                if len != file.bytes {
-                    return Err(Error::SizeMismatch { segment: seg.id, path, expected: file.bytes, found: len });
+            let path = dir.join(&seg.rays.path);
+            let len = match fs::metadata(&path) {
+                Ok(m) => m.len(),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                    return Err(Error::MissingFile { segment: seg.id, path });
                 }
+                Err(e) => return Err(Error::Io { action: "reading segment file metadata", path, source: e }),
+            };
+            if len != seg.rays.bytes {
+                return Err(Error::SizeMismatch { segment: seg.id, path, expected: seg.rays.bytes, found: len });
             }
+            tree_faults.push(file_fault(&dir.join(&seg.trees.path), seg.trees.bytes));
         }
         // Whole-dataset tables are checked when read (`table`, `table_schema`): a broken one is
         // unavailable alone, the rays stay readable.
@@ -118,6 +128,9 @@ impl Dataset {
             metas,
             index: OnceLock::new(),
             tree_metas,
+            tree_checks: tree_faults.iter().map(|_| OnceLock::new()).collect(),
+            tree_faults,
+            table_checks: std::sync::Mutex::new(HashMap::new()),
         })
     }
 
@@ -170,8 +183,12 @@ impl Dataset {
         Ok(self.table_reader(name)?.map(|(_, reader)| reader.schema().clone()))
     }
 
-    /// An optional whole-dataset table (`bvh_nodes`, `lights`, ...), if the recording wrote it.
+    /// An optional whole-dataset table (`bvh_nodes`, `lights`, ...), if the recording wrote it,
+    /// verified whole first ([`Dataset::verify_table`]).
     pub fn table(&self, name: &str) -> Result<Option<RecordBatch>> {
+        if !self.verify_table(name)? {
+            return Ok(None);
+        }
         let Some((path, reader)) = self.table_reader(name)? else { return Ok(None) };
         let schema = reader.schema().clone();
         let mut batches = Vec::new();
@@ -186,9 +203,28 @@ impl Dataset {
     fn table_reader(&self, name: &str) -> Result<Option<(PathBuf, ParquetRecordBatchReaderBuilder<File>)>> {
         let Some(path) = self.table_file(name)? else { return Ok(None) };
         let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
-        let builder = guard(&path, || ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path)))?;
+        let builder =
+            guard(&path, || ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))).map_err(|e| {
+                let message = match e {
+                    Error::Parquet { source, .. } => format!("cannot be read as Parquet: {source}"),
+                    e => e.to_string(),
+                };
+                Error::Table { name: name.into(), path: path.clone(), message }
+            })?;
         if let Err(message) = crate::scene::check_table(name, builder.schema()) {
             return Err(Error::Table { name: name.into(), path, message });
+        }
+        // The columns the manifest records it was written with (any table, known or not).
+        if let Some(expected) = self.manifest.tables.get(name).and_then(|f| f.columns.as_ref()) {
+            let found = crate::manifest::table_columns(builder.schema());
+            if &found != expected {
+                let message = format!(
+                    "its file has the columns [{}]: expected [{}] as the manifest records",
+                    found.join(", "),
+                    expected.join(", ")
+                );
+                return Err(Error::Table { name: name.into(), path, message });
+            }
         }
         Ok(Some((path, builder)))
     }
@@ -198,18 +234,66 @@ impl Dataset {
     fn table_file(&self, name: &str) -> Result<Option<PathBuf>> {
         let Some(file) = self.manifest.tables.get(name) else { return Ok(None) };
         let path = self.dir.join(&file.path);
-        let message = match fs::metadata(&path) {
-            Ok(m) if m.len() == file.bytes => return Ok(Some(path)),
-            Ok(m) => {
-                format!(
-                    "expected {} bytes as the manifest records, found {}: truncated or changed",
-                    file.bytes,
-                    m.len()
-                )
+        match file_fault(&path, file.bytes) {
+            None => Ok(Some(path)),
+            Some(message) => Err(Error::Table { name: name.into(), path, message }),
+        }
+    }
+
+    /// Checks that the whole-dataset table `name` can be read: its file is there with the size
+    /// and CRC32 the manifest records, and its columns match the table's known schema (an
+    /// `Error::Table` naming the table and what is wrong otherwise). `Ok(false)` when the
+    /// recording wrote no such table. The file is read whole once per process for its checksum
+    /// (a broken table is unavailable alone: the rays and the other tables stay readable); later
+    /// calls answer from memory.
+    pub fn verify_table(&self, name: &str) -> Result<bool> {
+        let Some(file) = self.manifest.tables.get(name) else { return Ok(false) };
+        let path = self.dir.join(&file.path);
+        let known = self.table_checks.lock().unwrap_or_else(|e| e.into_inner()).get(name).cloned();
+        let outcome = match known {
+            Some(o) => o,
+            None => {
+                let o = match verify_file(&path, file.bytes, file.crc32) {
+                    Some(m) => Err(m),
+                    None => self.table_reader(name).map(|_| ()).map_err(|e| match e {
+                        Error::Table { message, .. } => message,
+                        e => e.to_string(),
+                    }),
+                };
+                self.table_checks.lock().unwrap_or_else(|e| e.into_inner()).insert(name.to_string(), o.clone());
+                o
             }
-            Err(e) => format!("listed in the manifest but cannot be read: {e}"),
         };
-        Err(Error::Table { name: name.into(), path, message })
+        outcome.map(|()| true).map_err(|message| Error::Table { name: name.into(), path, message })
+    }
+
+    /// Why segment `i`'s tree file cannot be read, as found at open (missing, or not the size
+    /// the manifest records): an `Error::TreeTable` naming the segment, or nothing.
+    pub(crate) fn tree_fault(&self, i: usize) -> Result<()> {
+        match self.tree_faults.get(i).and_then(|f| f.as_ref()) {
+            None => Ok(()),
+            Some(message) => Err(Error::TreeTable {
+                segment: self.segment(i).id,
+                path: self.dir.join(&self.segment(i).trees.path),
+                message: message.clone(),
+            }),
+        }
+    }
+
+    /// Checks segment `i`'s tree file whole: there, with the size and CRC32 the manifest
+    /// records, and the tree table's columns (an `Error::TreeTable` naming the segment
+    /// otherwise). Read once per process (what SQL's `trees` table does before its first scan);
+    /// lookups of a few trees check only the size and the footer.
+    pub fn verify_trees(&self, i: usize) -> Result<()> {
+        self.tree_fault(i)?;
+        let Some(cell) = self.tree_checks.get(i) else { return Ok(()) };
+        let seg = self.segment(i);
+        let path = self.dir.join(&seg.trees.path);
+        let outcome = cell.get_or_init(|| match verify_file(&path, seg.trees.bytes, seg.trees.crc32) {
+            Some(m) => Err(m),
+            None => self.tree_file(i).map(|_| ()).map_err(|e| e.to_string()),
+        });
+        outcome.clone().map_err(|message| Error::TreeTable { segment: seg.id, path, message })
     }
 
     /// Path of an optional table's Parquet file, if the recording wrote it.
@@ -465,4 +549,33 @@ fn row_group_starts(meta: &ArrowReaderMetadata) -> Vec<u64> {
             Some(start)
         })
         .collect()
+}
+
+/// Why the file at `path` cannot be the one a manifest lists with `bytes` bytes: missing,
+/// unreadable, or of another size (truncated or changed); `None` when it can.
+fn file_fault(path: &Path, bytes: u64) -> Option<String> {
+    match fs::metadata(path) {
+        Ok(m) if m.len() == bytes => None,
+        Ok(m) => {
+            Some(format!("expected {bytes} bytes as the manifest records, found {}: truncated or changed", m.len()))
+        }
+        Err(e) => Some(format!("listed in the manifest but cannot be read: {e}")),
+    }
+}
+
+/// [`file_fault`], then the file's CRC32 against the manifest's `crc32` (the file read whole).
+fn verify_file(path: &Path, bytes: u64, crc32: u32) -> Option<String> {
+    if let Some(m) = file_fault(path, bytes) {
+        return Some(m);
+    }
+    match crate::check::crc_of(path) {
+        Ok((crc, n)) if n != bytes => Some(format!(
+            "expected {bytes} bytes as the manifest records, read {n} (crc {crc:08x}): changed while read"
+        )),
+        Ok((crc, _)) if crc != crc32 => Some(format!(
+            "expected CRC32 {crc32:08x} as the manifest records, computed {crc:08x}: the file is corrupted"
+        )),
+        Ok(_) => None,
+        Err(e) => Some(format!("cannot be read: {e}")),
+    }
 }

@@ -65,10 +65,10 @@ struct Mesh {
 }
 
 fn upload(gpu: &Gpu, sources: &Sources, frame: Frame) -> Result<Mesh> {
-    let scene = sources.scene.as_ref().ok_or_else(|| Error::Layer {
-        layer: "geometry".into(),
-        message: "the dataset has no triangles table (recorded before scenes were stored)".into(),
-    })?;
+    let scene = sources
+        .scene
+        .as_ref()
+        .ok_or_else(|| Error::Layer { layer: "geometry".into(), message: sources.why_no_scene() })?;
     let mut tris = Vec::with_capacity(scene.tris.len());
     for (i, t) in scene.tris.iter().enumerate() {
         let m = scene.material_of(i as u32);
@@ -136,10 +136,10 @@ pub struct Geometry {
 
 impl Geometry {
     pub fn new(id: ComponentId, sources: &Sources, settings: &serde_json::Value) -> Result<Geometry> {
-        let scene = sources.scene.as_ref().ok_or_else(|| Error::Layer {
-            layer: "geometry".into(),
-            message: "the dataset has no triangles table (recorded before scenes were stored)".into(),
-        })?;
+        let scene = sources
+            .scene
+            .as_ref()
+            .ok_or_else(|| Error::Layer { layer: "geometry".into(), message: sources.why_no_scene() })?;
         let to8 = |c: glam::Vec3A| [0, 1, 2].map(|k| (c[k].clamp(0.0, 1.0) * 255.0).round() as u8);
         let materials = scene
             .materials
@@ -231,7 +231,7 @@ impl Composition {
         if sources.scene.is_none() {
             return Err(Error::Layer {
                 layer: "composition".into(),
-                message: "the dataset has no triangles table, so there is no scene depth to compose with".into(),
+                message: format!("{}: there is no scene depth to compose with", sources.why_no_scene()),
             });
         }
         Ok(Composition { id, gpu: None, pick_pipeline: None })

@@ -498,7 +498,7 @@ fn layers(p: &Pipeline) -> Vec<LayerInfo> {
             settings: l.component.settings(),
             choices: l.component.choices(),
             legend: l.component.legend(),
-            report: l.component.report(),
+            report: l.failed().map(|why| format!("not drawn: {why}")).into_iter().chain(l.component.report()).collect(),
             renders: l.renders,
             convergence: l.component.convergence(),
         })
