@@ -15,6 +15,7 @@ pub mod service;
 mod sliced;
 mod small_groups;
 mod tables;
+mod unavailable;
 
 pub use count_by_key::{CountByKey, CountByKeyExec};
 pub use engine::{Catalog, Engine};

@@ -325,7 +325,7 @@ pub async fn register_view(
     let view: std::sync::Arc<dyn datafusion::catalog::TableProvider> =
         match ctx.sql(&view_sql(&schema, &rays, &scope)).await {
             Ok(df) => df.into_view(),
-            Err(e) => std::sync::Arc::new(crate::tables::Unavailable::new(
+            Err(e) => std::sync::Arc::new(crate::unavailable::Unavailable::new(
                 VIEW,
                 std::sync::Arc::new(Schema::empty()),
                 format!("the view could not be planned: {e}"),

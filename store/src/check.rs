@@ -3,11 +3,7 @@
 use std::collections::{BTreeMap, HashSet};
 use std::fs;
 
-use std::fs::File;
-use std::io::Read;
-use std::path::Path;
-
-use crate::dataset::Dataset;
+use crate::dataset::{Dataset, crc_of};
 use crate::manifest::Manifest;
 use crate::stats::Stats;
 use crate::tree::TreeValidator;
@@ -30,22 +26,6 @@ impl CheckReport {
     pub fn is_ok(&self) -> bool {
         self.errors.is_empty()
     }
-}
-
-pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
-    let mut f = File::open(path)?;
-    let mut h = crc32fast::Hasher::new();
-    let mut buf = vec![0u8; 1 << 20];
-    let mut n = 0u64;
-    loop {
-        let k = f.read(&mut buf)?;
-        if k == 0 {
-            break;
-        }
-        h.update(&buf[..k]);
-        n += k as u64;
-    }
-    Ok((h.finalize(), n))
 }
 
 fn listed_files(m: &Manifest) -> HashSet<String> {

@@ -238,13 +238,6 @@ pub fn render_with(
     }
     while p.idle()? {}
     let img = p.snapshot(request.legend)?;
-    // A layer that failed for any other reason than a table it reads being unavailable (a
-    // refused query, for one) fails the render, as asked.
-    for l in p.layers() {
-        if let Some(why) = l.failed().filter(|why| !crate::error::says_unavailable(why)) {
-            return Err(Error::Layer { layer: l.component.kind().into(), message: why.to_string() });
-        }
-    }
     let mut report = left_out;
     report.extend(p.report());
     Ok((img, report))

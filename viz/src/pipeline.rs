@@ -38,7 +38,7 @@ pub struct Layer {
     range: [f32; 2],
     /// Times the component's `render` ran.
     pub renders: u64,
-    /// Why the last render of this layer failed (its data could not be read): the layer is left
+    /// Why the last render of this layer failed (a table it reads is broken): the layer is left
     /// empty and the others draw.
     failed: Option<String>,
 }
@@ -343,15 +343,15 @@ impl Pipeline {
                 preview: key.preview,
                 occluder: occluder.map(|(o, t)| OccluderRef { depth: &t.depth_view, range: o.range }),
             };
-            // A layer whose data cannot be read is left empty, saying why; the others draw. A
-            // device error stops the frame.
+            // A layer whose table is broken is left empty, saying why; the others draw. Any
+            // other error (a device's, a query whose columns cannot be drawn) stops the frame.
             match l.component.render(&mut ctx) {
                 Ok(()) => l.failed = None,
-                Err(e @ Error::Gpu(_)) => return Err(e),
-                Err(e) => {
+                Err(e) if crate::error::says_unavailable(&e.to_string()) => {
                     crate::draw::clear_layer(&self.gpu, target);
                     l.failed = Some(e.to_string());
                 }
+                Err(e) => return Err(e),
             }
             self.gpu.check().map_err(|e| Error::Layer { layer: l.component.kind().into(), message: e.to_string() })?;
             l.range = depth_range(&camera, self.frame);

@@ -568,7 +568,7 @@ fn verify_file(path: &Path, bytes: u64, crc32: u32) -> Option<String> {
     if let Some(m) = file_fault(path, bytes) {
         return Some(m);
     }
-    match crate::check::crc_of(path) {
+    match crc_of(path) {
         Ok((crc, n)) if n != bytes => Some(format!(
             "expected {bytes} bytes as the manifest records, read {n} (crc {crc:08x}): changed while read"
         )),
@@ -578,4 +578,22 @@ fn verify_file(path: &Path, bytes: u64, crc32: u32) -> Option<String> {
         Ok(_) => None,
         Err(e) => Some(format!("cannot be read: {e}")),
     }
+}
+
+/// The CRC32 and length of the file at `path`, read through once.
+pub(crate) fn crc_of(path: &Path) -> std::io::Result<(u32, u64)> {
+    use std::io::Read;
+    let mut f = File::open(path)?;
+    let mut h = crc32fast::Hasher::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut n = 0u64;
+    loop {
+        let k = f.read(&mut buf)?;
+        if k == 0 {
+            break;
+        }
+        h.update(&buf[..k]);
+        n += k as u64;
+    }
+    Ok((h.finalize(), n))
 }
