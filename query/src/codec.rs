@@ -2,8 +2,10 @@
 //! trace datasets can cross the wire (a Ballista cluster, or any engine built on
 //! `datafusion-proto`):
 //!
-//! - logical: the `rays` and `ray_paths` table providers (a dataset's path; every node opens it)
-//!   and in-memory tables (the analyses' helper tables, as Arrow IPC);
+//! - logical: the `rays` and `ray_paths` table providers (a dataset's path; every node opens it),
+//!   the tables the recording wrote (`trees`, `triangles`, ...: the dataset's path and the
+//!   table's name, each node checks the files whole before its scan) and in-memory tables (the
+//!   analyses' helper tables, as Arrow IPC);
 //! - physical: [`RaysScanExec`](crate::scan) with its pruned segment plan (segments, row ranges,
 //!   pushed filters: the scheduler's pruning is not redone per task), `RayPathsExec` and
 //!   [`SmallGroupsExec`] (as the stock partial aggregate it replaces, rebuilt on decoding); a
@@ -49,6 +51,7 @@ pub const MAGIC: &[u8] = b"\0rtvtk1";
 const TABLE_RAYS: u8 = b'R';
 const TABLE_PATHS: u8 = b'P';
 const TABLE_MEMORY: u8 = b'M';
+const TABLE_RECORDED: u8 = b'V';
 const EXEC_SCAN: u8 = b's';
 const EXEC_PATHS: u8 = b'p';
 const EXEC_SMALL_GROUPS: u8 = b'g';
@@ -60,6 +63,15 @@ const AGGREGATE: u8 = b'A';
 struct TableNode {
     #[prost(string, tag = "1")]
     path: String,
+}
+
+/// A table the recording wrote (`trees`, `triangles`, ...): the dataset and the table's name.
+#[derive(Clone, PartialEq, Message)]
+struct RecordedNode {
+    #[prost(string, tag = "1")]
+    path: String,
+    #[prost(string, tag = "2")]
+    table: String,
 }
 
 /// An in-memory table (the analyses' small helper tables): each partition as an Arrow IPC stream.
@@ -417,6 +429,13 @@ impl LogicalExtensionCodec for TraceCodec {
                     Ok(Arc::new(RayPathsTable::new(ds).map_err(external)?))
                 }
             }
+            Some((TABLE_RECORDED, body)) => {
+                let n = RecordedNode::decode(body).map_err(|e| bad("a recorded table", e))?;
+                let ds = open_dataset(&n.path)?;
+                crate::tables::recorded_table(&ds, &n.table)
+                    .map_err(external)?
+                    .ok_or_else(|| bad("a recorded table", format!("{} has no table {}", n.path, n.table)))
+            }
             Some((TABLE_MEMORY, body)) => {
                 let n = MemoryNode::decode(body).map_err(|e| bad("an in-memory table", e))?;
                 let mut partitions = Vec::with_capacity(n.partitions.len());
@@ -460,6 +479,10 @@ impl LogicalExtensionCodec for TraceCodec {
         }
         if let Some(t) = node.as_ref().downcast_ref::<RayPathsTable>() {
             frame(TABLE_PATHS, &TableNode { path: path_text(&t.ds)? }, buf);
+            return Ok(());
+        }
+        if let Some(t) = node.as_ref().downcast_ref::<crate::tables::Verified>() {
+            frame(TABLE_RECORDED, &RecordedNode { path: path_text(&t.ds)?, table: t.table.clone() }, buf);
             return Ok(());
         }
         self.logical.try_encode_table_provider(table_ref, node, buf)

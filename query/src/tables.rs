@@ -214,47 +214,25 @@ pub async fn register_dataset(ctx: &SessionContext, name: &str, ds: &Arc<Dataset
     if let Some(catalog) = ctx.catalog(&catalog_name) {
         catalog.register_schema(name, Arc::new(MemorySchemaProvider::new()))?;
     }
-    // `trees`: every segment's tree file, checked whole before the first scan.
-    let trees: Arc<dyn TableProvider> = {
-        let files = listing(ctx, &ds.dir().join("segments"), ".trees.parquet", Some(store::tree_schema())).await?;
-        let d = ds.clone();
-        let verify =
-            move || (0..d.manifest().segments.len()).try_for_each(|i| d.verify_trees(i)).map_err(|e| e.to_string());
-        Arc::new(Verified { name: "trees".into(), inner: files, verify: Box::new(verify) })
-    };
     // `ray_paths` marks the rays that reached an emitter: it needs a sound `lights` table.
     let ray_paths: Arc<dyn TableProvider> = match RayPathsTable::new(ds.clone()) {
         Ok(t) => Arc::new(t),
         Err(e) => Arc::new(Unavailable::new("ray_paths", ray_paths_schema(), format!("it is made from {e}"))),
     };
-    let mut tables: Vec<(String, Arc<dyn TableProvider>)> = vec![
-        ("rays".into(), Arc::new(RaysTable::new(ds.clone()))),
-        ("trees".into(), trees),
-        ("ray_paths".into(), ray_paths),
-    ];
+    let mut tables: Vec<(String, Arc<dyn TableProvider>)> =
+        vec![("rays".into(), Arc::new(RaysTable::new(ds.clone()))), ("ray_paths".into(), ray_paths)];
     if !ds.table_names().iter().any(|n| n == ATTRIBUTES_TABLE) {
         tables.push((ATTRIBUTES_TABLE.into(), attributes_table(ds)?));
     }
-    // Every whole-dataset table the recording wrote (`triangles`, `lights`, `bvh_nodes`, ...),
-    // with its file's schema checked against the known one (`store::scene`) now and the file
-    // checked whole before its first scan; a table that fails either is unavailable alone, and
-    // a query of it says why.
-    for table in ds.table_names().into_iter().filter(|n| !["rays", "trees", "ray_paths"].contains(&n.as_str())) {
-        let provider: Arc<dyn TableProvider> = match (ds.table_schema(&table), ds.table_path(&table)) {
-            (Ok(Some(schema)), Some(path)) => {
-                let files = listing(ctx, &path, ".parquet", Some(schema)).await?;
-                let (d, t) = (ds.clone(), table.clone());
-                let verify = move || d.verify_table(&t).map(|_| ()).map_err(|e| e.to_string());
-                Arc::new(Verified { name: table.clone(), inner: files, verify: Box::new(verify) })
-            }
-            (Err(e), _) => {
-                let schema = store::scene::known_table_schema(&table)
-                    .unwrap_or_else(|| Arc::new(arrow::datatypes::Schema::empty()));
-                Arc::new(Unavailable::new(&table, schema, e.to_string()))
-            }
-            _ => continue,
-        };
-        tables.push((table, provider));
+    // `trees` and every whole-dataset table the recording wrote (`triangles`, `lights`,
+    // `bvh_nodes`, ...), with its file's schema checked against the known one (`store::scene`)
+    // and the manifest's now and the file checked whole before its first scan; a table that
+    // fails either is unavailable alone, and a query of it says why.
+    let recorded = ds.table_names().into_iter().filter(|n| !["rays", "trees", "ray_paths"].contains(&n.as_str()));
+    for table in std::iter::once("trees".to_string()).chain(recorded) {
+        if let Some(provider) = recorded_table(ds, &table)? {
+            tables.push((table, provider));
+        }
     }
     for (table_name, table) in tables {
         ctx.register_table(TableReference::partial(name, table_name.as_str()), table.clone())?;
@@ -294,18 +272,53 @@ pub(crate) fn attributes_batch<'a>(
     )
 }
 
-/// A table whose files are checked whole before its first scan (`verify`: sizes, checksums and
-/// schemas, which the dataset remembers), so a corrupted file is refused naming the table
-/// instead of being read; then `inner` scans as it would.
+/// A table the recording wrote, as SQL sees it: `trees` (every segment's tree file) or a
+/// whole-dataset table (`triangles`, `lights`, a renderer's own, ...): a Parquet listing over
+/// its files with its checked schema, or [`Unavailable`] naming why when its schema, size or file
+/// is wrong; `None` for a table the dataset does not hold. What registration and a decoded plan
+/// of a distributed engine both build.
+pub(crate) fn recorded_table(ds: &Arc<Dataset>, table: &str) -> Result<Option<Arc<dyn TableProvider>>> {
+    let (path, extension, schema) = if table == "trees" {
+        (ds.dir().join("segments"), ".trees.parquet", store::tree_schema())
+    } else {
+        match (ds.table_schema(table), ds.table_path(table)) {
+            (Ok(Some(schema)), Some(path)) => (path, ".parquet", schema),
+            (Err(e), _) => {
+                let schema = store::scene::known_table_schema(table)
+                    .unwrap_or_else(|| Arc::new(arrow::datatypes::Schema::empty()));
+                return Ok(Some(Arc::new(Unavailable::new(table, schema, e.to_string()))));
+            }
+            _ => return Ok(None),
+        }
+    };
+    let inner = listing(&path, extension, schema)?;
+    Ok(Some(Arc::new(Verified { ds: ds.clone(), table: table.to_string(), inner })))
+}
+
+/// A recorded table whose files are checked whole before its first scan (sizes, checksums and
+/// schemas, which the dataset remembers: `Dataset::verify_table`, `Dataset::verify_trees`), so a
+/// corrupted file is refused naming the table instead of being read; then `inner` scans as it
+/// would.
 pub(crate) struct Verified {
-    name: String,
+    pub(crate) ds: Arc<Dataset>,
+    pub(crate) table: String,
     inner: Arc<dyn TableProvider>,
-    verify: Box<dyn Fn() -> std::result::Result<(), String> + Send + Sync>,
+}
+
+impl Verified {
+    fn verify(&self) -> std::result::Result<(), String> {
+        let checked = if self.table == "trees" {
+            (0..self.ds.manifest().segments.len()).try_for_each(|i| self.ds.verify_trees(i))
+        } else {
+            self.ds.verify_table(&self.table).map(|_| ())
+        };
+        checked.map_err(|e| e.to_string())
+    }
 }
 
 impl std::fmt::Debug for Verified {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "Verified({})", self.name)
+        write!(f, "Verified({}, {})", self.ds.dir().display(), self.table)
     }
 }
 
@@ -333,30 +346,21 @@ impl TableProvider for Verified {
         filters: &[datafusion::logical_expr::Expr],
         limit: Option<usize>,
     ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
-        (self.verify)().map_err(|message| {
-            datafusion::error::DataFusionError::Plan(format!("table `{}` is unavailable: {message}", self.name))
+        self.verify().map_err(|message| {
+            datafusion::error::DataFusionError::Plan(format!("table `{}` is unavailable: {message}", self.table))
         })?;
         self.inner.scan(state, projection, filters, limit).await
     }
 }
 
-/// A Parquet listing table over the files under `path` ending in `extension`.
-async fn listing(
-    ctx: &SessionContext,
-    path: &Path,
-    extension: &str,
-    schema: Option<SchemaRef>,
-) -> Result<Arc<dyn TableProvider>> {
+/// A Parquet listing table over the files under `path` ending in `extension`, of `schema`.
+fn listing(path: &Path, extension: &str, schema: SchemaRef) -> Result<Arc<dyn TableProvider>> {
     let mut text = path.to_string_lossy().to_string();
     if path.is_dir() && !text.ends_with('/') {
         text.push('/');
     }
     let url = ListingTableUrl::parse(&text)?;
     let options = ListingOptions::new(Arc::new(ParquetFormat::default())).with_file_extension(extension);
-    let schema = match schema {
-        Some(s) => s,
-        None => options.infer_schema(&ctx.state(), &url).await?,
-    };
     let config = ListingTableConfig::new(url).with_listing_options(options).with_schema(schema);
     Ok(Arc::new(ListingTable::try_new(config)?))
 }
