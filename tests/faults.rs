@@ -12,6 +12,9 @@
 //! - the `numerics` view and its checks table answer, naming a check left out for the table.
 
 mod common;
+#[path = "common/fixture.rs"]
+#[allow(dead_code)]
+mod fixture;
 
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
@@ -23,38 +26,27 @@ use serde_json::Value;
 const W: u32 = 24;
 const H: u32 = 18;
 
-/// A recording with every table a dataset can hold, made once per process.
+/// A recording with every table a dataset can hold (sites, a recorded `attributes` table and a
+/// renderer's own beside the scene's), made once per process.
 fn base() -> &'static Path {
     static DIR: OnceLock<(tempfile::TempDir, PathBuf)> = OnceLock::new();
     &DIR.get_or_init(|| {
         let tmp = tempfile::tempdir().unwrap();
         let dir = tmp.path().join("trace");
-        let scene = renderers::BuiltinScene::Cornell.build(1).unwrap();
-        let bvh = renderers::Bvh::build(&scene.tris);
-        let opts = renderers::RenderOptions {
-            width: W,
-            height: H,
-            spp: 2,
-            threads: 2,
-            record_visits: true,
-            ..Default::default()
-        };
         let options = rl::RecorderOptions { payload: renderers::payload_schema(), sites: true, ..Default::default() };
-        let rec = rl::Recorder::create(&dir, options).unwrap();
-        renderers::describe_recording(&rec, &scene, &bvh, &opts).unwrap();
-        renderers::render(&scene, &bvh, &opts, Some(&rec), &|_| {}).unwrap();
-        let kv =
-            Schema::new(vec![Field::new("key", DataType::Utf8, false), Field::new("value", DataType::Utf8, false)]);
-        let attrs = RecordBatch::try_new(
-            Arc::new(kv),
-            vec![Arc::new(StringArray::from(vec!["renderer"])), Arc::new(StringArray::from(vec!["faults test"]))],
-        )
-        .unwrap();
-        rec.write_table("attributes", attrs).unwrap();
-        let own = Schema::new(vec![Field::new("material", DataType::UInt32, false)]);
-        let own = RecordBatch::try_new(Arc::new(own), vec![Arc::new(UInt32Array::from(vec![1, 2, 3]))]).unwrap();
-        rec.write_table("renderer_notes", own).unwrap();
-        rec.finish().unwrap();
+        fixture::record_cornell(&dir, [W, H], options, |rec| {
+            let kv =
+                Schema::new(vec![Field::new("key", DataType::Utf8, false), Field::new("value", DataType::Utf8, false)]);
+            let attrs = RecordBatch::try_new(
+                Arc::new(kv),
+                vec![Arc::new(StringArray::from(vec!["renderer"])), Arc::new(StringArray::from(vec!["faults test"]))],
+            )
+            .unwrap();
+            rec.write_table("attributes", attrs).unwrap();
+            let own = Schema::new(vec![Field::new("material", DataType::UInt32, false)]);
+            let own = RecordBatch::try_new(Arc::new(own), vec![Arc::new(UInt32Array::from(vec![1, 2, 3]))]).unwrap();
+            rec.write_table("renderer_notes", own).unwrap();
+        });
         (tmp, dir)
     })
     .1

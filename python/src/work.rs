@@ -29,7 +29,7 @@ pub(crate) fn err(e: impl std::fmt::Display) -> PyErr {
 /// answer), otherwise `rtvtk.QueryError`, with the engine's message.
 pub(crate) fn query_err(e: impl std::fmt::Display) -> PyErr {
     let message = e.to_string();
-    if message.contains("is unavailable: ") { DatasetError::new_err(message) } else { QueryError::new_err(message) }
+    if store::says_unavailable(&message) { DatasetError::new_err(message) } else { QueryError::new_err(message) }
 }
 
 /// An `rtvtk.RecordError` with `e`'s message.

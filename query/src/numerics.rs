@@ -88,7 +88,7 @@ impl Presence {
     fn missing(&self, table: &str) -> Option<String> {
         match self {
             Self::Absent => Some(format!("the trace has no `{table}` table")),
-            Self::Broken(why) => Some(format!("the `{table}` table is unavailable: {why}")),
+            Self::Broken(why) => Some(store::unavailable(&format!("the `{table}` table"), why)),
             Self::Present => None,
         }
     }

@@ -347,7 +347,7 @@ impl TableProvider for Verified {
         limit: Option<usize>,
     ) -> datafusion::error::Result<Arc<dyn ExecutionPlan>> {
         self.verify().map_err(|message| {
-            datafusion::error::DataFusionError::Plan(format!("table `{}` is unavailable: {message}", self.table))
+            datafusion::error::DataFusionError::Plan(store::unavailable(&format!("table `{}`", self.table), message))
         })?;
         self.inner.scan(state, projection, filters, limit).await
     }

@@ -25,7 +25,7 @@ impl Unavailable {
     }
 
     fn error(&self) -> datafusion::error::DataFusionError {
-        datafusion::error::DataFusionError::Plan(format!("table `{}` is unavailable: {}", self.name, self.message))
+        datafusion::error::DataFusionError::Plan(store::unavailable(&format!("table `{}`", self.name), &self.message))
     }
 }
 

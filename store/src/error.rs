@@ -71,6 +71,33 @@ pub enum Error {
     NoSuchTree(u64),
 }
 
+/// The message of something that cannot be read (a broken table, or what is made from one):
+/// "`what` is unavailable: `why`". Every layer says it in these words, so a caller tells a broken
+/// table from a wrong request by [`says_unavailable`], on this side of a service or the other.
+pub fn unavailable(what: &str, why: impl std::fmt::Display) -> String {
+    format!("{what} is unavailable: {why}")
+}
+
+/// Whether `message` says something is [`unavailable`] (a broken table), rather than that the
+/// request was wrong.
+pub fn says_unavailable(message: &str) -> bool {
+    message.contains(" is unavailable: ")
+}
+
+/// Why a whole-dataset or tree table's file cannot be read, from the error reading it gave, in
+/// words that do not repeat the path (the `Table` / `TreeTable` error around it names it).
+pub(crate) fn unreadable(e: Error) -> String {
+    match e {
+        Error::Table { message, .. } | Error::TreeTable { message, .. } => message,
+        Error::Parquet { source, .. } => format!("cannot be read as Parquet: {source}"),
+        Error::Corrupt { what, message, .. } => format!("inconsistent data in {what}: {message}"),
+        Error::Schema { field, expected, found, .. } => {
+            format!("column `{field}` does not match the table's schema: expected {expected}, found {found}")
+        }
+        e => e.to_string(),
+    }
+}
+
 /// Result alias of the store crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 

@@ -22,7 +22,7 @@ pub use check::CheckReport;
 pub use codec::{Decoder, ENC_T, ENCODED_COLUMNS, Encoding, KIND_CODE, file_schema};
 pub use columns::{BytesBuf, ListValue, NONE_U32, PayloadBuf, PayloadMismatch, RayColumns, RayFields, TreeRow, Value};
 pub use dataset::{Dataset, READ_BATCH_ROWS, TreeEntry, TreeFilter, TreeIter};
-pub use error::{Error, Result};
+pub use error::{Error, Result, says_unavailable, unavailable};
 pub use manifest::{FORMAT_NAME, FORMAT_VERSION, FileEntry, MANIFEST_FILE, Manifest, PayloadColumnDecl, SegmentEntry};
 pub use path_payload::{CHROMAS_KEY, Chromas, ENC_CHROMA, ENC_RADIANCE, ENC_THROUGHPUT, RADIANCE, THROUGHPUT};
 pub use planes::{PLANES_KEY, Planes};

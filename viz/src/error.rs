@@ -56,10 +56,3 @@ pub enum Error {
 
 /// Result alias of the viz crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
-
-/// Whether an error's message says a table (or what is made from one) is broken, rather than
-/// that a layer was asked for wrongly: a picture leaves such a layer out with a warning and
-/// draws the rest (`store` and `query` say "... is unavailable: why" of a broken table).
-pub fn says_unavailable(message: &str) -> bool {
-    message.contains("unavailable: ")
-}

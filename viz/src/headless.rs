@@ -230,7 +230,7 @@ pub fn render_with(
         let s = request.settings(l, has_query)?;
         match p.add(l, &s) {
             Ok(_) => {}
-            Err(e) if crate::error::says_unavailable(&e.to_string()) => {
+            Err(e) if store::says_unavailable(&e.to_string()) => {
                 left_out.push(format!("warning: the {l} layer is not drawn: {e}"));
             }
             Err(e) => return Err(Error::Settings(format!("adding the {l} layer: {e}"))),

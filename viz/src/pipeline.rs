@@ -347,7 +347,7 @@ impl Pipeline {
             // other error (a device's, a query whose columns cannot be drawn) stops the frame.
             match l.component.render(&mut ctx) {
                 Ok(()) => l.failed = None,
-                Err(e) if crate::error::says_unavailable(&e.to_string()) => {
+                Err(e) if store::says_unavailable(&e.to_string()) => {
                     crate::draw::clear_layer(&self.gpu, target);
                     l.failed = Some(e.to_string());
                 }

@@ -120,6 +120,9 @@ fn scene_bounds(scene: &Scene) -> ([f64; 3], [f64; 3]) {
     (lo.to_array().map(f64::from), hi.to_array().map(f64::from))
 }
 
+/// What `missing` says of a broken `triangles` table (`store::unavailable`'s subject).
+const SCENE_UNAVAILABLE: &str = "the scene's `triangles` table";
+
 impl Sources {
     /// Opens a dataset directory. A dataset recorded before scenes and cameras were stored
     /// opens too: what it lacks is listed in `missing`.
@@ -155,7 +158,7 @@ impl Sources {
         // A broken `triangles` table costs the layers that draw the scene, named in `missing`;
         // the rays and the other layers draw.
         let triangles = ds.table(TRIANGLES_TABLE).unwrap_or_else(|e| {
-            missing.push(format!("the scene's triangles are unavailable: {e}"));
+            missing.push(store::unavailable(SCENE_UNAVAILABLE, e));
             None
         });
         let parts =
@@ -240,7 +243,7 @@ impl Sources {
                 }
                 // A broken table on the server costs the scene's layers alone, as it does here.
                 Err(e) => {
-                    missing.push(format!("the scene's triangles are unavailable: {e}"));
+                    missing.push(store::unavailable(SCENE_UNAVAILABLE, e));
                     None
                 }
             }
@@ -406,10 +409,9 @@ impl Sources {
     /// Why the dataset has no scene (its `triangles` table missing, or broken and why): what the
     /// layers that draw the scene say instead of drawing.
     pub fn why_no_scene(&self) -> String {
-        const BROKEN: &str = "the scene's triangles are unavailable";
         self.missing
             .iter()
-            .find(|m| m.starts_with(BROKEN))
+            .find(|m| m.starts_with(SCENE_UNAVAILABLE))
             .cloned()
             .unwrap_or_else(|| "the dataset has no triangles table (recorded before scenes were stored)".into())
     }

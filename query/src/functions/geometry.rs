@@ -91,7 +91,7 @@ pub(super) fn aims_at_light(scene: &Arc<SceneContext>) -> RayScalar {
     let kernel: Kernel = match &scene.lights_unavailable {
         // A broken `lights` table: no answer rather than "aims at nothing" for every ray.
         Some(why) => {
-            let message = format!("aims_at_light needs the scene's `lights` table, which is unavailable: {why}");
+            let message = store::unavailable("aims_at_light needs the scene's emitters: the `lights` table", why);
             Arc::new(move |_: &[ColumnarValue]| Err(datafusion::error::DataFusionError::Execution(message.clone())))
         }
         None => rowwise::<6, _, BooleanArray>("aims_at_light", false, move |v, _| {

@@ -19,19 +19,8 @@ impl Dataset {
     /// `e`, a failure to open segment `i`'s tree file (its footer or its columns), as the
     /// segment's tree table being unavailable, naming the segment.
     fn tree_error(&self, i: usize, e: Error) -> Error {
-        if let Error::TreeTable { .. } = e {
-            return e;
-        }
         let path = self.dir.join(&self.segment(i).trees.path);
-        let message = match e {
-            Error::Parquet { source, .. } => format!("cannot be read as Parquet: {source}"),
-            Error::Corrupt { what, message, .. } => format!("inconsistent data in {what}: {message}"),
-            Error::Schema { field, expected, found, .. } => {
-                format!("column `{field}` does not match the tree table's schema: expected {expected}, found {found}")
-            }
-            e => e.to_string(),
-        };
-        Error::TreeTable { segment: self.segment(i).id, path, message }
+        Error::TreeTable { segment: self.segment(i).id, path, message: crate::error::unreadable(e) }
     }
 
     /// Reads the tree table of segment `i`, sorted by id.

@@ -71,9 +71,9 @@ pub struct Dataset {
     /// Each segment's tree file checked whole (size, CRC32, schema), once, by
     /// [`Dataset::verify_trees`].
     tree_checks: Vec<OnceLock<std::result::Result<(), String>>>,
-    /// Each whole-dataset table checked whole (size, CRC32, schema), once, by
+    /// Each whole-dataset table of the manifest checked whole (size, CRC32, schema), once, by
     /// [`Dataset::verify_table`].
-    table_checks: std::sync::Mutex<HashMap<String, std::result::Result<(), String>>>,
+    table_checks: std::collections::BTreeMap<String, OnceLock<std::result::Result<(), String>>>,
 }
 
 /// Datasets opened by this process so far (see [`Dataset::opened`]).
@@ -116,6 +116,7 @@ impl Dataset {
         let kinds_by_name = manifest.kinds.iter().map(|(n, c)| (n.clone(), Kind(*c))).collect();
         let metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
         let tree_metas = manifest.segments.iter().map(|_| OnceLock::new()).collect();
+        let table_checks = manifest.tables.keys().map(|t| (t.clone(), OnceLock::new())).collect();
         let schema = ray_schema(&payload);
         Ok(Self {
             file_schema: file_schema(&schema, manifest.encoding, manifest.format_version),
@@ -130,7 +131,7 @@ impl Dataset {
             tree_metas,
             tree_checks: tree_faults.iter().map(|_| OnceLock::new()).collect(),
             tree_faults,
-            table_checks: std::sync::Mutex::new(HashMap::new()),
+            table_checks,
         })
     }
 
@@ -205,11 +206,7 @@ impl Dataset {
         let f = File::open(&path).map_err(io_err("opening a table file", &path))?;
         let builder =
             guard(&path, || ParquetRecordBatchReaderBuilder::try_new(f).map_err(pq_err(&path))).map_err(|e| {
-                let message = match e {
-                    Error::Parquet { source, .. } => format!("cannot be read as Parquet: {source}"),
-                    e => e.to_string(),
-                };
-                Error::Table { name: name.into(), path: path.clone(), message }
+                Error::Table { name: name.into(), path: path.clone(), message: crate::error::unreadable(e) }
             })?;
         if let Err(message) = crate::scene::check_table(name, builder.schema()) {
             return Err(Error::Table { name: name.into(), path, message });
@@ -247,24 +244,15 @@ impl Dataset {
     /// (a broken table is unavailable alone: the rays and the other tables stay readable); later
     /// calls answer from memory.
     pub fn verify_table(&self, name: &str) -> Result<bool> {
-        let Some(file) = self.manifest.tables.get(name) else { return Ok(false) };
-        let path = self.dir.join(&file.path);
-        let known = self.table_checks.lock().unwrap_or_else(|e| e.into_inner()).get(name).cloned();
-        let outcome = match known {
-            Some(o) => o,
-            None => {
-                let o = match verify_file(&path, file.bytes, file.crc32) {
-                    Some(m) => Err(m),
-                    None => self.table_reader(name).map(|_| ()).map_err(|e| match e {
-                        Error::Table { message, .. } => message,
-                        e => e.to_string(),
-                    }),
-                };
-                self.table_checks.lock().unwrap_or_else(|e| e.into_inner()).insert(name.to_string(), o.clone());
-                o
-            }
+        let (Some(file), Some(cell)) = (self.manifest.tables.get(name), self.table_checks.get(name)) else {
+            return Ok(false);
         };
-        outcome.map(|()| true).map_err(|message| Error::Table { name: name.into(), path, message })
+        let path = self.dir.join(&file.path);
+        let outcome = cell.get_or_init(|| match verify_file(&path, file.bytes, file.crc32) {
+            Some(m) => Err(m),
+            None => self.table_reader(name).map(|_| ()).map_err(crate::error::unreadable),
+        });
+        outcome.clone().map(|()| true).map_err(|message| Error::Table { name: name.into(), path, message })
     }
 
     /// Why segment `i`'s tree file cannot be read, as found at open (missing, or not the size
@@ -291,7 +279,7 @@ impl Dataset {
         let path = self.dir.join(&seg.trees.path);
         let outcome = cell.get_or_init(|| match verify_file(&path, seg.trees.bytes, seg.trees.crc32) {
             Some(m) => Err(m),
-            None => self.tree_file(i).map(|_| ()).map_err(|e| e.to_string()),
+            None => self.tree_file(i).map(|_| ()).map_err(crate::error::unreadable),
         });
         outcome.clone().map_err(|message| Error::TreeTable { segment: seg.id, path, message })
     }
@@ -569,9 +557,6 @@ fn verify_file(path: &Path, bytes: u64, crc32: u32) -> Option<String> {
         return Some(m);
     }
     match crc_of(path) {
-        Ok((crc, n)) if n != bytes => Some(format!(
-            "expected {bytes} bytes as the manifest records, read {n} (crc {crc:08x}): changed while read"
-        )),
         Ok((crc, _)) if crc != crc32 => Some(format!(
             "expected CRC32 {crc32:08x} as the manifest records, computed {crc:08x}: the file is corrupted"
         )),
