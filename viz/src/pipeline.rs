@@ -478,7 +478,7 @@ impl Pipeline {
 
     /// The legends of the shown layers, bottom to top.
     pub fn legends(&self) -> Vec<Legend> {
-        self.layers.iter().filter(|l| l.enabled).flat_map(|l| l.component.legend()).collect()
+        self.layers.iter().filter(|l| l.enabled && l.failed.is_none()).flat_map(|l| l.component.legend()).collect()
     }
 
     /// What the shown layers report, and what the sources lack.
@@ -487,12 +487,10 @@ impl Pipeline {
             .layers
             .iter()
             .filter(|l| l.enabled)
-            .flat_map(|l| {
-                let failed = l
-                    .failed
-                    .as_ref()
-                    .map(|why| format!("warning: the {} layer is not drawn: {why}", l.component.kind()));
-                failed.into_iter().chain(l.component.report())
+            .flat_map(|l| match &l.failed {
+                // What a failed layer would report of its last load is not what is shown.
+                Some(why) => vec![format!("warning: the {} layer is not drawn: {why}", l.component.kind())],
+                None => l.component.report(),
             })
             .collect();
         r.extend(self.sources.missing.iter().map(|m| format!("note: {m}")));

@@ -498,7 +498,10 @@ fn layers(p: &Pipeline) -> Vec<LayerInfo> {
             settings: l.component.settings(),
             choices: l.component.choices(),
             legend: l.component.legend(),
-            report: l.failed().map(|why| format!("not drawn: {why}")).into_iter().chain(l.component.report()).collect(),
+            report: match l.failed() {
+                Some(why) => vec![format!("not drawn: {why}")],
+                None => l.component.report(),
+            },
             renders: l.renders,
             convergence: l.component.convergence(),
         })
