@@ -19,33 +19,38 @@ first_seed="${2:-1}"
 shift $(($# > 2 ? 2 : $#))
 harnesses=("$@")
 [ ${#harnesses[@]} -eq 0 ] && harnesses=(reader c_abi functions)
-# Cases per seed: a seed's run is one test process (its start and the build check are a few
-# seconds, so runs are kept long).
+# Cases per seed: a seed's run is one test process (its start is under a second; runs are kept
+# long all the same).
 per_run="${RTVTK_FUZZ_CASES_PER_SEED:-10000}"
 
-harness_args() {
+# Each harness as a nextest filter: the workspace's own build (what scripts/check.sh builds), so
+# nothing is compiled again (`cargo test -p` alone would unify features differently and rebuild
+# the dependencies).
+harness_filter() {
   case "$1" in
-    reader) echo "-p rtvtk-store --test dataset damaged_datasets_give_errors_not_panics" ;;
-    c_abi) echo "-p rl --test c_abi any_call_sequence_gives_errors_or_a_sound_trace" ;;
-    functions) echo "-p rtvtk-query --lib ray_functions_never_panic_and_give_null_for_non_finite_input" ;;
+    reader) echo "binary_id(rtvtk-store::dataset) & test(/damaged_datasets_give_errors_not_panics$/)" ;;
+    c_abi) echo "binary_id(rl::c_abi) & test(/any_call_sequence_gives_errors_or_a_sound_trace$/)" ;;
+    functions) echo "binary_id(rtvtk-query) & test(/ray_functions_never_panic_and_give_null_for_non_finite_input$/)" ;;
     *) echo "unknown harness $1: expected reader, c_abi or functions" >&2; exit 2 ;;
   esac
 }
 
+cargo build --workspace --all-targets --locked -q
 for h in "${harnesses[@]}"; do
-  read -r -a args <<<"$(harness_args "$h")"
-  filter="${args[-1]}"
-  unset 'args[-1]'
-  cargo test --locked "${args[@]}" --no-run -q 2>/dev/null || cargo test --locked "${args[@]}" --no-run
+  filter="$(harness_filter "$h")"
   done_cases=0
   seed="$first_seed"
   start=$(date +%s.%N)
   while [ "$done_cases" -lt "$cases" ]; do
     n=$((cases - done_cases < per_run ? cases - done_cases : per_run))
-    if ! PROPTEST_CASES="$n" PROPTEST_RNG_SEED="$seed" cargo test --locked -q "${args[@]}" "$filter" -- --exact \
-      >"/tmp/rtvtk-fuzz-$h.log" 2>&1; then
+    if ! PROPTEST_CASES="$n" PROPTEST_RNG_SEED="$seed" cargo nextest run --workspace --locked --no-fail-fast \
+      --status-level fail --final-status-level fail -E "$filter" >"/tmp/rtvtk-fuzz-$h.log" 2>&1; then
       echo "$h: FAILED at seed $seed (cases $done_cases..$((done_cases + n))); see /tmp/rtvtk-fuzz-$h.log" >&2
       tail -40 "/tmp/rtvtk-fuzz-$h.log" >&2
+      exit 1
+    fi
+    if ! grep -q "1 test run: 1 passed" "/tmp/rtvtk-fuzz-$h.log"; then
+      echo "$h: the filter ran no test ($filter); see /tmp/rtvtk-fuzz-$h.log" >&2
       exit 1
     fi
     done_cases=$((done_cases + n))
