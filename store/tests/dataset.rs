@@ -49,7 +49,21 @@ fn write_dataset(dir: &Path, schema: PayloadSchema, trees_per_segment: &[u64]) {
 }
 
 fn write_dataset_with(dir: &Path, schema: PayloadSchema, trees_per_segment: &[u64], options: WriteOptions) {
+    write_dataset_with_tables(dir, schema, trees_per_segment, options, &[]);
+}
+
+/// [`write_dataset_with`], and whole-dataset `tables` beside the segments.
+fn write_dataset_with_tables(
+    dir: &Path,
+    schema: PayloadSchema,
+    trees_per_segment: &[u64],
+    options: WriteOptions,
+    tables: &[(&str, arrow::array::RecordBatch)],
+) {
     let w = DatasetWriter::create(dir, schema.clone(), options).unwrap();
+    for (name, batch) in tables {
+        w.write_table(name, batch).unwrap();
+    }
     let kinds = KindTable::default();
     let mut id = 0;
     for &n in trees_per_segment {
@@ -714,18 +728,46 @@ mod fuzz {
             let dir = tempfile::tempdir().unwrap();
             let path = dir.path().join("ds");
             let options = WriteOptions { row_group_rows: 64, page_rows: 16, ..WriteOptions::default() };
-            write_dataset_with(&path, payload_schema(), &[60, 45], options);
+            // A known table (`sites`, its schema checked) and a renderer's own (its columns
+            // checked against the manifest's `columns`).
+            let sites: Vec<store::scene::Site> = (0..40)
+                .map(|i| store::scene::Site {
+                    file: format!("src/tracer{}.rs", i % 3),
+                    line: 10 + i,
+                    column: 0,
+                    function: (i % 2 == 0).then(|| format!("trace_{i}")),
+                })
+                .collect();
+            let sites = store::scene::sites_batch(&sites).unwrap();
+            let own = arrow::array::RecordBatch::try_from_iter([(
+                "weight",
+                std::sync::Arc::new(arrow::array::Float32Array::from_iter_values((0..50).map(|i| i as f32 * 0.5)))
+                    as arrow::array::ArrayRef,
+            )])
+            .unwrap();
+            let tables = [("sites", sites), ("renderer_notes", own)];
+            write_dataset_with_tables(&path, payload_schema(), &[60, 45], options, &tables);
             (dir, path)
         });
         path
     }
 
-    const FILES: [&str; 4] = [
+    const FILES: [&str; 6] = [
         "segments/000001.rays.parquet",
         "segments/000001.trees.parquet",
         "segments/000002.rays.parquet",
         "segments/000002.trees.parquet",
+        "tables/sites.parquet",
+        "tables/renderer_notes.parquet",
     ];
+
+    /// The manifest entry of `FILES[file]`.
+    fn entry(json: &mut serde_json::Value, file: usize) -> &mut serde_json::Value {
+        match FILES[file].strip_prefix("tables/").and_then(|f| f.strip_suffix(".parquet")) {
+            Some(table) => &mut json["tables"][table],
+            None => &mut json["segments"][file / 2][if file.is_multiple_of(2) { "rays" } else { "trees" }],
+        }
+    }
 
     #[derive(Clone, Debug)]
     enum Damage {
@@ -793,6 +835,7 @@ mod fuzz {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path();
         fs::create_dir_all(root.join("segments")).unwrap();
+        fs::create_dir_all(root.join("tables")).unwrap();
         for f in std::iter::once("manifest.json").chain(FILES) {
             fs::copy(base().join(f), root.join(f)).unwrap();
         }
@@ -807,7 +850,7 @@ mod fuzz {
             if fix_crc {
                 let m = root.join("manifest.json");
                 let mut json: serde_json::Value = serde_json::from_slice(&fs::read(&m).unwrap()).unwrap();
-                let entry = &mut json["segments"][file / 2][if file.is_multiple_of(2) { "rays" } else { "trees" }];
+                let entry = entry(&mut json, file);
                 entry["bytes"] = serde_json::json!(bytes.len());
                 entry["crc32"] = serde_json::json!(crc32fast::hash(&bytes));
                 fs::write(&m, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
@@ -888,6 +931,19 @@ mod fuzz {
         if let Err(e) = ds.tree_entries() {
             errors.push(e.to_string());
         }
+        // Every whole-dataset table and every segment's tree table, checked and read.
+        for t in ds.table_names() {
+            for r in [ds.verify_table(&t).map(|_| ()), ds.table_schema(&t).map(|_| ()), ds.table(&t).map(|_| ())] {
+                if let Err(e) = r {
+                    errors.push(e.to_string());
+                }
+            }
+        }
+        for i in 0..ds.manifest().segments.len() {
+            if let Err(e) = ds.verify_trees(i) {
+                errors.push(e.to_string());
+            }
+        }
         for e in &errors {
             prop_assert!(no_panic(e), "{e}");
         }
@@ -918,6 +974,15 @@ mod fuzz {
                 };
             if let (true, Some(r)) = (stale, report) {
                 prop_assert!(!r.is_ok(), "check passed a stale file: {d:?}");
+                // A table changed behind the manifest's back is refused when read, too.
+                let file = match &d {
+                    Damage::Flip { file, .. } | Damage::Zero { file, .. } | Damage::Splice { file, .. } | Damage::Truncate { file, .. } => *file,
+                    Damage::Manifest { .. } => 0,
+                };
+                if let Some(table) = FILES[file].strip_prefix("tables/").and_then(|f| f.strip_suffix(".parquet")) {
+                    let ds = Dataset::open(dir.path()).unwrap();
+                    prop_assert!(ds.table(table).is_err(), "a stale `{table}` was read: {d:?}");
+                }
             }
         }
     }
@@ -930,6 +995,10 @@ mod fuzz {
         let ds = Dataset::open(dir.path()).unwrap();
         assert!(ds.check().is_ok(), "{:?}", ds.check().errors);
         assert_eq!(ds.trees().count(), 105);
+        assert_eq!(ds.table_names(), ["renderer_notes", "sites"]);
+        for t in ds.table_names() {
+            assert!(ds.verify_table(&t).unwrap(), "{t}");
+        }
         assert!(ds.manifest().segments.iter().all(|s| s.rays.rows > 64), "several row groups per file");
     }
 }
