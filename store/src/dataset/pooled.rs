@@ -8,6 +8,10 @@
 //! is read as if uncompressed (the pages' bytes pass through untouched, their CRCs still checked
 //! by arrow-rs) and each page is decompressed with a context taken from the pool; every other
 //! codec goes through arrow-rs unchanged.
+//!
+//! A repeated column's data pages are checked to hold the repetition levels their headers count
+//! before arrow-rs decodes them: arrow-rs's record skipping (a row selection) loops forever on a
+//! page whose levels end early (its record reading has that check, its skipping does not).
 
 use std::fs::File;
 use std::sync::{Arc, Mutex};
@@ -66,12 +70,16 @@ fn decompress(buf: &Bytes, keep: usize) -> Result<Bytes> {
     Ok(out.into())
 }
 
-/// A page reader over a zstd column chunk opened as uncompressed: each page decompressed here.
-struct Decompressing<R: PageReader> {
+/// A page reader as arrow-rs's array readers get it: over a zstd column chunk opened as
+/// uncompressed, each page decompressed here (`zstd`); in a repeated column (`rep_bits`, the width
+/// of its repetition levels, 0 when not repeated), each data page's levels counted first.
+struct Pages<R: PageReader> {
     inner: R,
+    zstd: bool,
+    rep_bits: u8,
 }
 
-impl<R: PageReader> Iterator for Decompressing<R> {
+impl<R: PageReader> Iterator for Pages<R> {
     type Item = Result<Page>;
 
     fn next(&mut self) -> Option<Self::Item> {
@@ -79,20 +87,25 @@ impl<R: PageReader> Iterator for Decompressing<R> {
     }
 }
 
-impl<R: PageReader> PageReader for Decompressing<R> {
+impl<R: PageReader> PageReader for Pages<R> {
     fn get_next_page(&mut self) -> Result<Option<Page>> {
         let Some(mut page) = self.inner.get_next_page()? else {
             return Ok(None);
         };
-        match &mut page {
-            Page::DataPage { buf, .. } | Page::DictionaryPage { buf, .. } => *buf = decompress(buf, 0)?,
-            Page::DataPageV2 { buf, def_levels_byte_len, rep_levels_byte_len, is_compressed, .. } => {
-                if *is_compressed {
-                    let keep = *def_levels_byte_len as usize + *rep_levels_byte_len as usize;
-                    *buf = decompress(buf, keep)?;
-                    *is_compressed = false;
+        if self.zstd {
+            match &mut page {
+                Page::DataPage { buf, .. } | Page::DictionaryPage { buf, .. } => *buf = decompress(buf, 0)?,
+                Page::DataPageV2 { buf, def_levels_byte_len, rep_levels_byte_len, is_compressed, .. } => {
+                    if *is_compressed {
+                        let keep = *def_levels_byte_len as usize + *rep_levels_byte_len as usize;
+                        *buf = decompress(buf, keep)?;
+                        *is_compressed = false;
+                    }
                 }
             }
+        }
+        if self.rep_bits > 0 {
+            check_repetition_levels(&page, self.rep_bits)?;
         }
         Ok(Some(page))
     }
@@ -108,6 +121,88 @@ impl<R: PageReader> PageReader for Decompressing<R> {
     fn at_record_boundary(&mut self) -> Result<bool> {
         self.inner.at_record_boundary()
     }
+}
+
+/// Fails unless data page `page` of a column whose repetition levels are `bits` wide holds as many
+/// levels as its header counts values (its other pages pass).
+fn check_repetition_levels(page: &Page, bits: u8) -> Result<()> {
+    let (levels, num_values) = match page {
+        Page::DataPage { buf, num_values, rep_level_encoding: parquet::basic::Encoding::RLE, .. } => {
+            // A v1 page's levels: their byte length (4 bytes, little-endian), then the levels.
+            let len = buf.get(..4).map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize);
+            let levels = len.and_then(|len| buf.get(4..4usize.checked_add(len)?));
+            let levels = levels.ok_or_else(|| {
+                ParquetError::General(format!("data page of {} bytes: its repetition levels overrun it", buf.len()))
+            })?;
+            (levels, *num_values)
+        }
+        Page::DataPageV2 { buf, num_values, rep_levels_byte_len, .. } => {
+            let levels = buf.get(..*rep_levels_byte_len as usize).ok_or_else(|| {
+                ParquetError::General(format!(
+                    "data page of {} bytes: its {rep_levels_byte_len} bytes of repetition levels overrun it",
+                    buf.len()
+                ))
+            })?;
+            (levels, *num_values)
+        }
+        // Bit-packed v1 levels are read by their count (a short page fails there); dictionaries
+        // hold no levels.
+        _ => return Ok(()),
+    };
+    let held = hybrid_levels(levels, bits, num_values as usize);
+    if held < num_values as usize {
+        return Err(ParquetError::General(format!("data page of {num_values} values holds {held} repetition levels")));
+    }
+    Ok(())
+}
+
+/// How many `bits`-wide values the RLE/bit-packed hybrid stream `data` gives arrow-rs's decoder
+/// (counting stops once `enough` are found): a zero run header ends the stream, a cut bit-packed
+/// run gives the whole values it holds, and a run's count is taken as arrow-rs takes it (32 bits).
+fn hybrid_levels(data: &[u8], bits: u8, enough: usize) -> usize {
+    let (mut at, mut held) = (0usize, 0usize);
+    while held < enough && at < data.len() {
+        // The run's header: an unsigned LEB128 of at most 10 bytes.
+        let mut header = 0u64;
+        let mut shift = 0;
+        loop {
+            let Some(&byte) = data.get(at) else {
+                return held;
+            };
+            at += 1;
+            header |= u64::from(byte & 0x7f) << shift;
+            if byte & 0x80 == 0 {
+                break;
+            }
+            shift += 7;
+            if shift >= 64 {
+                return held;
+            }
+        }
+        if header == 0 {
+            return held;
+        }
+        if header & 1 == 1 {
+            // Bit-packed: header >> 1 groups of 8 values, `bits` bytes a group.
+            let values = (header >> 1).wrapping_mul(8) as u32 as usize;
+            let bytes = values / 8 * usize::from(bits);
+            let left = data.len() - at;
+            if bytes > left {
+                return held + (left * 8 / usize::from(bits)).min(values);
+            }
+            held += values;
+            at += bytes;
+        } else {
+            // A run of one value, stored in whole bytes.
+            let width = usize::from(bits).div_ceil(8);
+            if data.len() - at < width {
+                return held;
+            }
+            held += (header >> 1) as u32 as usize;
+            at += width;
+        }
+    }
+    held
 }
 
 /// The row groups `groups` of one open file, as arrow-rs's array readers ask for them.
@@ -138,15 +233,20 @@ impl ColumnPages {
             .and_then(|cols| cols.get(self.column))
             .map(|c| c.page_locations.clone());
         let rows = usize::try_from(rg.num_rows()).map_err(|_| ParquetError::General("negative row count".into()))?;
-        Ok(match chunk.compression() {
-            Compression::ZSTD(_) => {
-                let plain = chunk.clone().into_builder().set_compression(Compression::UNCOMPRESSED).build()?;
-                Box::new(Decompressing {
-                    inner: SerializedPageReader::new(self.file.clone(), &plain, rows, locations)?,
-                })
-            }
-            _ => Box::new(SerializedPageReader::new(self.file.clone(), chunk, rows, locations)?),
-        })
+        let schema = self.meta.file_metadata().schema_descr();
+        let max_rep = schema.columns().get(self.column).map_or(0, |c| c.max_rep_level());
+        let rep_bits = (u16::BITS - (max_rep.max(0) as u16).leading_zeros()) as u8;
+        let zstd = matches!(chunk.compression(), Compression::ZSTD(_));
+        if !zstd && rep_bits == 0 {
+            return Ok(Box::new(SerializedPageReader::new(self.file.clone(), chunk, rows, locations)?));
+        }
+        let inner = if zstd {
+            let plain = chunk.clone().into_builder().set_compression(Compression::UNCOMPRESSED).build()?;
+            SerializedPageReader::new(self.file.clone(), &plain, rows, locations)?
+        } else {
+            SerializedPageReader::new(self.file.clone(), chunk, rows, locations)?
+        };
+        Ok(Box::new(Pages { inner, zstd, rep_bits }))
     }
 }
 
@@ -298,6 +398,101 @@ mod tests {
         assert_eq!(split(vec![("a", small()), ("b", small()), ("c", small()), ("d", noise(3))]), 3);
         assert_eq!(split(vec![("a", small()), ("b", small())]), 1);
         assert_eq!(split(vec![("a", noise(4))]), 0, "one column: nothing to split");
+    }
+
+    /// The level count of hand-made hybrid streams, as arrow-rs's decoder reads them.
+    #[test]
+    fn hybrid_streams_count_the_levels_a_decoder_gets() {
+        // An RLE run of 5 ones (header 5 << 1), then a bit-packed group of 8 one-bit values.
+        let stream = [10u8, 1, 3, 0b1011_0110];
+        assert_eq!(hybrid_levels(&stream, 1, usize::MAX), 13);
+        assert_eq!(hybrid_levels(&stream, 1, 3), 5, "counting stops once enough are found");
+        // A zero header ends the stream (the levels after it are never read).
+        assert_eq!(hybrid_levels(&[10, 1, 0, 10, 1], 1, usize::MAX), 5);
+        // A bit-packed run cut short gives the whole values left: 2 groups of 3-bit values
+        // claimed (6 bytes), 4 bytes there (10 values).
+        assert_eq!(hybrid_levels(&[5, 0, 0, 0, 0], 3, usize::MAX), 10);
+        // An RLE run without its value byte gives nothing; nor does an unfinished header.
+        assert_eq!(hybrid_levels(&[10], 1, usize::MAX), 0);
+        assert_eq!(hybrid_levels(&[0x80, 0x80], 1, usize::MAX), 0);
+        // A multi-byte header: a run of 300 (600 = 0xd8 0x04), a 9-bit value in two bytes.
+        assert_eq!(hybrid_levels(&[0xd8, 0x04, 0xff, 0x01], 9, usize::MAX), 300);
+        // A run count past 32 bits is cut to 32 bits, as the decoder cuts it: (2^32 + 7) << 1.
+        let mut huge = Vec::new();
+        let mut v: u64 = ((1u64 << 32) + 7) << 1;
+        while v >= 0x80 {
+            huge.push((v as u8 & 0x7f) | 0x80);
+            v >>= 7;
+        }
+        huge.extend([v as u8, 1]);
+        assert_eq!(hybrid_levels(&huge, 1, usize::MAX), 7);
+    }
+
+    /// A repeated column whose page's repetition levels were damaged, read with a row selection
+    /// that skips into that page: every read ends, and a page whose levels end early is an error
+    /// (arrow-rs alone reads some such pages as if sound, and loops forever skipping others: the
+    /// reader fuzz case in store/tests/dataset.rs).
+    #[test]
+    fn short_repetition_levels_fail_a_skipping_read() {
+        use arrow::array::{Float32Builder, ListBuilder};
+        let mut list = ListBuilder::new(Float32Builder::new());
+        for i in 0..4000 {
+            for k in 0..3 {
+                list.values().append_value((i * 3 + k) as f32);
+            }
+            list.append(true);
+        }
+        let batch = RecordBatch::try_from_iter([("l", Arc::new(list.finish()) as ArrayRef)]).unwrap();
+        let props = WriterProperties::builder()
+            .set_writer_version(WriterVersion::PARQUET_1_0)
+            .set_dictionary_enabled(false)
+            .set_data_page_row_count_limit(1000)
+            .set_write_batch_size(1000)
+            .build();
+        let mut bytes = Vec::new();
+        let mut w = ArrowWriter::try_new(&mut bytes, batch.schema(), Some(props)).unwrap();
+        w.write(&batch).unwrap();
+        w.close().unwrap();
+        let read = |bytes: &[u8]| -> Result<usize> {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("l.parquet");
+            std::fs::write(&path, bytes).unwrap();
+            let file = File::open(&path).unwrap();
+            let meta = ArrowReaderMetadata::load(&file, ArrowReaderOptions::new()).unwrap();
+            let selection = RowSelection::from(vec![RowSelector::skip(2500), RowSelector::select(10)]);
+            let reader = reader(file, &meta, None, None, Some(selection), 1024)?;
+            let mut rows = 0;
+            for b in reader {
+                rows += b.map_err(|e| ParquetError::General(e.to_string()))?.num_rows();
+            }
+            Ok(rows)
+        };
+        assert_eq!(read(&bytes).unwrap(), 10);
+        // Zero 5 bytes at each place in the first 48 of the page the selection skips into (its
+        // header and the length of its levels): each read ends, and some fail on the levels.
+        let meta = ArrowReaderMetadata::load(
+            &Bytes::from(bytes.clone()),
+            ArrowReaderOptions::new().with_page_index_policy(PageIndexPolicy::Required),
+        )
+        .unwrap();
+        let pages = meta.metadata().offset_index().unwrap()[0][0].page_locations();
+        let page = pages.iter().rfind(|p| p.first_row_index <= 2500).unwrap();
+        assert!(page.first_row_index > 0, "the selection skips whole pages and into this one");
+        let mut short = 0;
+        for at in page.offset as usize..page.offset as usize + 48 {
+            let mut damaged = bytes.clone();
+            damaged[at..at + 5].fill(0);
+            let (tx, rx) = std::sync::mpsc::channel();
+            // arrow-rs panics on some damaged headers (the store's `Guarded` makes those errors).
+            std::thread::spawn(move || {
+                let result = std::panic::catch_unwind(|| read(&damaged).map_err(|e| e.to_string()));
+                tx.send(result.unwrap_or_else(|_| Err("panicked".into())))
+            });
+            let result = rx.recv_timeout(std::time::Duration::from_secs(30));
+            let result = result.unwrap_or_else(|_| panic!("the read with 5 bytes zeroed at {at} did not end"));
+            short += matches!(&result, Err(e) if e.contains("repetition levels")) as usize;
+        }
+        assert!(short > 0, "no damage was caught by the levels check");
     }
 
     #[test]
