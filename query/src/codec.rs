@@ -20,7 +20,7 @@
 //! Anything else goes to the fallback codecs (Ballista's own, for its shuffle operators).
 //! rtvtk's nodes start with [`MAGIC`], which no protobuf message can start with (field 0).
 
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
@@ -41,9 +41,10 @@ use prost::Message;
 use store::Dataset;
 
 use crate::functions::{SceneContext, is_ray_aggregate, ray_function_scene};
-use crate::scan::{Pushdown, RaysScanExec, RaysTable, SegmentPlan, range_column};
+use crate::scan::{Pushdown, RaysScanExec, RaysTable, range_column};
 use crate::small_groups::SmallGroupsExec;
 use crate::tables::{RayPathsExec, RayPathsTable};
+use store::SegmentAccess;
 
 /// The first bytes of every rtvtk node.
 pub const MAGIC: &[u8] = b"\0rtvtk1";
@@ -283,12 +284,12 @@ fn encode_scan(exec: &RaysScanExec) -> Result<ScanNode> {
         columns: exec.schema.fields().iter().map(|f| f.name().clone()).collect(),
         ranges: exec
             .pushdown
-            .ranges
-            .iter()
+            .selection
+            .constrained()
             .map(|(c, r)| RangeNode { column: c.to_string(), bounds: r.iter().flat_map(|&(a, b)| [a, b]).collect() })
             .collect(),
-        some_kinds: exec.pushdown.kinds.is_some(),
-        kinds: exec.pushdown.kinds.iter().flatten().cloned().collect(),
+        some_kinds: exec.pushdown.selection.kinds().is_some(),
+        kinds: exec.pushdown.selection.kinds().into_iter().flatten().cloned().collect(),
         shown: exec.pushdown.shown.clone(),
         parts: exec
             .parts
@@ -314,12 +315,14 @@ fn decode_scan(n: ScanNode) -> Result<RaysScanExec> {
         .map(|c| full.index_of(c).map_err(|_| bad("a rays scan", format!("no column `{c}` in {}", n.path))))
         .collect::<Result<Vec<_>>>()?;
     let schema = Arc::new(full.project(&indices)?);
-    let mut ranges = BTreeMap::new();
+    let mut selection = store::RaySelection::all();
     for r in &n.ranges {
         let column = range_column(&r.column).ok_or_else(|| bad("a rays scan", format!("range column {}", r.column)))?;
-        ranges.insert(column, r.bounds.chunks_exact(2).map(|p| (p[0], p[1])).collect());
+        selection.keep(column, r.bounds.chunks_exact(2).map(|p| (p[0], p[1])).collect());
     }
-    let kinds = n.some_kinds.then(|| n.kinds.iter().cloned().collect::<BTreeSet<_>>());
+    if n.some_kinds {
+        selection.keep_kinds(n.kinds.iter().cloned().collect());
+    }
     let segments = ds.manifest().segments.len();
     let parts = n
         .parts
@@ -328,7 +331,7 @@ fn decode_scan(n: ScanNode) -> Result<RaysScanExec> {
             let segment = usize::try_from(p.segment).ok().filter(|s| *s < segments).ok_or_else(|| {
                 bad("a rays scan", format!("segment {} of a dataset with {segments} ({})", p.segment, n.path))
             })?;
-            Ok(SegmentPlan {
+            Ok(SegmentAccess {
                 segment,
                 rows: p.some_rows.then(|| Arc::new(p.rows.chunks_exact(2).map(|r| r[0]..r[1]).collect())),
                 trees: p.trees,
@@ -337,7 +340,7 @@ fn decode_scan(n: ScanNode) -> Result<RaysScanExec> {
             })
         })
         .collect::<Result<Vec<_>>>()?;
-    Ok(RaysScanExec::new(ds, schema, Pushdown { ranges, kinds, shown: n.shown }, parts))
+    Ok(RaysScanExec::new(ds, schema, Pushdown { selection, shown: n.shown }, parts))
 }
 
 fn decode_function(name: &str, body: &[u8]) -> Result<Arc<ScalarUDF>> {

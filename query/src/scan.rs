@@ -1,7 +1,7 @@
 //! The `rays` table: a scan through the store that reads only the projected columns and uses the
 //! tree index to skip what filters rule out.
 //!
-//! Filters on `tree_id`, `pixel_x`, `pixel_y`, `sample`, `depth` and `kind` (comparisons with
+//! Filters on `tree_id`, `pixel_x`, `pixel_y`, `sample`, `depth`, `ray` and `kind` (comparisons with
 //! constants, `IN` lists, `BETWEEN`, and `OR`s of them on one column) are pushed down:
 //! - segments are skipped by their tree-id range and their per-kind, per-depth ray counts;
 //! - within a segment, the tree table picks the trees whose id, pixel, sample and deepest ray can
@@ -14,8 +14,7 @@
 //! `pixel_x`, `pixel_y` and `sample` are not stored with the rays: the scan adds them from the tree
 //! table (only when the query uses them).
 
-use std::collections::{BTreeMap, BTreeSet};
-use std::ops::Range;
+use std::collections::BTreeSet;
 use std::sync::Arc;
 use store::scene::col;
 
@@ -33,14 +32,9 @@ use datafusion::physical_plan::execution_plan::{Boundedness, EmissionType};
 use datafusion::physical_plan::{
     DisplayAs, DisplayFormatType, ExecutionPlan, Partitioning, PlanProperties, SendableRecordBatchStream,
 };
-use store::{Dataset, TreeEntry};
+use store::{Dataset, RaySelection, SegmentAccess, TreeEntry};
 
 use store::TREE_COLUMNS;
-
-/// Integer columns whose filters prune trees or segments.
-const RANGE_COLUMNS: [&str; 5] = [col::TREE_ID, col::PIXEL_X, col::PIXEL_Y, col::SAMPLE, col::DEPTH];
-/// Range columns answered by the tree table alone.
-const TREE_FILTER_COLUMNS: [&str; 4] = [col::TREE_ID, col::PIXEL_X, col::PIXEL_Y, col::SAMPLE];
 
 /// The `rays` table of a dataset (any encoding).
 pub(crate) struct RaysTable {
@@ -159,7 +153,7 @@ fn literal(e: &Expr) -> Option<&ScalarValue> {
 }
 
 pub(crate) fn range_column(name: &str) -> Option<&'static str> {
-    RANGE_COLUMNS.into_iter().find(|c| *c == name)
+    RaySelection::column(name)
 }
 
 /// The inclusive range of u64 values an integer comparison `col op v` allows (None: no value).
@@ -244,73 +238,12 @@ fn constraint(e: &Expr) -> Option<Constraint> {
     }
 }
 
-/// Sorted, disjoint inclusive ranges.
-fn normalize(mut v: Vec<(u64, u64)>) -> Vec<(u64, u64)> {
-    v.sort_unstable();
-    let mut out: Vec<(u64, u64)> = Vec::with_capacity(v.len());
-    for (lo, hi) in v {
-        match out.last_mut() {
-            Some(last) if lo <= last.1.saturating_add(1) => last.1 = last.1.max(hi),
-            _ => out.push((lo, hi)),
-        }
-    }
-    out
-}
-
-fn intersect(a: &[(u64, u64)], b: &[(u64, u64)]) -> Vec<(u64, u64)> {
-    let mut out = Vec::new();
-    for &(a0, a1) in a {
-        for &(b0, b1) in b {
-            let (lo, hi) = (a0.max(b0), a1.min(b1));
-            if lo <= hi {
-                out.push((lo, hi));
-            }
-        }
-    }
-    normalize(out)
-}
-
-fn contains(ranges: Option<&Vec<(u64, u64)>>, v: u64) -> bool {
-    ranges.is_none_or(|r| {
-        let i = r.partition_point(|&(_, hi)| hi < v);
-        i < r.len() && r[i].0 <= v
-    })
-}
-
-fn overlaps(ranges: Option<&Vec<(u64, u64)>>, lo: u64, hi: u64) -> bool {
-    ranges.is_none_or(|r| r.iter().any(|&(a, b)| a <= hi && lo <= b))
-}
-
-/// The filters the scan uses, combined.
+/// The filters the scan uses, as one selection.
 #[derive(Clone, Debug, Default)]
 pub(crate) struct Pushdown {
-    pub(crate) ranges: BTreeMap<&'static str, Vec<(u64, u64)>>,
-    pub(crate) kinds: Option<BTreeSet<String>>,
+    pub(crate) selection: RaySelection,
     /// The pushed filters as SQL, for `EXPLAIN`.
     pub(crate) shown: Vec<String>,
-}
-
-/// One segment to read, with the rows to read when not all.
-#[derive(Clone, Debug)]
-pub(crate) struct SegmentPlan {
-    pub(crate) segment: usize,
-    pub(crate) rows: Option<Arc<Vec<Range<u64>>>>,
-    pub(crate) trees: u64,
-    pub(crate) rays: u64,
-    /// The kept trees' entries when only those were read (a few tree ids); the scan then adds
-    /// pixel columns from them instead of reading the whole tree table.
-    pub(crate) entries: Option<Arc<Vec<TreeEntry>>>,
-}
-
-/// Tree-id filters at most this wide read only the tree-table pages that hold those ids.
-const NARROW_TREE_IDS: u64 = 1 << 16;
-/// Pixel filters (on both `pixel_x` and `pixel_y`) covering at most this many pixels read only
-/// the tree-table pages whose pixel statistics can hold them.
-const NARROW_PIXELS: u64 = 1 << 16;
-
-/// How many values inclusive ranges cover.
-fn span(r: &[(u64, u64)]) -> u64 {
-    r.iter().map(|&(lo, hi)| hi.saturating_sub(lo).saturating_add(1)).fold(0u64, u64::saturating_add)
 }
 
 impl Pushdown {
@@ -320,158 +253,16 @@ impl Pushdown {
             let Some(c) = constraint(f) else { continue };
             p.shown.push(f.to_string());
             match c {
-                Constraint::Range(col, r) => {
-                    let r = normalize(r);
-                    let merged = match p.ranges.get(col) {
-                        Some(old) => intersect(old, &r),
-                        None => r,
-                    };
-                    p.ranges.insert(col, merged);
-                }
-                Constraint::Kind(k) => {
-                    p.kinds = Some(match p.kinds.take() {
-                        Some(old) => old.intersection(&k).cloned().collect(),
-                        None => k,
-                    });
-                }
+                Constraint::Range(col, r) => p.selection.keep(col, r),
+                Constraint::Kind(k) => p.selection.keep_kinds(k),
             }
         }
         p
     }
 
-    /// Whether a filter needs the tree table (anything but kind and an upper bound on depth).
-    fn needs_trees(&self) -> bool {
-        let deep = self.ranges.get("depth").is_some_and(|r| r.first().is_none_or(|f| f.0 > 0));
-        deep || TREE_FILTER_COLUMNS.iter().any(|c| self.ranges.contains_key(c))
-    }
-
-    /// The lowest depth a kept ray may have (0 without a depth filter).
-    fn min_depth(&self) -> u64 {
-        self.ranges.get("depth").and_then(|r| r.first()).map_or(0, |r| r.0)
-    }
-
-    /// Whether pruning by the tree table pays for reading it. A lower bound on depth alone keeps
-    /// every tree whose deepest ray reaches it: worth it only when few rays are that deep (the
-    /// segment's ray counts per depth say how many), otherwise the row selection would cut the
-    /// segment into millions of ranges to skip little. Any tree, pixel or sample bound is.
-    fn trees_worth_reading(&self, by_kind_depth: &std::collections::BTreeMap<String, Vec<u64>>) -> bool {
-        if TREE_FILTER_COLUMNS.iter().any(|c| self.ranges.contains_key(c)) {
-            return true;
-        }
-        let min_depth = self.min_depth();
-        let (mut all, mut deep) = (0u64, 0u64);
-        for counts in by_kind_depth.values() {
-            for (d, &n) in counts.iter().enumerate() {
-                all += n;
-                if d as u64 >= min_depth {
-                    deep += n;
-                }
-            }
-        }
-        // No statistics (older datasets): prune, as before.
-        all == 0 || deep.saturating_mul(20) < all
-    }
-
     /// The segments (and rows within them) that can hold matching rays.
-    fn plan(&self, ds: &Dataset) -> store::Result<Vec<SegmentPlan>> {
-        let mut out = Vec::new();
-        let depths = self.ranges.get("depth");
-        for (i, seg) in ds.manifest().segments.iter().enumerate() {
-            if !overlaps(self.ranges.get(col::TREE_ID), seg.tree_id_min, seg.tree_id_max) {
-                continue;
-            }
-            let pb = &seg.stats.pixel_bounds;
-            let pixels_may_match = pb.is_empty()
-                || (overlaps(self.ranges.get(col::PIXEL_X), u64::from(pb.min[0]), u64::from(pb.max[0]))
-                    && overlaps(self.ranges.get(col::PIXEL_Y), u64::from(pb.min[1]), u64::from(pb.max[1])));
-            if !pixels_may_match {
-                continue;
-            }
-            let by_kind = &seg.stats.rays_by_kind_depth;
-            if !by_kind.is_empty() {
-                let any = by_kind.iter().any(|(kind, counts)| {
-                    self.kinds.as_ref().is_none_or(|k| k.contains(kind))
-                        && counts.iter().enumerate().any(|(d, &n)| n > 0 && contains(depths, d as u64))
-                });
-                if !any {
-                    continue;
-                }
-            }
-            if !self.needs_trees() || !self.trees_worth_reading(by_kind) {
-                out.push(SegmentPlan {
-                    segment: i,
-                    rows: None,
-                    trees: seg.trees.rows,
-                    rays: seg.rays.rows,
-                    entries: None,
-                });
-                continue;
-            }
-            let min_depth = self.min_depth();
-            let keep = |e: &TreeEntry| {
-                contains(self.ranges.get(col::TREE_ID), e.info.id.0)
-                    && contains(self.ranges.get(col::PIXEL_X), u64::from(e.info.pixel[0]))
-                    && contains(self.ranges.get(col::PIXEL_Y), u64::from(e.info.pixel[1]))
-                    && contains(self.ranges.get(col::SAMPLE), u64::from(e.info.sample))
-                    && u64::from(e.info.max_depth) >= min_depth
-            };
-            // A narrow tree-id or pixel filter reads only the tree-table pages that can hold its
-            // trees (and keeps the kept ones for the scan).
-            let narrow_ids = self.ranges.get(col::TREE_ID).is_some_and(|r| span(r) <= NARROW_TREE_IDS);
-            let narrow_pixels = match (self.ranges.get(col::PIXEL_X), self.ranges.get(col::PIXEL_Y)) {
-                (Some(x), Some(y)) => span(x).saturating_mul(span(y)) <= NARROW_PIXELS,
-                _ => false,
-            };
-            // The segment's tree file is checked whole (size, CRC32, columns) once per process
-            // before SQL reads it: a corrupted file is refused naming the segment instead of
-            // answering with damaged pixels or ids.
-            ds.verify_trees(i)?;
-            let entries = if narrow_ids || narrow_pixels {
-                let filter = store::TreeFilter {
-                    tree_id: self.ranges.get(col::TREE_ID).cloned(),
-                    pixel_x: self.ranges.get(col::PIXEL_X).cloned(),
-                    pixel_y: self.ranges.get(col::PIXEL_Y).cloned(),
-                    sample: self.ranges.get(col::SAMPLE).cloned(),
-                };
-                let mut kept = ds.segment_tree_entries_where(i, &filter)?;
-                kept.retain(|e| keep(e));
-                Arc::new(kept)
-            } else {
-                ds.segment_tree_entries(i)?
-            };
-            let mut rows: Vec<Range<u64>> = Vec::new();
-            let mut rays = 0u64;
-            for e in entries.iter().filter(|e| keep(e)) {
-                let n = u64::from(e.info.ray_count);
-                rays += n;
-                rows.push(e.first_row..e.first_row + n);
-            }
-            if rows.is_empty() {
-                continue;
-            }
-            let trees = rows.len() as u64;
-            let rows = if trees == seg.trees.rows {
-                None
-            } else {
-                rows.sort_unstable_by_key(|r| r.start);
-                let mut merged: Vec<Range<u64>> = Vec::with_capacity(rows.len());
-                for r in rows {
-                    match merged.last_mut() {
-                        Some(last) if last.end == r.start => last.end = r.end,
-                        _ => merged.push(r),
-                    }
-                }
-                Some(Arc::new(merged))
-            };
-            out.push(SegmentPlan {
-                segment: i,
-                rows,
-                trees,
-                rays,
-                entries: (narrow_ids || narrow_pixels).then_some(entries),
-            });
-        }
-        Ok(out)
+    fn plan(&self, ds: &Dataset) -> store::Result<Vec<SegmentAccess>> {
+        Ok(ds.plan(&self.selection)?.segments)
     }
 }
 
@@ -488,7 +279,7 @@ pub(crate) struct RaysScanExec {
     pub(crate) ds: Arc<Dataset>,
     pub(crate) schema: SchemaRef,
     pub(crate) pushdown: Pushdown,
-    pub(crate) parts: Vec<SegmentPlan>,
+    pub(crate) parts: Vec<SegmentAccess>,
     properties: Arc<PlanProperties>,
     /// The `sites` table's texts, read once per plan by the first partition that needs them.
     site_texts: std::sync::OnceLock<Arc<arrow::array::StringArray>>,
@@ -501,7 +292,7 @@ impl std::fmt::Debug for RaysScanExec {
 }
 
 impl RaysScanExec {
-    pub(crate) fn new(ds: Arc<Dataset>, schema: SchemaRef, pushdown: Pushdown, parts: Vec<SegmentPlan>) -> Self {
+    pub(crate) fn new(ds: Arc<Dataset>, schema: SchemaRef, pushdown: Pushdown, parts: Vec<SegmentAccess>) -> Self {
         let properties = Arc::new(PlanProperties::new(
             EquivalenceProperties::new(schema.clone()),
             Partitioning::UnknownPartitioning(parts.len().max(1)),
@@ -516,7 +307,7 @@ impl RaysScanExec {
     /// counts are the two columns run-length encoded, up to row order (which SQL leaves open), so
     /// the ray file is not read. Datasets without the counts (or with counts that do not add up to
     /// the segment's rays) are read.
-    fn answered_by_counts(&self, part: &SegmentPlan) -> bool {
+    fn answered_by_counts(&self, part: &SegmentAccess) -> bool {
         let seg = &self.ds.manifest().segments[part.segment];
         let total: u64 = seg.stats.rays_by_kind_depth.values().flatten().sum();
         part.rows.is_none()
@@ -526,19 +317,19 @@ impl RaysScanExec {
 
     /// A partition's `kind` and `depth` columns from its segment's counts: only the (kind, depth)
     /// pairs the pushed filters can keep (DataFusion still applies the filters).
-    fn count_batches(&self, part: &SegmentPlan) -> Box<dyn Iterator<Item = store::Result<RecordBatch>> + Send> {
+    fn count_batches(&self, part: &SegmentAccess) -> Box<dyn Iterator<Item = store::Result<RecordBatch>> + Send> {
         const BATCH: u64 = 64 * 1024;
         let seg = &self.ds.manifest().segments[part.segment];
-        let depths = self.pushdown.ranges.get("depth");
+        let sel = &self.pushdown.selection;
         let mut runs: Vec<(String, u16, u64)> = Vec::new();
         for (kind, counts) in &seg.stats.rays_by_kind_depth {
-            if self.pushdown.kinds.as_ref().is_some_and(|k| !k.contains(kind)) {
+            if !sel.keeps_kind(kind) {
                 continue;
             }
             for (d, &n) in counts.iter().enumerate() {
                 if let Ok(d16) = u16::try_from(d)
                     && n > 0
-                    && contains(depths, d as u64)
+                    && store::selection::in_ranges(sel.ranges(col::DEPTH), d as u64)
                 {
                     let mut left = n;
                     while left > 0 {
@@ -891,12 +682,11 @@ mod tests {
             col("kind").in_list(vec![lit("shadow"), lit("diffuse")], false),
             col("kind").eq(lit("shadow")),
         ]);
-        assert_eq!(p.ranges["depth"], vec![(2, 4)]);
-        assert_eq!(p.kinds, Some(["shadow".to_string()].into()));
-        assert!(p.needs_trees(), "a lower bound on depth prunes trees by their deepest ray");
-        assert!(!Pushdown::of(&[col("depth").lt(lit(2i64))]).needs_trees());
-        assert!(contains(Some(&vec![(1, 3), (7, 9)]), 8));
-        assert!(!contains(Some(&vec![(1, 3), (7, 9)]), 5));
-        assert_eq!(normalize(vec![(5, 6), (1, 2), (3, 3)]), vec![(1, 3), (5, 6)]);
+        assert_eq!(p.selection.ranges("depth"), Some(&[(2, 4)][..]));
+        assert_eq!(p.selection.kinds(), Some(&["shadow".to_string()].into()));
+        assert_eq!(p.selection.min("depth"), 2, "a lower bound on depth prunes trees by their deepest ray");
+        assert!(store::selection::in_ranges(Some(&[(1, 3), (7, 9)]), 8));
+        assert!(!store::selection::in_ranges(Some(&[(1, 3), (7, 9)]), 5));
+        assert_eq!(store::selection::normalize(vec![(5, 6), (1, 2), (3, 3)]), vec![(1, 3), (5, 6)]);
     }
 }

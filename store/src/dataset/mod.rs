@@ -3,12 +3,14 @@
 //! (`read`) and the sequential scan (`scan`) live in the child modules. `check` sits on top.
 
 mod index;
+mod plan;
 mod pooled;
 mod read;
 mod scan;
 
 use index::TreeIndex;
 pub use index::{TreeEntry, TreeFilter};
+pub use plan::{AccessPlan, SegmentAccess};
 pub use read::READ_BATCH_ROWS;
 pub(crate) use read::cores;
 use read::select_rows;

@@ -104,25 +104,28 @@ impl BvhBoxes {
         let s = &self.settings;
         let [a, b] = s.levels;
         if s.only_visited || s.colour == BoxColour::Visits {
-            let mut of = Vec::new();
+            // The trees whose visits count, said as a ray selection: `ray_nodes` holds tree ids
+            // only, so a pixel or sample goes through the tree table.
+            use store::scene::col;
+            let mut sel = store::RaySelection::all();
             if let Some(t) = s.tree {
-                of.push(format!("tree_id = {t}"));
+                sel = sel.only(col::TREE_ID, [(t, t)]);
             }
-            if s.pixel.is_some() || s.sample.is_some() {
-                let mut w = Vec::new();
-                if let Some([x, y]) = s.pixel {
-                    w.push(format!("pixel_x = {x} AND pixel_y = {y}"));
-                }
-                if let Some(k) = s.sample {
-                    w.push(format!("sample = {k}"));
-                }
-                of.push(format!(
-                    "tree_id IN (SELECT tree_id FROM {} WHERE {})",
-                    sources.table("trees"),
-                    w.join(" AND ")
-                ));
+            if let Some([x, y]) = s.pixel {
+                sel = sel
+                    .only(col::PIXEL_X, [(u64::from(x), u64::from(x))])
+                    .only(col::PIXEL_Y, [(u64::from(y), u64::from(y))]);
             }
-            let tree = if of.is_empty() { String::new() } else { format!(" WHERE {}", of.join(" AND ")) };
+            if let Some(k) = s.sample {
+                sel = sel.only(col::SAMPLE, [(u64::from(k), u64::from(k))]);
+            }
+            let tree = if sel.is_all() {
+                String::new()
+            } else if sel.constrained().all(|(c, _)| c == col::TREE_ID) {
+                format!(" WHERE {}", sel.to_sql())
+            } else {
+                format!(" WHERE tree_id IN (SELECT tree_id FROM {} WHERE {})", sources.table("trees"), sel.to_sql())
+            };
             let join = if s.only_visited { "JOIN" } else { "LEFT JOIN" };
             format!(
                 "SELECT n.level, n.min_x, n.min_y, n.min_z, n.max_x, n.max_y, n.max_z, coalesce(v.visits, 0) AS visits, n.node_id \

@@ -16,6 +16,7 @@ use crate::gpu::Gpu;
 use crate::sources::Sources;
 use crate::splat::{DensityScale, DensityStats, Drawn, RayStyle, StyleParams};
 use crate::{Error, Result};
+use store::RaySelection;
 
 /// The colour of a ray kind (Figure 6 of the paper).
 pub fn kind_color(kind: &str) -> [u8; 4] {
@@ -123,37 +124,44 @@ type DataKey = (
 );
 
 impl RaysSettings {
-    /// The filters as a SQL predicate over the `rays` table.
-    pub fn predicate(&self) -> Result<String> {
-        let mut w = Vec::new();
+    /// The rays the filters select (kinds, depth range, tree, pixel, sample, `ray_upto`).
+    pub fn selection(&self) -> Result<RaySelection> {
+        use store::scene::col;
+        let mut sel = RaySelection::all();
         if let Some(k) = &self.kinds {
             for name in k {
                 if !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '_') || name.is_empty() {
                     return Err(Error::Settings(format!("rays: kind {name:?} is not a kind name")));
                 }
             }
-            let list: Vec<String> = k.iter().map(|n| format!("'{n}'")).collect();
-            w.push(format!("kind IN ({})", if list.is_empty() { "''".into() } else { list.join(", ") }));
+            sel = sel.only_kinds(k.iter().cloned());
         }
         if let Some([a, b]) = self.depth {
             if a > b {
                 return Err(Error::Settings(format!("rays: depth range {a}..{b} is empty")));
             }
-            w.push(format!("depth BETWEEN {a} AND {b}"));
+            sel = sel.only(col::DEPTH, [(u64::from(a), u64::from(b))]);
         }
         if let Some(t) = self.tree {
-            w.push(format!("tree_id = {t}"));
+            sel = sel.only(col::TREE_ID, [(t, t)]);
         }
         if let Some([x, y]) = self.pixel {
-            w.push(format!("pixel_x = {x} AND pixel_y = {y}"));
+            sel = sel
+                .only(col::PIXEL_X, [(u64::from(x), u64::from(x))])
+                .only(col::PIXEL_Y, [(u64::from(y), u64::from(y))]);
         }
-        if let Some(s) = self.sample {
-            w.push(format!("sample = {s}"));
+        if let Some(v) = self.sample {
+            sel = sel.only(col::SAMPLE, [(u64::from(v), u64::from(v))]);
         }
         if let Some(n) = self.ray_upto {
-            w.push(format!("ray <= {n}"));
+            sel = sel.only(col::RAY, [(0, u64::from(n))]);
         }
-        Ok(if w.is_empty() { "TRUE".into() } else { w.join(" AND ") })
+        Ok(sel)
+    }
+
+    /// The filters as a SQL predicate over the `rays` table (what a served dataset is asked).
+    pub fn predicate(&self) -> Result<String> {
+        Ok(self.selection()?.to_sql())
     }
 
     /// The style settings as the line drawing takes them.
@@ -359,7 +367,7 @@ impl Rays {
         let t0 = std::time::Instant::now();
         self.cancelled_after = None;
         let s = self.settings.clone();
-        s.predicate()?;
+        let sel = s.selection()?;
         let mut bufs = SegmentBuffers::new(gpu);
         // Rows that could not be drawn, and misses clipped to the scene, over every piece.
         let (mut skipped, mut misses) = (0u64, 0u64);
@@ -412,38 +420,40 @@ impl Rays {
             }
             Ok(more && left > 0)
         };
-        let sampler = |seed: u64, p: f64| RowSampler::new(&s, p, SegmentBuilder::new(sources.bounds, frame), seed);
+        let sampler = |seed: u64, p: f64| {
+            RowSampler::new(&sel, s.selected_tree, p, SegmentBuilder::new(sources.bounds, frame), seed)
+        };
         match &sources.dataset {
             Some(ds) => {
-                let mut rows = tree_rows(ds, &s)?;
-                let mut total = rows.as_ref().map_or(ds.ray_count(), |per| {
-                    per.values().flat_map(|r| r.iter().map(|r| r.end - r.start)).sum::<u64>()
-                });
+                // The store plans the rows (whole trees) that can hold a selected ray; the
+                // sampler keeps the selected ones.
+                let mut plan = ds.plan(&sel)?;
+                let mut total = plan.rays();
                 self.groups_read = None;
                 if let Some(b) = budget.filter(|b| total > *b) {
-                    let m = matching_rows(ds, &s, rows.as_ref(), total)?;
+                    let m = ds.count_planned(&sel, &plan)?;
                     known = Some(m);
                     p = (b as f64 / m.max(1) as f64).min(1.0);
                     // A large trace: read only some of its row groups (each starts at a tree),
                     // spread evenly over the trace (which lies in pixel order), and sample those.
-                    if rows.is_none()
-                        && total > SUBSET_ABOVE
-                        && let Some((subset, read, groups)) = row_group_subset(ds, p)?
+                    if total > SUBSET_ABOVE
+                        && let Some((subset, read, groups)) =
+                            ds.spread_row_groups(&plan, p, SUBSET_OVERSAMPLE, SUBSET_MIN_GROUPS)?
                     {
-                        let read_rows: u64 = subset.values().flatten().map(|r| r.end - r.start).sum();
+                        let read_rows = subset.rays();
                         p = (p * total as f64 / read_rows.max(1) as f64).min(1.0);
-                        rows = Some(subset);
+                        plan = subset;
                         total = read_rows;
                         self.groups_read = Some((read, groups));
                     }
                 }
                 progress.start("loading rays", total);
-                read_pieces(ds, &names, pieces(ds, rows.as_ref())?, &|piece| sampler(piece as u64, p), &mut consume)?;
+                read_pieces(ds, &names, pieces(ds, &plan)?, &|piece| sampler(piece as u64, p), &mut consume)?;
             }
             None => {
                 // A service's dataset: the same rows through SQL, in tree order, sampled as above
                 // once a count says how many match.
-                let (table, pred) = (sources.table("rays"), s.predicate()?);
+                let (table, pred) = (sources.table("rays"), sel.to_sql());
                 if let Some(b) = budget {
                     let counted = sources.query(&format!("SELECT count(*) AS n FROM {table} WHERE {pred}"))?;
                     let m = counted
@@ -528,21 +538,15 @@ struct Piece {
     rows: Option<Vec<std::ops::Range<u64>>>,
 }
 
-/// The pieces that read `rows` (every row when None), in trace order: row group by row group
-/// where row groups start at trees (format version 2 on, or plain columns), so each decodes
-/// alone; otherwise a segment at a time.
-fn pieces(ds: &store::Dataset, rows: Option<&RowsBySegment>) -> Result<Vec<Piece>> {
+/// The pieces that read `plan`'s rows, in trace order: row group by row group where row groups
+/// start at trees (format version 2 on, or plain columns), so each decodes alone; otherwise a
+/// segment at a time.
+fn pieces(ds: &store::Dataset, plan: &store::AccessPlan) -> Result<Vec<Piece>> {
     let m = ds.manifest();
     let split = m.format_version >= 2 || m.encoding == store::Encoding::Plain;
     let mut out = Vec::new();
-    for i in 0..m.segments.len() {
-        let ranges = match rows {
-            Some(per) => match per.get(&i) {
-                Some(r) => Some(r.as_slice()),
-                None => continue,
-            },
-            None => None,
-        };
+    for part in &plan.segments {
+        let (i, ranges) = (part.segment, part.rows.as_deref().map(Vec::as_slice));
         if !split {
             out.push(Piece { segment: i, rows: ranges.map(<[_]>::to_vec) });
             continue;
@@ -606,13 +610,15 @@ impl Kept {
 }
 
 /// Turns rows (columns in the load's order: tree, ray, depth, kind, origin, direction, t) into
-/// segments: the layer's filters, then, where `p` < 1, a sample keeping share `p` of each
+/// segments: the rows the selection keeps, then, where `p` < 1, a sample keeping share `p` of each
 /// (kind, depth) stratum. Within a stratum the sample is systematic (every 1/p-th ray: rows
 /// arrive tree by tree in pixel order, so the kept rays spread over the image too), from a
 /// start drawn from `seed` and the stratum: each piece of a load samples alone, and a fixed
 /// start would keep nothing of a stratum with fewer than 1/p rays per piece.
 struct RowSampler<'a> {
-    s: &'a RaysSettings,
+    sel: &'a RaySelection,
+    /// The tree drawn highlighted.
+    selected_tree: Option<u64>,
     p: f64,
     builder: SegmentBuilder,
     seed: u64,
@@ -622,8 +628,8 @@ struct RowSampler<'a> {
 }
 
 impl<'a> RowSampler<'a> {
-    fn new(s: &'a RaysSettings, p: f64, builder: SegmentBuilder, seed: u64) -> Self {
-        RowSampler { s, p, builder, seed, strata: Vec::new(), kind_ids: Vec::new() }
+    fn new(sel: &'a RaySelection, selected_tree: Option<u64>, p: f64, builder: SegmentBuilder, seed: u64) -> Self {
+        RowSampler { sel, selected_tree, p, builder, seed, strata: Vec::new(), kind_ids: Vec::new() }
     }
 
     /// The start of a stratum's systematic sample in [0, 1): a hash of the seed, kind and depth.
@@ -643,7 +649,7 @@ impl<'a> RowSampler<'a> {
         use store::scene::col;
         let [ox, oy, oz] = col::ORIGIN;
         let [dx, dy, dz] = col::DIR;
-        let s = self.s;
+        let sel = self.sel;
         let mut out = Kept { rows: b.num_rows() as u64, ..Kept::default() };
         let [ox, oy, oz, dx, dy, dz, t] = f32_columns(b, [ox, oy, oz, dx, dy, dz, col::T])?;
         let tree = arrow::compute::cast(b.column(0), &arrow::datatypes::DataType::UInt64)?;
@@ -652,7 +658,7 @@ impl<'a> RowSampler<'a> {
         let ray = ray.as_primitive::<arrow::datatypes::UInt32Type>();
         let depth = arrow::compute::cast(b.column(2), &arrow::datatypes::DataType::UInt32)?;
         let depth = depth.as_primitive::<arrow::datatypes::UInt32Type>();
-        let (names_of, codes) = kind_codes(b.column(3).as_ref())?;
+        let (names_of, codes) = store::selection::kind_codes(b.column(3).as_ref())?;
         // Per kind value: its colour, whether the kind filter keeps it, and its stratum id.
         let per_kind: Vec<([u8; 4], bool, usize)> = names_of
             .iter()
@@ -665,17 +671,14 @@ impl<'a> RowSampler<'a> {
                         self.kind_ids.len() - 1
                     }
                 };
-                (kind_color(n), s.kinds.as_ref().is_none_or(|k| k.iter().any(|w| w == n)), id)
+                (kind_color(n), sel.keeps_kind(n), id)
             })
             .collect();
         out.kind_names = names_of.iter().map(|n| n.clone().unwrap_or_default()).collect();
         let keep_share = self.p;
         for (r, &k) in codes.iter().enumerate() {
             let (colour, keep, stratum) = per_kind[k];
-            if !keep
-                || s.depth.is_some_and(|[a, z]| depth.value(r) < a || depth.value(r) > z)
-                || s.ray_upto.is_some_and(|n| ray.value(r) > n)
-            {
+            if !keep || !sel.keeps_depth_and_ray(u64::from(depth.value(r)), u64::from(ray.value(r))) {
                 continue;
             }
             out.matched += 1;
@@ -704,7 +707,7 @@ impl<'a> RowSampler<'a> {
             else {
                 continue;
             };
-            let flags = u32::from(s.selected_tree == Some(tree.value(r)));
+            let flags = u32::from(self.selected_tree == Some(tree.value(r)));
             out.segments.push(self.builder.segment(a, e, colour, flags));
             out.picks.push((tree.value(r), ray.value(r)));
             out.kind_of.push(k as u16);
@@ -804,84 +807,13 @@ fn read_pieces<'s>(
     })
 }
 
-/// Row ranges to read, sorted and disjoint, by segment index.
-type RowsBySegment = BTreeMap<usize, Vec<std::ops::Range<u64>>>;
-
-/// The rows the tree-level filters (tree, pixel, sample) keep, as sorted disjoint ranges of whole
-/// trees per segment, from the tree index; `None` when they keep every row.
-fn tree_rows(ds: &store::Dataset, s: &RaysSettings) -> Result<Option<RowsBySegment>> {
-    if s.tree.is_none() && s.pixel.is_none() && s.sample.is_none() {
-        return Ok(None);
-    }
-    let mut entries = match (s.tree, s.pixel) {
-        (Some(t), _) => match ds.entry_of(store::TreeId(t)) {
-            Ok(e) => vec![e],
-            Err(store::Error::NoSuchTree(_)) => Vec::new(),
-            Err(e) => return Err(e.into()),
-        },
-        (None, Some([x, y])) => ds.tree_entries_at_pixel(x, y, s.sample)?,
-        (None, None) => {
-            let sample = s.sample.map(|v| vec![(u64::from(v), u64::from(v))]);
-            ds.tree_entries_where(&store::TreeFilter { sample, ..Default::default() })?
-        }
-    };
-    entries.retain(|e| {
-        s.pixel.is_none_or(|p| p == e.info.pixel)
-            && s.sample.is_none_or(|v| v == e.info.sample)
-            && s.tree.is_none_or(|t| t == e.info.id.0)
-    });
-    entries.sort_by_key(|e| (e.segment, e.first_row));
-    let mut out = RowsBySegment::new();
-    for e in entries {
-        let r = e.first_row..e.first_row + u64::from(e.info.ray_count);
-        if r.is_empty() {
-            continue;
-        }
-        let v = out.entry(e.segment as usize).or_default();
-        match v.last_mut() {
-            Some(last) if last.end == r.start => last.end = r.end,
-            _ => v.push(r),
-        }
-    }
-    Ok(Some(out))
-}
-
 /// Traces of more rays than this load a sample from some of their row groups only (see
-/// [`row_group_subset`]); smaller ones are read whole and sampled ray by ray.
+/// [`store::Dataset::spread_row_groups`]); smaller ones are read whole and sampled ray by ray.
 const SUBSET_ABOVE: u64 = 32_000_000;
 /// A subset reads this many times the rays a sample keeps ...
 const SUBSET_OVERSAMPLE: f64 = 16.0;
 /// ... and at least this many row groups (about 4M rays: patches spread over the image).
 const SUBSET_MIN_GROUPS: usize = 32;
-
-/// The row groups a sample keeping share `p` of a large trace reads: evenly spaced over every
-/// segment's row groups in trace order, `SUBSET_OVERSAMPLE` times `p` of them (at least
-/// `SUBSET_MIN_GROUPS`). Row groups of encoded files start at trees, so each decodes alone.
-/// Returns the rows per segment, the row groups read and their total; `None` when that is all.
-fn row_group_subset(ds: &store::Dataset, p: f64) -> Result<Option<(RowsBySegment, usize, usize)>> {
-    let mut groups: Vec<(usize, std::ops::Range<u64>)> = Vec::new();
-    for i in 0..ds.manifest().segments.len() {
-        groups.extend(ds.segment_row_groups(i)?.into_iter().map(|r| (i, r)));
-    }
-    let all = groups.len();
-    let want = ((p * SUBSET_OVERSAMPLE * all as f64).ceil() as usize).max(SUBSET_MIN_GROUPS);
-    if want >= all {
-        return Ok(None);
-    }
-    let mut out = RowsBySegment::new();
-    // Group k of `want` is the one at (k + 1/2) * all / want: evenly spread, ends included.
-    for k in 0..want {
-        let g = (((k as f64 + 0.5) * all as f64 / want as f64) as usize).min(all - 1);
-        let (i, r) = &groups[g];
-        let v = out.entry(*i).or_default();
-        match v.last_mut() {
-            Some(last) if last.end == r.start => last.end = r.end,
-            Some(last) if last.start == r.start => {}
-            _ => v.push(r.clone()),
-        }
-    }
-    Ok(Some((out, want, all)))
-}
 
 /// The colour bar of a density draw: rays per pixel from 1 to the most on one pixel, in the
 /// style's scale and map (a brightness ramp when the rays keep their own colours).
@@ -897,59 +829,6 @@ pub fn density_legend(style: &StyleParams, stats: Option<DensityStats>) -> Optio
     })
 }
 
-/// How many rows of `rows` (whole segments where `None`; `total` rows) pass the kind, depth and
-/// `ray_upto` filters: `total` without such filters, else a scan of those three columns.
-fn matching_rows(ds: &store::Dataset, s: &RaysSettings, rows: Option<&RowsBySegment>, total: u64) -> Result<u64> {
-    if s.kinds.is_none() && s.depth.is_none() && s.ray_upto.is_none() {
-        return Ok(total);
-    }
-    // Kind and depth filters over the whole trace: the manifest's counts say it.
-    let counts = &ds.manifest().stats.rays_by_kind_depth;
-    if rows.is_none() && s.ray_upto.is_none() && !counts.is_empty() {
-        return Ok(counts
-            .iter()
-            .filter(|(k, _)| s.kinds.as_ref().is_none_or(|w| w.iter().any(|w| w == *k)))
-            .flat_map(|(_, v)| v.iter().enumerate())
-            .filter(|(d, _)| s.depth.is_none_or(|[a, z]| (a..=z).contains(&(*d as u32))))
-            .map(|(_, &n)| n)
-            .sum());
-    }
-    use store::scene::col;
-    let names: Vec<String> = [col::KIND, col::DEPTH, col::RAY].map(String::from).to_vec();
-    let mut n = 0u64;
-    for i in 0..ds.manifest().segments.len() {
-        let ranges = match rows {
-            Some(per) => match per.get(&i) {
-                Some(r) => Some(r.as_slice()),
-                None => continue,
-            },
-            None => None,
-        };
-        for b in ds.segment_columns_in(i, &names, ranges, store::READ_BATCH_ROWS)? {
-            let b = b?;
-            let (names_of, codes) = kind_codes(b.column(0).as_ref())?;
-            let keep: Vec<bool> = names_of
-                .iter()
-                .map(|k| s.kinds.as_ref().is_none_or(|w| w.iter().any(|w| Some(w) == k.as_ref())))
-                .collect();
-            let depth = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::UInt32)?;
-            let depth = depth.as_primitive::<arrow::datatypes::UInt32Type>();
-            let ray = arrow::compute::cast(b.column(2), &arrow::datatypes::DataType::UInt32)?;
-            let ray = ray.as_primitive::<arrow::datatypes::UInt32Type>();
-            n += codes
-                .iter()
-                .enumerate()
-                .filter(|&(r, &k)| {
-                    keep[k]
-                        && s.depth.is_none_or(|[a, z]| (a..=z).contains(&depth.value(r)))
-                        && s.ray_upto.is_none_or(|u| ray.value(r) <= u)
-                })
-                .count() as u64;
-        }
-    }
-    Ok(n)
-}
-
 /// A count in a few characters: 950, 12.3K, 5.56M, 1.2B.
 pub fn short_count(n: u64) -> String {
     let f = n as f64;
@@ -960,26 +839,6 @@ pub fn short_count(n: u64) -> String {
         _ => (f / 1e9, "B"),
     };
     format!("{}{unit}", crate::legend::label(v))
-}
-
-/// The distinct names of a kind column and each row's index into them (dictionary-encoded or
-/// plain strings).
-fn kind_codes(col: &dyn Array) -> Result<(Vec<Option<String>>, Vec<usize>)> {
-    if let Some(dict) = col.as_any_dictionary_opt() {
-        return Ok((kind_names(dict.values().as_ref())?, dict.normalized_keys()));
-    }
-    let mut names: Vec<Option<String>> = Vec::new();
-    let codes = kind_names(col)?
-        .into_iter()
-        .map(|n| match names.iter().position(|m| *m == n) {
-            Some(i) => i,
-            None => {
-                names.push(n);
-                names.len() - 1
-            }
-        })
-        .collect();
-    Ok((names, codes))
 }
 
 impl Layer for Rays {
@@ -1004,7 +863,7 @@ impl Layer for Rays {
         &self.settings
     }
     fn apply(&mut self, s: RaysSettings) -> Result<()> {
-        s.predicate()?;
+        s.selection()?;
         crate::component::check_lines("rays", s.line_width, s.opacity)?;
         if let Some(m) = &s.density_map {
             crate::legend::colour_map(m)?;
@@ -1255,7 +1114,11 @@ mod tests {
         let all = groups.len();
         assert!(all > 4 * SUBSET_MIN_GROUPS, "{all} row groups");
         for p in [0.0001, 0.01] {
-            let (rows, read, total) = row_group_subset(&ds, p).unwrap().unwrap();
+            let whole = ds.plan(&RaySelection::all()).unwrap();
+            let (plan, read, total) =
+                ds.spread_row_groups(&whole, p, SUBSET_OVERSAMPLE, SUBSET_MIN_GROUPS).unwrap().unwrap();
+            let rows: BTreeMap<usize, Vec<std::ops::Range<u64>>> =
+                plan.segments.iter().map(|s| (s.segment, s.rows.as_deref().unwrap().clone())).collect();
             let want = ((p * SUBSET_OVERSAMPLE * all as f64).ceil() as usize).max(SUBSET_MIN_GROUPS);
             assert_eq!((read, total), (want, all));
             let chosen: Vec<(usize, std::ops::Range<u64>)> = groups
@@ -1276,7 +1139,11 @@ mod tests {
             let gaps: Vec<usize> = pos.windows(2).map(|w| w[1] - w[0]).collect();
             assert!(gaps.iter().max().unwrap() - gaps.iter().min().unwrap() <= 1, "{gaps:?}");
         }
-        assert!(row_group_subset(&ds, 0.5).unwrap().is_none(), "most of the trace: read whole");
+        let whole = ds.plan(&RaySelection::all()).unwrap();
+        assert!(
+            ds.spread_row_groups(&whole, 0.5, SUBSET_OVERSAMPLE, SUBSET_MIN_GROUPS).unwrap().is_none(),
+            "most of the trace: read whole"
+        );
     }
 
     /// The load's pieces, decoded on several threads, hand over every row asked for exactly once
@@ -1287,12 +1154,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let ds = dataset(&dir.path().join("ds"));
         let names = load_columns();
-        let settings = RaysSettings::default();
+        let sel = RaySelection::all();
         let frame = Frame { anchor: [0.0; 3], radius: 10.0 };
-        let read = |rows: Option<&RowsBySegment>, stop_after: usize| {
+        let whole = ds.plan(&sel).unwrap();
+        let read = |plan: &store::AccessPlan, stop_after: usize| {
             let mut got: Vec<(u64, u32, f32)> = Vec::new();
-            let sampler = |_: usize| RowSampler::new(&settings, 1.0, SegmentBuilder::new(None, frame), 0);
-            read_pieces(&ds, &names, pieces(&ds, rows).unwrap(), &sampler, &mut |k| {
+            let sampler = |_: usize| RowSampler::new(&sel, None, 1.0, SegmentBuilder::new(None, frame), 0);
+            read_pieces(&ds, &names, pieces(&ds, plan).unwrap(), &sampler, &mut |k| {
                 for (seg, &(tree, ray)) in k.segments.iter().zip(&k.picks) {
                     got.push((tree, ray, seg.a[1]));
                 }
@@ -1302,7 +1170,7 @@ mod tests {
             got
         };
         // Every row: the trees in id order (as written), rays 0..n each, origins decoded.
-        let all = read(None, usize::MAX);
+        let all = read(&whole, usize::MAX);
         assert_eq!(all.len() as u64, ds.ray_count());
         let mut want = Vec::new();
         for id in 0..4500u64 {
@@ -1313,7 +1181,7 @@ mod tests {
         assert_eq!(all, want);
         let groups = ds.segment_row_groups(1).unwrap();
         let total: usize = (0..3).map(|i| ds.segment_row_groups(i).unwrap().len()).sum();
-        assert_eq!(pieces(&ds, None).unwrap().len(), total, "a piece per row group");
+        assert_eq!(pieces(&ds, &whole).unwrap().len(), total, "a piece per row group");
         // Tree ranges crossing row groups: split at the groups, rows the same.
         let (a, b) = (groups[1].start, groups[3].end);
         let entries = ds.segment_tree_entries(1).unwrap();
@@ -1321,19 +1189,27 @@ mod tests {
             entries.iter().map(|e| e.first_row).filter(|&r| r >= a + 3).min().unwrap(),
             entries.iter().map(|e| e.first_row).filter(|&r| r <= b - 3).max().unwrap(),
         );
-        let rows = RowsBySegment::from([(1, std::iter::once(a..b).collect())]);
-        let ps = pieces(&ds, Some(&rows)).unwrap();
+        let rows = store::AccessPlan {
+            segments: vec![store::SegmentAccess {
+                segment: 1,
+                rows: Some(std::sync::Arc::new(std::iter::once(a..b).collect())),
+                trees: 0,
+                rays: b - a,
+                entries: None,
+            }],
+        };
+        let ps = pieces(&ds, &rows).unwrap();
         assert_eq!(ps.len(), 3, "three row groups touched");
         for p in &ps {
             let r = &p.rows.as_ref().unwrap()[0];
             assert!(groups.iter().any(|g| g.start <= r.start && r.end <= g.end), "{r:?} within one row group");
         }
-        let part = read(Some(&rows), usize::MAX);
+        let part = read(&rows, usize::MAX);
         assert_eq!(part.len() as u64, b - a);
         let first = want.iter().position(|w| w.0 == part[0].0 && w.1 == 0).unwrap();
         assert_eq!(part[..], want[first..first + part.len()]);
         // Stopping early returns promptly with what was consumed.
-        let some = read(None, 10);
+        let some = read(&whole, 10);
         assert!(some.len() >= 10 && some.len() < all.len() && some[..] == want[..some.len()]);
     }
 
@@ -1344,11 +1220,11 @@ mod tests {
     fn pieces_sampled_apart_keep_their_share_of_every_stratum() {
         let dir = tempfile::tempdir().unwrap();
         let ds = dataset(&dir.path().join("ds"));
-        let settings = RaysSettings::default();
+        let sel = RaySelection::all();
         let frame = Frame { anchor: [0.0; 3], radius: 10.0 };
         let p = 0.02;
-        let sampler = |piece: usize| RowSampler::new(&settings, p, SegmentBuilder::new(None, frame), piece as u64);
-        let ps = pieces(&ds, None).unwrap();
+        let sampler = |piece: usize| RowSampler::new(&sel, None, p, SegmentBuilder::new(None, frame), piece as u64);
+        let ps = pieces(&ds, &ds.plan(&sel).unwrap()).unwrap();
         let n_pieces = ps.len();
         let mut kept: BTreeMap<(String, u32), u64> = BTreeMap::new();
         let mut matched = 0;
