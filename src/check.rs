@@ -7,6 +7,20 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rl::Dataset;
 use serde_json::json;
 
+/// `rtvtk check`: every invariant of a dataset (exit status 1 when one is broken).
+#[derive(clap::Args)]
+pub struct CheckArgs {
+    pub dataset: std::path::PathBuf,
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl CheckArgs {
+    pub fn run(&self) -> Result<i32> {
+        run(&self.dataset, self.json)
+    }
+}
+
 pub fn run(dir: &Path, as_json: bool) -> Result<i32> {
     let ds = Dataset::open(dir)?;
     // A bar in rays (stderr, hidden when it is not a terminal); segments are checked in parallel.

@@ -6,6 +6,39 @@ use anyhow::{Context, Result, bail};
 use renderers::TracerChoice;
 use renderers::converge::{ConvergencePoint, log_log_fit, measure, write_plots};
 
+/// `rtvtk converge`: image error against time and samples per pixel.
+#[derive(clap::Args)]
+pub struct ConvergeArgs {
+    #[arg(long, default_value = "cornell")]
+    pub scene: String,
+    #[arg(long, default_value = "96x96", value_parser = crate::args::parse_size)]
+    pub size: (u32, u32),
+    /// Samples per pixel of the reference image.
+    #[arg(long, default_value_t = 1024)]
+    pub reference_spp: u32,
+    /// Sample counts to measure (comma separated).
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,32,64,128")]
+    pub spp: Vec<u32>,
+    /// Directory for convergence.csv, convergence.png and reference.exr.
+    #[arg(long, default_value = "converge-out")]
+    pub out: std::path::PathBuf,
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// The tracers to measure side by side (comma separated): path (or cpu), gpu.
+    #[arg(long, value_delimiter = ',', default_value = "path", value_parser = crate::args::parse_tracer)]
+    pub tracer: Vec<TracerChoice>,
+    /// Renders per point: its time is their median, shown with their spread.
+    #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..=100))]
+    pub runs: u32,
+}
+
+impl ConvergeArgs {
+    pub fn run(&self) -> Result<()> {
+        let a = self;
+        run(&a.scene, a.size, a.reference_spp, &a.spp, &a.out, a.threads, &a.tracer, a.runs)
+    }
+}
+
 /// `rtvtk converge`: error of each tracer against time, as a table, a CSV and a plot, all
 /// against one CPU reference.
 #[allow(clippy::too_many_arguments)]

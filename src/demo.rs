@@ -5,6 +5,29 @@ use std::path::PathBuf;
 use anyhow::Result;
 use rl::Dataset;
 
+/// `rtvtk demo`: render and record the Cornell box, then print a summary of the trace.
+#[derive(clap::Args)]
+pub struct DemoArgs {
+    /// Dataset directory to write (default: a fresh temporary directory).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Image size, WxH.
+    #[arg(long, default_value = "128x128", value_parser = crate::args::parse_size)]
+    pub size: (u32, u32),
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 8)]
+    pub spp: u32,
+    /// Tracing threads.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+}
+
+impl DemoArgs {
+    pub fn run(&self) -> Result<()> {
+        run(self.out.clone(), self.size, self.spp, self.threads)
+    }
+}
+
 /// Renders and records the Cornell box with the path tracer, then summarizes the trace.
 pub fn run(out: Option<PathBuf>, (w, h): (u32, u32), spp: u32, threads: usize) -> Result<()> {
     let dir = out.unwrap_or_else(|| std::env::temp_dir().join(format!("rtvtk-demo-{}", std::process::id())));

@@ -6,6 +6,20 @@ use anyhow::Result;
 use rl::Dataset;
 use serde_json::json;
 
+/// `rtvtk info`: counts, bytes per ray, kinds, payload schema and format version of a dataset.
+#[derive(clap::Args)]
+pub struct InfoArgs {
+    pub dataset: std::path::PathBuf,
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl InfoArgs {
+    pub fn run(&self) -> Result<()> {
+        run(&self.dataset, self.json)
+    }
+}
+
 /// What the dataset does not hold that a recording can, and what needs it: the optional tables,
 /// the payload columns the analyses read, the built-in kinds no ray has.
 fn left_out(ds: &Dataset) -> Vec<(String, &'static str)> {

@@ -22,8 +22,6 @@ mod tree;
 #[cfg(feature = "sql")]
 mod view;
 
-use std::path::PathBuf;
-
 use anyhow::Result;
 use clap::{Parser, Subcommand};
 
@@ -39,20 +37,7 @@ enum Command {
     /// Render a scene with a CPU tracer or the GPU path tracer, recording every ray into a dataset.
     Record(Box<record::RecordArgs>),
     /// Render and record the Cornell box, then print a summary of the trace.
-    Demo {
-        /// Dataset directory to write (default: a fresh temporary directory).
-        #[arg(long)]
-        out: Option<PathBuf>,
-        /// Image size, WxH.
-        #[arg(long, default_value = "128x128", value_parser = args::parse_size)]
-        size: (u32, u32),
-        /// Samples per pixel.
-        #[arg(long, default_value_t = 8)]
-        spp: u32,
-        /// Tracing threads.
-        #[arg(long, default_value_t = 2)]
-        threads: usize,
-    },
+    Demo(demo::DemoArgs),
     /// Draw a dataset's layers (image, geometry, composition, rays, bvh, query, heatmap) into a
     /// PNG with the GPU visualizer, headless.
     Render(Box<render::RenderArgs>),
@@ -61,63 +46,16 @@ enum Command {
     View(Box<view::ViewArgs>),
     /// Image error (RMSE, relative MSE) of the path tracers against time and samples per pixel,
     /// against a high-sample CPU reference.
-    Converge {
-        #[arg(long, default_value = "cornell")]
-        scene: String,
-        #[arg(long, default_value = "96x96", value_parser = args::parse_size)]
-        size: (u32, u32),
-        /// Samples per pixel of the reference image.
-        #[arg(long, default_value_t = 1024)]
-        reference_spp: u32,
-        /// Sample counts to measure (comma separated).
-        #[arg(long, value_delimiter = ',', default_value = "1,2,4,8,16,32,64,128")]
-        spp: Vec<u32>,
-        /// Directory for convergence.csv, convergence.png and reference.exr.
-        #[arg(long, default_value = "converge-out")]
-        out: PathBuf,
-        #[arg(long)]
-        threads: Option<usize>,
-        /// The tracers to measure side by side (comma separated): path (or cpu), gpu.
-        #[arg(long, value_delimiter = ',', default_value = "path", value_parser = args::parse_tracer)]
-        tracer: Vec<renderers::TracerChoice>,
-        /// Renders per point: its time is their median, shown with their spread.
-        #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..=100))]
-        runs: u32,
-    },
+    Converge(Box<converge::ConvergeArgs>),
     /// Counts, bytes per ray, kinds, payload schema and format version of a dataset.
-    Info {
-        dataset: PathBuf,
-        #[arg(long)]
-        json: bool,
-    },
+    Info(info::InfoArgs),
     /// Print one ray tree as an indented hierarchy.
-    Tree {
-        dataset: PathBuf,
-        /// The pixel whose trees to print, X,Y.
-        #[arg(long, value_parser = args::parse_pixel, conflicts_with = "tree", required_unless_present = "tree")]
-        pixel: Option<(u32, u32)>,
-        /// Only this sample of the pixel.
-        #[arg(long, requires = "pixel")]
-        sample: Option<u32>,
-        /// The tree with this id.
-        #[arg(long)]
-        tree: Option<u64>,
-        #[arg(long)]
-        json: bool,
-    },
+    Tree(tree::TreeArgs),
     /// Verify every invariant of a dataset (exit status 1 when one is broken).
-    Check {
-        dataset: PathBuf,
-        #[arg(long)]
-        json: bool,
-    },
+    Check(check::CheckArgs),
     /// Copy a dataset with plain float origin and direction columns, for tools that read the
     /// Parquet files directly (DuckDB, Polars, pyarrow, Ballista).
-    Export {
-        dataset: PathBuf,
-        /// Where to write the plain copy (must not exist or be empty).
-        out: PathBuf,
-    },
+    Export(export::ExportArgs),
     /// SQL over datasets: `rtvtk sql TRACE "SELECT kind, count(*) FROM rays GROUP BY kind"`.
     #[cfg(feature = "sql")]
     Sql(sql::SqlArgs),
@@ -217,24 +155,20 @@ fn main() {
     let bench_store = matches!(cli.command, Command::Bench { what: bench::BenchCommand::Store { .. } });
     #[cfg(not(feature = "sql"))]
     let bench_store = false;
-    if bench_store || matches!(cli.command, Command::Demo { .. } | Command::Record(_)) {
+    if bench_store || matches!(cli.command, Command::Demo(_) | Command::Record(_)) {
         keep_freed_memory();
     }
     let result: Result<i32> = match cli.command {
-        Command::Demo { out, size, spp, threads } => demo::run(out, size, spp, threads).map(|_| 0),
-        Command::Converge { scene, size, reference_spp, spp, out, threads, tracer, runs } => {
-            converge::run(&scene, size, reference_spp, &spp, &out, threads, &tracer, runs).map(|_| 0)
-        }
+        Command::Demo(args) => args.run().map(|_| 0),
+        Command::Converge(args) => args.run().map(|_| 0),
         Command::Record(args) => record::run(&args).map(|_| 0),
         Command::Render(args) => render::run(&args).map(|_| 0),
         #[cfg(feature = "sql")]
         Command::View(args) => view::run(&args).map(|_| 0),
-        Command::Info { dataset, json } => info::run(&dataset, json).map(|_| 0),
-        Command::Tree { dataset, pixel, sample, tree, json } => {
-            tree::run(&dataset, pixel, sample, tree, json).map(|_| 0)
-        }
-        Command::Check { dataset, json } => check::run(&dataset, json),
-        Command::Export { dataset, out } => export::run(&dataset, &out).map(|_| 0),
+        Command::Info(args) => args.run().map(|_| 0),
+        Command::Tree(args) => args.run().map(|_| 0),
+        Command::Check(args) => args.run(),
+        Command::Export(args) => args.run().map(|_| 0),
         #[cfg(feature = "sql")]
         Command::Sql(args) => sql::run(&args).map(|_| 0),
         #[cfg(feature = "sql")]

@@ -6,6 +6,29 @@ use anyhow::{Result, bail};
 use rl::{Dataset, Tree, TreeId};
 use serde_json::json;
 
+/// `rtvtk tree`: one ray tree as an indented hierarchy.
+#[derive(clap::Args)]
+pub struct TreeArgs {
+    pub dataset: std::path::PathBuf,
+    /// The pixel whose trees to print, X,Y.
+    #[arg(long, value_parser = crate::args::parse_pixel, conflicts_with = "tree", required_unless_present = "tree")]
+    pub pixel: Option<(u32, u32)>,
+    /// Only this sample of the pixel.
+    #[arg(long, requires = "pixel")]
+    pub sample: Option<u32>,
+    /// The tree with this id.
+    #[arg(long)]
+    pub tree: Option<u64>,
+    #[arg(long)]
+    pub json: bool,
+}
+
+impl TreeArgs {
+    pub fn run(&self) -> Result<()> {
+        run(&self.dataset, self.pixel, self.sample, self.tree, self.json)
+    }
+}
+
 fn ray_line(ds: &Dataset, r: &rl::Ray) -> String {
     let kind = ds.kinds().name(r.kind).unwrap_or("?");
     let hit = match (r.t, r.prim) {

@@ -5,6 +5,8 @@
 //! (`--no-default-features`) pulls in no SQL engine and no GUI; and inside each crate no two
 //! modules import each other, directly or around a circle.
 
+mod common;
+
 use std::collections::{BTreeSet, HashMap};
 use std::process::Command;
 
@@ -240,7 +242,8 @@ fn module_graph(src: &std::path::Path) -> std::collections::BTreeMap<String, BTr
                 continue;
             }
             let text = std::fs::read_to_string(&p).unwrap();
-            let code = text.split("#[cfg(test)]").next().unwrap_or("");
+            let code = common::without_test_items(&text);
+            let code = code.as_str();
             let uses = g.entry(module.clone()).or_default();
             for (i, _) in code.match_indices("crate::") {
                 let name: String =

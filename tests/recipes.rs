@@ -9,7 +9,7 @@ mod common;
 use common::rtvtk;
 
 /// The workspace's Rust sources outside tests (no `tests/`, `benches/` criterion targets of a
-/// crate, or code after `#[cfg(test)]`), with their text.
+/// crate, or `#[cfg(test)]` items: the code after a test module is kept), with their text.
 fn sources() -> Vec<(PathBuf, String)> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let mut out = Vec::new();
@@ -28,7 +28,7 @@ fn sources() -> Vec<(PathBuf, String)> {
                 }
             } else if name.ends_with(".rs") {
                 let text = std::fs::read_to_string(&p).unwrap();
-                let code = text.split("#[cfg(test)]").next().unwrap_or("").to_string();
+                let code = common::without_test_items(&text);
                 out.push((p.strip_prefix(root).unwrap().to_path_buf(), code));
             }
         }
@@ -62,6 +62,31 @@ fn every_subcommand_file_is_a_command() {
     assert!(n >= 14, "{n} commands");
 }
 
+/// Test items are cut out of a source and the code around them kept (a rule is not hidden by a
+/// test helper above it).
+#[test]
+fn sources_lose_only_their_test_items() {
+    let text = "fn a() {}\n#[cfg(test)]\nfn helper() { let s = \"}\"; let c = '{'; }\nfn b() {}\n#[cfg(test)]\nuse x::y;\nfn c<'a>() {}\n#[cfg(test)]\nmod tests {\n    fn t() { if x { } }\n}\nfn d() {}\n";
+    let code = common::without_test_items(text);
+    for kept in ["fn a()", "fn b()", "fn c<'a>()", "fn d()"] {
+        assert!(code.contains(kept), "{kept} lost: {code}");
+    }
+    for cut in ["helper", "use x::y", "mod tests", "fn t()"] {
+        assert!(!code.contains(cut), "{cut} kept: {code}");
+    }
+    // store/src/pages.rs has a test helper near its top: its code after that is still read.
+    let pages = sources().into_iter().find(|(p, _)| p.ends_with("store/src/pages.rs")).unwrap().1;
+    assert!(pages.lines().count() > 600, "{} lines of store/src/pages.rs read", pages.lines().count());
+}
+
+/// "a subcommand: one file with its clap arguments": `src/main.rs` declares none itself.
+#[test]
+fn subcommand_arguments_live_in_their_files() {
+    let main =
+        sources().into_iter().find(|(p, _)| p.ends_with("src/main.rs") && p.components().count() == 2).unwrap().1;
+    assert!(!main.contains("#[arg("), "src/main.rs declares a subcommand's arguments: move them to its file");
+}
+
 /// "One device per process": nothing but `rtvtk_gpu` opens a device.
 #[test]
 fn only_the_gpu_crate_opens_a_device() {
@@ -90,6 +115,19 @@ fn every_component_kind_is_documented_and_drawn() {
     for k in kinds {
         assert!(readme.contains(&format!("| `{}` |", k.kind)), "viz/README.md has no row for {}", k.kind);
         assert!(tests.contains(&format!("\"{}\"", k.kind)), "viz/tests/layers.rs never draws {}", k.kind);
+    }
+}
+
+/// "a viewer component": each kind is spelled once, as its settings' `KIND`; the registry, the
+/// viewer and the worker name it through that constant.
+#[test]
+fn every_component_kind_is_spelled_once() {
+    for k in rtvtk_viz::registry() {
+        let k = k.kind;
+        assert_eq!(files_with(&format!("const KIND: &'static str = \"{k}\"")).len(), 1, "the KIND of {k}");
+        for pattern in [format!("kind: \"{k}\""), format!("kind == \"{k}\""), format!("kind() == \"{k}\"")] {
+            assert_eq!(files_with(&pattern), Vec::<String>::new(), "`{pattern}`: use the component's KIND");
+        }
     }
 }
 

@@ -6,8 +6,9 @@
 //! - `bad`: the same with `--inject-bug shadow-dir`;
 //! - `plain`: `good` exported with plain columns.
 //!
-//! To regenerate an expected result after an intended change, run the query with `rtvtk sql`
-//! and paste its output. `tests/cluster.rs` runs the same files against a Ballista cluster.
+//! To regenerate the expected results after an intended change, run this test with
+//! `RTVTK_SLT_COMPLETE=1` (sqllogictest's completion mode rewrites every file with the answers
+//! it gets) and review the diff. `tests/cluster.rs` runs the same files against a Ballista cluster.
 
 use std::sync::Arc;
 
@@ -25,6 +26,10 @@ fn sql_logic_tests() {
         let sources = sources.clone();
         Box::pin(async move { query::session(&sources).await.map_err(|e| DataFusionError::External(Box::new(e))) })
     });
+    if std::env::var_os("RTVTK_SLT_COMPLETE").is_some() {
+        let failures = slt_db::complete_all(&rt, factory.clone());
+        assert!(failures.is_empty(), "{}", failures.join("\n\n"));
+    }
     let failures = slt_db::run_all(&rt, factory);
     assert!(failures.is_empty(), "{}", failures.join("\n\n"));
 }

@@ -94,3 +94,68 @@ pub fn record_good_and_bad(dir: &Path, settings: &[&str]) -> (std::path::PathBuf
     record(&bad, &[settings, &["--inject-bug", "shadow-dir"]].concat());
     (good, bad)
 }
+
+/// Rust source `text` without its test-only items: each `#[cfg(test)]` item (a `mod tests { .. }`,
+/// a helper function, a `use`) is cut out, from the attribute to the item's end (its closing
+/// brace, or its `;`), and the code after it is kept. Braces inside string and char literals and
+/// comments are not counted.
+pub fn without_test_items(text: &str) -> String {
+    const ATTR: &str = "#[cfg(test)]";
+    let mut out = String::with_capacity(text.len());
+    let mut rest = text;
+    while let Some(at) = rest.find(ATTR) {
+        out.push_str(&rest[..at]);
+        let item = &rest[at + ATTR.len()..];
+        rest = &item[item_end(item)..];
+    }
+    out.push_str(rest);
+    out
+}
+
+/// The byte length of the item at the start of `s` (after an attribute): up to its first `;` at
+/// brace depth 0, or the brace that closes its first `{`.
+fn item_end(s: &str) -> usize {
+    let b = s.as_bytes();
+    let (mut depth, mut i) = (0usize, 0usize);
+    while i < b.len() {
+        match b[i] {
+            b'/' if b.get(i + 1) == Some(&b'/') => {
+                while i < b.len() && b[i] != b'\n' {
+                    i += 1;
+                }
+            }
+            b'/' if b.get(i + 1) == Some(&b'*') => {
+                i += 2;
+                while i + 1 < b.len() && !(b[i] == b'*' && b[i + 1] == b'/') {
+                    i += 1;
+                }
+                i += 1;
+            }
+            b'"' => {
+                i += 1;
+                while i < b.len() && b[i] != b'"' {
+                    i += if b[i] == b'\\' { 2 } else { 1 };
+                }
+            }
+            // A char literal ('{', '\''), not a lifetime ('a).
+            b'\'' if b.get(i + 2) == Some(&b'\'') => i += 2,
+            b'\'' if b.get(i + 1) == Some(&b'\\') => {
+                i += 2;
+                while i < b.len() && b[i] != b'\'' {
+                    i += 1;
+                }
+            }
+            b'{' => depth += 1,
+            b'}' => {
+                depth = depth.saturating_sub(1);
+                if depth == 0 {
+                    return i + 1;
+                }
+            }
+            b';' if depth == 0 => return i + 1,
+            _ => {}
+        }
+        i += 1;
+    }
+    b.len()
+}

@@ -11,7 +11,7 @@ use arrow::datatypes::DataType;
 use arrow::util::display::{ArrayFormatter, FormatOptions};
 use datafusion::error::DataFusionError;
 use datafusion::prelude::SessionContext;
-use sqllogictest::{DBOutput, DefaultColumnType};
+use sqllogictest::DBOutput;
 
 pub struct Trace {
     pub ctx: SessionContext,
@@ -46,22 +46,55 @@ fn cell(col: &dyn Array, row: usize) -> Result<String, DataFusionError> {
     Ok(f.value(row).to_string())
 }
 
-fn column_type(t: &DataType) -> DefaultColumnType {
+/// A result column's type letter in the `.slt` files: `I`, `R`, `B` (boolean), `T`, or `?`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ColType {
+    Integer,
+    Float,
+    Bool,
+    Text,
+    Any,
+}
+
+impl sqllogictest::ColumnType for ColType {
+    fn from_char(value: char) -> Option<Self> {
+        Some(match value {
+            'I' => Self::Integer,
+            'R' => Self::Float,
+            'B' => Self::Bool,
+            'T' => Self::Text,
+            _ => Self::Any,
+        })
+    }
+
+    fn to_char(&self) -> char {
+        match self {
+            Self::Integer => 'I',
+            Self::Float => 'R',
+            Self::Bool => 'B',
+            Self::Text => 'T',
+            Self::Any => '?',
+        }
+    }
+}
+
+fn column_type(t: &DataType) -> ColType {
     match t {
-        t if t.is_integer() => DefaultColumnType::Integer,
-        t if t.is_floating() => DefaultColumnType::FloatingPoint,
-        _ => DefaultColumnType::Text,
+        t if t.is_integer() => ColType::Integer,
+        t if t.is_floating() => ColType::Float,
+        DataType::Boolean => ColType::Bool,
+        _ => ColType::Text,
     }
 }
 
 #[async_trait::async_trait]
 impl sqllogictest::AsyncDB for Trace {
     type Error = DataFusionError;
-    type ColumnType = DefaultColumnType;
+    type ColumnType = ColType;
 
-    async fn run(&mut self, sql: &str) -> Result<DBOutput<DefaultColumnType>, DataFusionError> {
+    async fn run(&mut self, sql: &str) -> Result<DBOutput<ColType>, DataFusionError> {
         let df = self.ctx.sql(sql).await?;
-        let types: Vec<DefaultColumnType> = df.schema().fields().iter().map(|f| column_type(f.data_type())).collect();
+        let types: Vec<ColType> = df.schema().fields().iter().map(|f| column_type(f.data_type())).collect();
         let batches: Vec<RecordBatch> = df.collect().await?;
         if types.is_empty() {
             return Ok(DBOutput::StatementComplete(0));
@@ -114,6 +147,36 @@ pub fn run_all(rt: &tokio::runtime::Runtime, factory: Factory) -> Vec<String> {
         });
         if let Err(e) = result {
             failures.push(format!("{}:\n{}", file.display(), e.display(true)));
+        }
+    }
+    failures
+}
+
+/// Rewrites every `.slt` file's expected results with what sessions from `factory` answer (the
+/// runner's completion mode: `RTVTK_SLT_COMPLETE=1 cargo nextest run --test slt`); review the
+/// diff before committing it. The failures, one text per file.
+pub fn complete_all(rt: &tokio::runtime::Runtime, factory: Factory) -> Vec<String> {
+    let mut failures = Vec::new();
+    for file in &files() {
+        let factory = factory.clone();
+        let result = rt.block_on(async {
+            let mut runner = sqllogictest::Runner::new(move || {
+                let f = factory.clone();
+                async move { Ok(Trace { ctx: f().await? }) }
+            });
+            runner
+                .update_test_file(
+                    file,
+                    " ",
+                    sqllogictest::default_validator,
+                    sqllogictest::default_normalizer,
+                    sqllogictest::default_column_validator,
+                )
+                .await
+                .map_err(|e| e.to_string())
+        });
+        if let Err(e) = result {
+            failures.push(format!("{}: {e}", file.display()));
         }
     }
     failures

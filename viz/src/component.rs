@@ -4,9 +4,9 @@
 use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewCamera;
-use crate::gpu::Gpu;
 use crate::sources::Sources;
 use crate::{Error, Result};
+use rtvtk_gpu::Gpu;
 
 /// A component's stable id within a pipeline (kept across reorders, saved with the layout).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
@@ -35,8 +35,8 @@ pub struct LayerTarget {
 
 impl LayerTarget {
     pub fn new(gpu: &Gpu, label: &str, width: u32, height: u32) -> LayerTarget {
-        let color = gpu.target(label, crate::gpu::COLOR_FORMAT, width, height);
-        let depth = gpu.target(label, crate::gpu::DEPTH_FORMAT, width, height);
+        let color = gpu.target(label, crate::formats::COLOR_FORMAT, width, height);
+        let depth = gpu.target(label, crate::formats::DEPTH_FORMAT, width, height);
         LayerTarget {
             color_view: color.create_view(&Default::default()),
             depth_view: depth.create_view(&Default::default()),
@@ -160,7 +160,7 @@ pub struct TraceCtx<'a> {
     pub height: u32,
 }
 
-/// The small target a pick draws into: ids ([`crate::gpu::PICK_FORMAT`]) and depth, `size`
+/// The small target a pick draws into: ids ([`crate::formats::PICK_FORMAT`]) and depth, `size`
 /// pixels square around the cursor, shared by every pickable layer so the nearest item wins.
 pub struct PickTarget {
     pub ids: wgpu::Texture,
@@ -171,8 +171,8 @@ pub struct PickTarget {
 
 impl PickTarget {
     pub fn new(gpu: &Gpu, size: u32) -> PickTarget {
-        let ids = gpu.target("pick ids", crate::gpu::PICK_FORMAT, size, size);
-        let depth = gpu.target("pick depth", crate::gpu::DEPTH_FORMAT, size, size);
+        let ids = gpu.target("pick ids", crate::formats::PICK_FORMAT, size, size);
+        let depth = gpu.target("pick depth", crate::formats::DEPTH_FORMAT, size, size);
         PickTarget {
             ids_view: ids.create_view(&Default::default()),
             depth_view: depth.create_view(&Default::default()),

@@ -5,7 +5,8 @@ use wgpu::util::DeviceExt;
 
 use crate::camera::ViewUniform;
 use crate::component::{LayerTarget, RenderCtx};
-use crate::gpu::{COLOR_FORMAT, DEPTH_FORMAT, Gpu};
+use crate::formats::{COLOR_FORMAT, DEPTH_FORMAT};
+use rtvtk_gpu::Gpu;
 
 const COMMON: &str = include_str!("shaders/common.wgsl");
 
@@ -121,7 +122,7 @@ fn colour_pipeline(
 }
 
 /// Format of the picking target: (layer slot, item index + 1) per pixel.
-pub use crate::gpu::PICK_FORMAT;
+pub use crate::formats::PICK_FORMAT;
 
 /// A picking pipeline: the ids of `vs`'s items into a [`PICK_FORMAT`] target, depth tested, so
 /// the nearest item wins (`fs_pick` of `lines.wgsl`).

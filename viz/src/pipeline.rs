@@ -8,10 +8,11 @@ use crate::component::{
     Component, ComponentId, Frame, IdleCtx, LayerRole, LayerTarget, Legend, OccluderRef, Pick, PickCtx, PickTarget,
     RenderCtx, depth_range,
 };
-use crate::gpu::{COLOR_FORMAT, Gpu};
+use crate::formats::COLOR_FORMAT;
 use crate::legend::{Canvas, draw_legends};
 use crate::sources::Sources;
 use crate::{Error, Result};
+use rtvtk_gpu::Gpu;
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct RenderKey {

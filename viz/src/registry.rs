@@ -1,8 +1,11 @@
 //! Every component kind, in one place: the GUI's "add component" menu, `rtvtk render --layers`
 //! and saved layouts all make components through [`make`].
 
-use crate::component::{Component, ComponentId};
-use crate::components::{bvh::BvhBoxes, geometry, picture, query::Query, rays::Rays};
+use crate::component::{Component, ComponentId, Settings};
+use crate::components::bvh::{self, BvhBoxes};
+use crate::components::query::{self, Query};
+use crate::components::rays::{Rays, RaysSettings};
+use crate::components::{geometry, picture};
 use crate::sources::Sources;
 use crate::{Error, Result};
 
@@ -22,7 +25,7 @@ fn needs_scene(s: &Sources) -> Result<(), String> {
 
 static REGISTRY: [ComponentInfo; 7] = [
     ComponentInfo {
-        kind: "image",
+        kind: <picture::ImageSettings as Settings>::KIND,
         display_name: "Image",
         description: "the path-traced image of the dataset, or one refined progressively by the CPU path tracer",
         offered: |s| {
@@ -31,21 +34,21 @@ static REGISTRY: [ComponentInfo; 7] = [
         make: |id, s, v| Ok(Box::new(picture::Image::new(id, s, v)?)),
     },
     ComponentInfo {
-        kind: "geometry",
+        kind: <geometry::GeometrySettings as Settings>::KIND,
         display_name: "Geometry",
         description: "the scene's triangles: wireframe, alpha-blended or opaque, coloured by material",
         offered: needs_scene,
         make: |id, s, v| Ok(Box::new(geometry::Geometry::new(id, s, v)?)),
     },
     ComponentInfo {
-        kind: "composition",
+        kind: <geometry::CompositionSettings as Settings>::KIND,
         display_name: "2D/3D composition",
         description: "the scene's depth, so the scene-space layers above it hide behind geometry over the image",
         offered: needs_scene,
         make: |id, s, _| Ok(Box::new(geometry::Composition::new(id, s)?)),
     },
     ComponentInfo {
-        kind: "rays",
+        kind: <RaysSettings as Settings>::KIND,
         display_name: "Rays",
         description: "ray trees as segments coloured by kind, filtered by kind, depth, tree, pixel, sample; ctrl-click traces a pixel",
         offered: |s| {
@@ -54,7 +57,7 @@ static REGISTRY: [ComponentInfo; 7] = [
         make: |id, s, v| Ok(Box::new(Rays::new(id, s, v)?)),
     },
     ComponentInfo {
-        kind: "bvh",
+        kind: <bvh::BvhSettings as Settings>::KIND,
         display_name: "BVH",
         description: "BVH node boxes of a range of levels, optionally only the visited ones, coloured by level or visits",
         offered: |s| {
@@ -64,14 +67,14 @@ static REGISTRY: [ComponentInfo; 7] = [
         make: |id, s, v| Ok(Box::new(BvhBoxes::new(id, s, v)?)),
     },
     ComponentInfo {
-        kind: "query",
+        kind: <query::QuerySettings as Settings>::KIND,
         display_name: "Query results",
         description: "the rows of a SQL query in scene space (segments or points), coloured by a column",
         offered: Sources::can_query,
         make: |id, s, v| Ok(Box::new(Query::new(id, s, v)?)),
     },
     ComponentInfo {
-        kind: "heatmap",
+        kind: <picture::HeatmapSettings as Settings>::KIND,
         display_name: "Heatmap",
         description: "a per-pixel value over the image (rays per pixel or any GROUP BY pixel_x, pixel_y query)",
         offered: Sources::can_query,

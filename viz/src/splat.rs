@@ -15,8 +15,9 @@ use serde::{Deserialize, Serialize};
 use crate::camera::ViewUniform;
 use crate::component::RenderCtx;
 use crate::draw::{LineShape, SegmentBuffers, shader, uniform};
-use crate::gpu::{DEPTH_FORMAT, Gpu};
+use crate::formats::DEPTH_FORMAT;
 use crate::{Error, Result};
+use rtvtk_gpu::Gpu;
 
 /// How a line layer draws its segments.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

@@ -7,9 +7,9 @@ use serde::{Deserialize, Serialize};
 use crate::camera::ViewUniform;
 use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, RenderCtx};
 use crate::draw::{Blend, bind_view_storage, layer_pass, scene_pipeline, shader, uniform};
-use crate::gpu::Gpu;
 use crate::sources::Sources;
 use crate::{Error, Result};
+use rtvtk_gpu::Gpu;
 
 /// How the geometry layer draws surfaces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]

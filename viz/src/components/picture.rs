@@ -9,10 +9,10 @@ use renderers::TracerChoice;
 use serde::{Deserialize, Serialize};
 
 use crate::component::{Component, ComponentId, IdleCtx, Layer, LayerRole, Legend, RenderCtx};
-use crate::gpu::Gpu;
 use crate::legend::colour_map;
 use crate::sources::{Picture, Sources};
 use crate::{Error, Result};
+use rtvtk_gpu::Gpu;
 
 /// Draws an RGBA8 picture over the whole layer, with `opacity`.
 pub struct Blitter {

@@ -12,10 +12,10 @@ use serde::{Deserialize, Serialize};
 use crate::camera::ViewUniform;
 use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, RenderCtx, TraceCtx, TracedPixel};
 use crate::draw::{GpuSegment, SEGMENT_BYTES, SegmentBuffers, pack_rgba};
-use crate::gpu::Gpu;
 use crate::sources::Sources;
 use crate::splat::{DensityScale, DensityStats, Drawn, RayStyle, StyleParams};
 use crate::{Error, Result};
+use rtvtk_gpu::Gpu;
 use store::RaySelection;
 
 /// The colour of a ray kind (Figure 6 of the paper).

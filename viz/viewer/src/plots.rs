@@ -9,7 +9,10 @@ use crate::state::State;
 
 /// The SQL behind the histograms: the first shown ray layer's filters.
 fn counts_sql(s: &State) -> Option<(serde_json::Value, String)> {
-    let l = s.layers.iter().find(|l| l.kind == "rays" && l.enabled)?;
+    let l = s
+        .layers
+        .iter()
+        .find(|l| l.kind == <viz::components::rays::RaysSettings as viz::component::Settings>::KIND && l.enabled)?;
     let settings = s.edits.get(&l.id.0).cloned().unwrap_or_else(|| l.settings.clone());
     let rs: viz::components::rays::RaysSettings = serde_json::from_value(settings.clone()).ok()?;
     let pred = rs.predicate().ok()?;

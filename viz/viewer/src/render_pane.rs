@@ -89,8 +89,12 @@ pub fn ui(ui: &mut Ui, s: &mut State, _q: &mut QueryService) {
     );
     // An image traced from the view says so where it is seen: the tracer and its samples per
     // pixel as it refines (or why the GPU cannot trace here).
-    let notes: Vec<&String> =
-        s.layers.iter().filter(|l| l.enabled && l.kind == "image").flat_map(|l| l.report.iter()).collect();
+    let notes: Vec<&String> = s
+        .layers
+        .iter()
+        .filter(|l| l.enabled && l.kind == <viz::components::picture::ImageSettings as viz::component::Settings>::KIND)
+        .flat_map(|l| l.report.iter())
+        .collect();
     for (i, n) in notes.iter().rev().enumerate() {
         painter.text(
             img.left_bottom() + egui::vec2(6.0, -6.0 - 15.0 * i as f32),

@@ -265,7 +265,12 @@ pub fn default_layers(has_dataset: bool, [w, h]: [u32; 2], tracer: renderers::Tr
     vec![
         spec(1, ImageSettings { source, ..Default::default() }),
         LayerSpec { enabled: false, ..spec(2, geometry) },
-        LayerSpec { id: 3, kind: "composition".into(), settings: serde_json::Value::Null, enabled: true },
+        LayerSpec {
+            id: 3,
+            kind: <viz::components::geometry::CompositionSettings as viz::component::Settings>::KIND.into(),
+            settings: serde_json::Value::Null,
+            enabled: true,
+        },
         spec(4, rays),
     ]
 }
@@ -593,7 +598,12 @@ fn apply(
             Err(e) => err(Some(id), e),
         },
         Cmd::Trace(pixel) => {
-            let Some(id) = p.layers().iter().find(|l| l.component.kind() == "rays").map(|l| l.component.id()) else {
+            let Some(id) = p
+                .layers()
+                .iter()
+                .find(|l| l.component.kind() == <viz::components::rays::RaysSettings as viz::component::Settings>::KIND)
+                .map(|l| l.component.id())
+            else {
                 return Some(Event::Error {
                     layer: None,
                     message: "immediate mode needs a rays component: add one".into(),

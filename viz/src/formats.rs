@@ -1,8 +1,6 @@
 //! The visualizer's texture formats. The device itself is the process's one GPU context
 //! (`rtvtk_gpu::Gpu`, shared with the GPU tracer and the viewer's window).
 
-pub use rtvtk_gpu::Gpu;
-
 /// Colour format of every layer and of the composited picture (display-referred values, as the
 /// tone-mapped PNG of a dataset holds them).
 pub const COLOR_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
