@@ -1,10 +1,14 @@
 //! What every line layer (rays, query, bvh) draws and picks with: [`Lines`], over the segment
 //! buffers of `draw.rs`, in a ray style of `splat.rs` (lines opaque, or accumulated as alpha or
-//! density).
+//! density), and the rows they draw made into segments ([`SegmentBuilder`], [`f32_columns`]).
+
+use arrow::array::{Array, AsArray, RecordBatch};
+use arrow::datatypes::Float32Type;
 
 use crate::camera::ViewUniform;
-use crate::component::RenderCtx;
-use crate::draw::{Blend, LineShape, SegmentBuffers, pick_pipeline, scene_pipeline, shader};
+use crate::component::{Frame, RenderCtx};
+use crate::draw::{Blend, GpuSegment, LineShape, SegmentBuffers, pack_rgba, pick_pipeline, scene_pipeline, shader};
+use crate::{Error, Result};
 
 /// What every line layer (rays, query, bvh) draws and picks with: its colour and pick pipelines,
 /// made on first use, over sets of [`SegmentBuffers`].
@@ -101,4 +105,79 @@ fn pick_sets(
         any = true;
     }
     any
+}
+
+/// Turns ray rows (origin, direction, t) into segments, clipping misses to a box.
+pub struct SegmentBuilder {
+    lo: [f64; 3],
+    hi: [f64; 3],
+    frame: Frame,
+    /// Rows skipped for NaN or infinite origins or directions (or NaN t).
+    pub skipped: u64,
+    pub misses: u64,
+}
+
+impl SegmentBuilder {
+    pub fn new(bounds: Option<([f64; 3], [f64; 3])>, frame: Frame) -> SegmentBuilder {
+        let (lo, hi) = bounds.unwrap_or(([-1.0; 3], [1.0; 3]));
+        // A little beyond the scene so misses visibly leave it.
+        let pad = (0..3).map(|k| hi[k] - lo[k]).fold(0.0f64, f64::max) * 0.05;
+        SegmentBuilder { lo: lo.map(|v| v - pad), hi: hi.map(|v| v + pad), frame, skipped: 0, misses: 0 }
+    }
+
+    /// The end point of a ray, or `None` (counted) when it cannot be drawn.
+    pub fn end(&mut self, o: [f32; 3], d: [f32; 3], t: f32) -> Option<([f64; 3], [f64; 3])> {
+        if o.iter().chain(d.iter()).any(|v| !v.is_finite()) || t.is_nan() || d == [0.0; 3] {
+            self.skipped += 1;
+            return None;
+        }
+        let o = o.map(f64::from);
+        let d = d.map(f64::from);
+        let t = if t.is_finite() {
+            f64::from(t)
+        } else {
+            self.misses += 1;
+            // Exit of the bounding box (slab test), from the origin on.
+            let mut t1 = f64::INFINITY;
+            for k in 0..3 {
+                if d[k] != 0.0 {
+                    let a = (self.lo[k] - o[k]) / d[k];
+                    let b = (self.hi[k] - o[k]) / d[k];
+                    t1 = t1.min(a.max(b));
+                }
+            }
+            let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            if t1.is_finite() && t1 > 0.0 { t1 } else { self.frame.radius * 0.25 / len }
+        };
+        Some((o, [o[0] + d[0] * t, o[1] + d[1] * t, o[2] + d[2] * t]))
+    }
+
+    pub fn segment(&self, a: [f64; 3], b: [f64; 3], color: [u8; 4], flags: u32) -> GpuSegment {
+        GpuSegment { a: self.frame.local(a), color: pack_rgba(color), b: self.frame.local(b), flags }
+    }
+}
+
+/// The columns `names` of a batch as Float32 (cast from other numeric types), or an error naming
+/// the one that is missing or not numeric.
+pub fn f32_columns<const N: usize>(batch: &RecordBatch, names: [&str; N]) -> Result<[arrow::array::Float32Array; N]> {
+    let mut out = Vec::with_capacity(N);
+    for n in names {
+        let c = batch.column_by_name(n).ok_or_else(|| Error::Columns(format!("column `{n}` is missing")))?;
+        let c = match c.as_primitive_opt::<Float32Type>() {
+            Some(f) => f.clone(),
+            None if c.data_type().is_numeric() => {
+                arrow::compute::cast(c, &arrow::datatypes::DataType::Float32)?.as_primitive::<Float32Type>().clone()
+            }
+            None => return Err(Error::Columns(format!("column `{n}` is {}, expected a number", c.data_type()))),
+        };
+        out.push(c);
+    }
+    out.try_into().map_err(|_| Error::Columns("column count".into()))
+}
+
+/// Names of a kind column (plain or dictionary-encoded strings), per row.
+pub fn kind_names(col: &dyn Array) -> Result<Vec<Option<String>>> {
+    let strings = arrow::compute::cast(col, &arrow::datatypes::DataType::Utf8)?;
+    let s = strings.as_string::<i32>();
+    Ok((0..s.len()).map(|i| (!s.is_null(i)).then(|| s.value(i).to_string())).collect())
 }

@@ -7,9 +7,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
 use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, RenderCtx};
-use crate::components::rays::f32_columns;
 use crate::draw::{GpuSegment, SegmentBuffers, pack_rgba};
 use crate::legend::colour_map;
+use crate::lines::f32_columns;
 use crate::sources::Sources;
 use crate::{Error, Result};
 

@@ -10,9 +10,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::ViewUniform;
 use crate::component::{Component, ComponentId, Frame, Layer, LayerRole, Legend, RenderCtx};
-use crate::components::rays::{SegmentBuilder, f32_columns, kind_names};
 use crate::draw::SegmentBuffers;
 use crate::legend::colour_map;
+use crate::lines::{SegmentBuilder, f32_columns, kind_names};
 use crate::splat::{DensityScale, Drawn, RayStyle, StyleParams};
 use crate::{Error, Result};
 
