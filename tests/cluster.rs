@@ -222,7 +222,7 @@ fn queries_run_on_a_cluster_with_the_in_process_answers() {
             Ok(engine.session().cloned().unwrap_or_default())
         })
     });
-    let failures = slt_db::run_all(&rt, factory);
+    let failures = slt_db::run_all(&rt, factory, false);
     assert!(failures.is_empty(), "{}", failures.join("\n\n"));
 
     // The canned analyses: the same reports.

@@ -127,6 +127,22 @@ impl RaySelection {
         self
     }
 
+    /// Only the rays of tree `tree`, of pixel `pixel` and of sample `sample`, each where given:
+    /// how the layers say "this tree", "this pixel" and "this sample".
+    pub fn only_trees_of(mut self, tree: Option<u64>, pixel: Option<[u32; 2]>, sample: Option<u32>) -> RaySelection {
+        if let Some(t) = tree {
+            self.keep(col::TREE_ID, vec![(t, t)]);
+        }
+        if let Some([x, y]) = pixel.map(|p| p.map(u64::from)) {
+            self.keep(col::PIXEL_X, vec![(x, x)]);
+            self.keep(col::PIXEL_Y, vec![(y, y)]);
+        }
+        if let Some(v) = sample.map(u64::from) {
+            self.keep(col::SAMPLE, vec![(v, v)]);
+        }
+        self
+    }
+
     /// [`RaySelection::only_kinds`] in place.
     pub fn keep_kinds(&mut self, kinds: BTreeSet<String>) {
         self.kinds = Some(match self.kinds.take() {
@@ -296,5 +312,10 @@ mod tests {
         assert!(RaySelection::all().only(col::RAY, [(4, 9)]).keeps_tree(&t));
         assert!(!RaySelection::all().only(col::RAY, [(5, 9)]).keeps_tree(&t), "no fifth ray");
         assert!(!RaySelection::all().only(col::SAMPLE, []).keeps_tree(&t));
+        let of = RaySelection::all().only_trees_of(Some(7), Some([3, 4]), Some(1));
+        assert!(of.keeps_tree(&t));
+        assert_eq!(of.to_sql(), "tree_id = 7 AND pixel_x = 3 AND pixel_y = 4 AND sample = 1");
+        assert!(!RaySelection::all().only_trees_of(None, Some([3, 5]), None).keeps_tree(&t));
+        assert!(RaySelection::all().only_trees_of(None, None, None).is_all());
     }
 }

@@ -133,8 +133,11 @@ pub fn files() -> Vec<std::path::PathBuf> {
     files
 }
 
-/// Runs every `.slt` file against sessions from `factory`; the failures, one text per file.
-pub fn run_all(rt: &tokio::runtime::Runtime, factory: Factory) -> Vec<String> {
+/// Runs every `.slt` file against sessions from `factory`; the failures, one text per file. With
+/// `complete`, first rewrites each file's expected results with what the sessions answer (the
+/// runner's completion mode: `RTVTK_SLT_COMPLETE=1 cargo nextest run --test slt`); review the diff
+/// before committing it.
+pub fn run_all(rt: &tokio::runtime::Runtime, factory: Factory, complete: bool) -> Vec<String> {
     let mut failures = Vec::new();
     for file in &files() {
         let factory = factory.clone();
@@ -143,40 +146,22 @@ pub fn run_all(rt: &tokio::runtime::Runtime, factory: Factory) -> Vec<String> {
                 let f = factory.clone();
                 async move { Ok(Trace { ctx: f().await? }) }
             });
-            runner.run_file_async(file).await
+            if complete {
+                runner
+                    .update_test_file(
+                        file,
+                        " ",
+                        sqllogictest::default_validator,
+                        sqllogictest::default_normalizer,
+                        sqllogictest::default_column_validator,
+                    )
+                    .await
+                    .map_err(|e| e.to_string())?;
+            }
+            runner.run_file_async(file).await.map_err(|e| e.display(true).to_string())
         });
         if let Err(e) = result {
-            failures.push(format!("{}:\n{}", file.display(), e.display(true)));
-        }
-    }
-    failures
-}
-
-/// Rewrites every `.slt` file's expected results with what sessions from `factory` answer (the
-/// runner's completion mode: `RTVTK_SLT_COMPLETE=1 cargo nextest run --test slt`); review the
-/// diff before committing it. The failures, one text per file.
-pub fn complete_all(rt: &tokio::runtime::Runtime, factory: Factory) -> Vec<String> {
-    let mut failures = Vec::new();
-    for file in &files() {
-        let factory = factory.clone();
-        let result = rt.block_on(async {
-            let mut runner = sqllogictest::Runner::new(move || {
-                let f = factory.clone();
-                async move { Ok(Trace { ctx: f().await? }) }
-            });
-            runner
-                .update_test_file(
-                    file,
-                    " ",
-                    sqllogictest::default_validator,
-                    sqllogictest::default_normalizer,
-                    sqllogictest::default_column_validator,
-                )
-                .await
-                .map_err(|e| e.to_string())
-        });
-        if let Err(e) = result {
-            failures.push(format!("{}: {e}", file.display()));
+            failures.push(format!("{}:\n{e}", file.display()));
         }
     }
     failures

@@ -107,18 +107,7 @@ impl BvhBoxes {
             // The trees whose visits count, said as a ray selection: `ray_nodes` holds tree ids
             // only, so a pixel or sample goes through the tree table.
             use store::scene::col;
-            let mut sel = store::RaySelection::all();
-            if let Some(t) = s.tree {
-                sel = sel.only(col::TREE_ID, [(t, t)]);
-            }
-            if let Some([x, y]) = s.pixel {
-                sel = sel
-                    .only(col::PIXEL_X, [(u64::from(x), u64::from(x))])
-                    .only(col::PIXEL_Y, [(u64::from(y), u64::from(y))]);
-            }
-            if let Some(k) = s.sample {
-                sel = sel.only(col::SAMPLE, [(u64::from(k), u64::from(k))]);
-            }
+            let sel = store::RaySelection::all().only_trees_of(s.tree, s.pixel, s.sample);
             let tree = if sel.is_all() {
                 String::new()
             } else if sel.constrained().all(|(c, _)| c == col::TREE_ID) {

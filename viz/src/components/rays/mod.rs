@@ -146,17 +146,7 @@ impl RaysSettings {
             }
             sel = sel.only(col::DEPTH, [(u64::from(a), u64::from(b))]);
         }
-        if let Some(t) = self.tree {
-            sel = sel.only(col::TREE_ID, [(t, t)]);
-        }
-        if let Some([x, y]) = self.pixel {
-            sel = sel
-                .only(col::PIXEL_X, [(u64::from(x), u64::from(x))])
-                .only(col::PIXEL_Y, [(u64::from(y), u64::from(y))]);
-        }
-        if let Some(v) = self.sample {
-            sel = sel.only(col::SAMPLE, [(u64::from(v), u64::from(v))]);
-        }
+        sel = sel.only_trees_of(self.tree, self.pixel, self.sample);
         if let Some(n) = self.ray_upto {
             sel = sel.only(col::RAY, [(0, u64::from(n))]);
         }
