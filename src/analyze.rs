@@ -140,19 +140,64 @@ fn f32s(b: &arrow::array::RecordBatch, name: &str) -> Result<Vec<Option<f32>>> {
     Ok((0..c.len()).map(|i| c.is_valid(i).then(|| c.value(i))).collect())
 }
 
-/// `analyze bvh --whatif`: the trace's rays replayed against other BVHs (`renderers::whatif`).
+/// A point from three nullable coordinates (NaN where one is null).
+fn point(x: Option<f32>, y: Option<f32>, z: Option<f32>) -> glam::Vec3A {
+    glam::Vec3A::new(x.unwrap_or(f32::NAN), y.unwrap_or(f32::NAN), z.unwrap_or(f32::NAN))
+}
+
+/// `analyze bvh --whatif`: the trace's rays replayed against other BVHs (`renderers::whatif`):
+/// the triangles and a sample of the rays read, the builds made (and the recorded tree, when the
+/// trace has `bvh_nodes`), every build replayed, the report written.
+async fn whatif(ctx: &query::Engine, max_rays: u64, share: f64) -> Result<Report> {
+    use renderers::whatif::{replay, representative};
+    let tris = whatif_triangles(ctx).await?;
+    let sample = whatif_rays(ctx, max_rays).await?;
+    let mut all = renderers::whatif::builds(&tris);
+    if ctx.catalog().await.is_ok_and(|c| c.tables.iter().any(|t| t == store::scene::BVH_NODES_TABLE)) {
+        all.push(recorded_bvh(ctx, tris.len()).await?);
+    }
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let sub = representative(&sample.rays, share);
+    let replays: Vec<Replayed> = all
+        .iter()
+        .map(|b| Replayed {
+            name: b.name.clone(),
+            sah: b.tree.sah_cost(),
+            shape: b.tree.shape(),
+            build_ms: b.build_time.as_secs_f64() * 1e3,
+            all: replay(&b.tree, &tris, &sample.rays, threads),
+            subset: replay(&b.tree, &tris, &sub, threads),
+        })
+        .collect();
+    let markdown = whatif_markdown(&sample, tris.len(), threads, sub.len(), share, &replays);
+    Ok(Report { markdown, grids: Vec::new() })
+}
+
+/// The rays a what-if replays: every `every`-th tree of the trace's `total` rays, and the kind
+/// names their `kind` ids index.
+struct WhatifRays {
+    rays: Vec<renderers::whatif::RecordedRay>,
+    kinds: Vec<String>,
+    total: u64,
+    every: u64,
+}
+
+/// One build replayed: over every sampled ray and over the representative subset.
+struct Replayed {
+    name: String,
+    sah: f64,
+    shape: (usize, f64),
+    build_ms: f64,
+    all: renderers::whatif::Replay,
+    subset: renderers::whatif::Replay,
+}
+
+/// The trace's triangles, in `prim` order (the ids rays and `bvh_nodes` use).
 // Rows are read across several column vectors at once, by index.
 #[allow(clippy::needless_range_loop)]
-async fn whatif(ctx: &query::Engine, max_rays: u64, share: f64) -> Result<Report> {
-    use arrow::array::{Array, AsArray};
-    use glam::Vec3A;
-    use renderers::whatif::{RecordedRay, ReplayTree, builds, replay, representative, spearman};
-    use std::fmt::Write as _;
-    let v3 = |x: Option<f32>, y: Option<f32>, z: Option<f32>| {
-        Vec3A::new(x.unwrap_or(f32::NAN), y.unwrap_or(f32::NAN), z.unwrap_or(f32::NAN))
-    };
-    // The triangles, in `prim` order (the ids rays and `bvh_nodes` use).
-    let mut tris: Vec<[Vec3A; 3]> = Vec::new();
+async fn whatif_triangles(ctx: &query::Engine) -> Result<Vec<[glam::Vec3A; 3]>> {
+    let v3 = point;
+    let mut tris: Vec<[glam::Vec3A; 3]> = Vec::new();
     let names = store::scene::col::VERTEX;
     let sql = format!(
         "SELECT prim, {} FROM triangles ORDER BY prim",
@@ -170,7 +215,16 @@ async fn whatif(ctx: &query::Engine, max_rays: u64, share: f64) -> Result<Report
     if tris.is_empty() {
         anyhow::bail!("the trace's `triangles` table is empty: there is nothing to replay rays against");
     }
-    // The rays: every k-th tree past `max_rays`.
+    Ok(tris)
+}
+
+/// The rays to replay: every k-th tree past `max_rays`.
+// Rows are read across several column vectors at once, by index.
+#[allow(clippy::needless_range_loop)]
+async fn whatif_rays(ctx: &query::Engine, max_rays: u64) -> Result<WhatifRays> {
+    use arrow::array::{Array, AsArray};
+    use renderers::whatif::RecordedRay;
+    let v3 = point;
     let total = ctx.collect("SELECT count(*) AS n FROM rays").await?;
     let total = total.first().map_or(0, |b| b.column(0).as_primitive::<arrow::datatypes::Int64Type>().value(0)) as u64;
     let every = total.div_ceil(max_rays).max(1);
@@ -204,43 +258,62 @@ async fn whatif(ctx: &query::Engine, max_rays: u64, share: f64) -> Result<Report
             rays.push(RecordedRay { kind: id as u8, origin: o, dir: d, t: c[6][r], closest: name != "shadow" });
         }
     }
-    // The structures: the builds, and the recorded tree when the trace has one.
-    let mut all = builds(&tris);
-    if ctx.catalog().await.is_ok_and(|c| c.tables.iter().any(|t| t == store::scene::BVH_NODES_TABLE)) {
-        let t0 = std::time::Instant::now();
-        let mut rows = Vec::new();
-        let cols = "node_id, parent, min_x, min_y, min_z, max_x, max_y, max_z, is_leaf, prims";
-        for b in ctx.collect(&format!("SELECT {cols} FROM bvh_nodes ORDER BY node_id")).await? {
-            let parent = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::UInt32)?;
-            let parent = parent.as_primitive::<arrow::datatypes::UInt32Type>();
-            let f: Vec<Vec<Option<f32>>> = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z"]
-                .iter()
-                .map(|n| f32s(&b, n))
-                .collect::<Result<_>>()?;
-            let leaf = b.column(8).as_boolean();
-            let prims = b.column(9).as_list::<i32>();
-            for r in 0..b.num_rows() {
-                let p: Vec<u32> = match prims.is_valid(r) {
-                    true => prims.value(r).as_primitive::<arrow::datatypes::UInt32Type>().values().to_vec(),
-                    false => Vec::new(),
-                };
-                if let Some(bad) = p.iter().find(|&&p| p as usize >= tris.len()) {
-                    anyhow::bail!("bvh_nodes row {r}: triangle {bad} is not among the {} triangles", tris.len());
-                }
-                rows.push((
-                    parent.is_valid(r).then(|| parent.value(r)),
-                    v3(f[0][r], f[1][r], f[2][r]),
-                    v3(f[3][r], f[4][r], f[5][r]),
-                    leaf.value(r),
-                    p,
-                ));
+    Ok(WhatifRays { rays, kinds, total, every })
+}
+
+/// The trace's own BVH (`bvh_nodes`) as a build to replay.
+// Rows are read across several column vectors at once, by index.
+#[allow(clippy::needless_range_loop)]
+async fn recorded_bvh(ctx: &query::Engine, triangles: usize) -> Result<renderers::whatif::Build> {
+    use arrow::array::{Array, AsArray};
+    let v3 = point;
+    let t0 = std::time::Instant::now();
+    let mut rows = Vec::new();
+    let cols = "node_id, parent, min_x, min_y, min_z, max_x, max_y, max_z, is_leaf, prims";
+    for b in ctx.collect(&format!("SELECT {cols} FROM bvh_nodes ORDER BY node_id")).await? {
+        let parent = arrow::compute::cast(b.column(1), &arrow::datatypes::DataType::UInt32)?;
+        let parent = parent.as_primitive::<arrow::datatypes::UInt32Type>();
+        let f: Vec<Vec<Option<f32>>> = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z"]
+            .iter()
+            .map(|n| f32s(&b, n))
+            .collect::<Result<_>>()?;
+        let leaf = b.column(8).as_boolean();
+        let prims = b.column(9).as_list::<i32>();
+        for r in 0..b.num_rows() {
+            let p: Vec<u32> = match prims.is_valid(r) {
+                true => prims.value(r).as_primitive::<arrow::datatypes::UInt32Type>().values().to_vec(),
+                false => Vec::new(),
+            };
+            if let Some(bad) = p.iter().find(|&&p| p as usize >= triangles) {
+                anyhow::bail!("bvh_nodes row {r}: triangle {bad} is not among the {} triangles", triangles);
             }
+            rows.push((
+                parent.is_valid(r).then(|| parent.value(r)),
+                v3(f[0][r], f[1][r], f[2][r]),
+                v3(f[3][r], f[4][r], f[5][r]),
+                leaf.value(r),
+                p,
+            ));
         }
-        let tree = ReplayTree::from_parents(&rows).map_err(|e| anyhow::anyhow!("the trace's bvh_nodes: {e}"))?;
-        all.push(renderers::whatif::Build { name: "recorded (bvh_nodes)".into(), tree, build_time: t0.elapsed() });
     }
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let sub = representative(&rays, share);
+    let tree = renderers::whatif::ReplayTree::from_parents(&rows)
+        .map_err(|e| anyhow::anyhow!("the trace's bvh_nodes: {e}"))?;
+    Ok(renderers::whatif::Build { name: "recorded (bvh_nodes)".into(), tree, build_time: t0.elapsed() })
+}
+
+/// The what-if report: the builds' table, disagreeing hits, tests per ray by kind, how well the
+/// SAH ranks the builds, and how well the representative subset predicts them.
+fn whatif_markdown(
+    sample: &WhatifRays,
+    triangles: usize,
+    threads: usize,
+    subset: usize,
+    share: f64,
+    replays: &[Replayed],
+) -> String {
+    use renderers::whatif::spearman;
+    use std::fmt::Write as _;
+    let (rays, kinds, total, every) = (&sample.rays, sample.kinds.as_slice(), sample.total, sample.every);
     let mut md = String::from("# BVH what-ifs\n\n");
     let _ = writeln!(
         md,
@@ -248,32 +321,30 @@ async fn whatif(ctx: &query::Engine, max_rays: u64, share: f64) -> Result<Report
         rays.len(),
         total,
         if every > 1 { format!(", one tree in {every}") } else { String::new() },
-        tris.len()
+        triangles
     );
     md.push_str("| build | nodes | leaf tris | SAH | nodes/ray | boxes/ray | tris/ray | tests/ray | replay ms | Mrays/s | build ms | hits verified |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n");
-    let mut rows = Vec::new();
-    for b in &all {
-        let r = replay(&b.tree, &tris, &rays, threads);
-        let s = replay(&b.tree, &tris, &sub, threads);
-        let (n, leaf) = b.tree.shape();
+    for p in replays {
+        let (r, (n, leaf)) = (&p.all, p.shape);
         let per = |v: u64| v as f64 / r.total.rays.max(1) as f64;
         let _ = writeln!(
             md,
             "| {} | {n} | {leaf:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.2} | {:.1} | {:.2} | {:.1} | {} of {} |",
-            b.name,
-            b.tree.sah_cost(),
+            p.name,
+            p.sah,
             per(r.total.nodes),
             per(r.total.boxes),
             per(r.total.tris),
             r.total.tests_per_ray(),
             r.time.as_secs_f64() * 1e3,
             r.total.rays as f64 / r.time.as_secs_f64().max(1e-9) / 1e6,
-            b.build_time.as_secs_f64() * 1e3,
+            p.build_ms,
             r.agree,
             r.checked,
         );
-        rows.push((b.name.clone(), b.tree.sah_cost(), r, s));
     }
+    let rows: Vec<(&str, f64, &renderers::whatif::Replay, &renderers::whatif::Replay)> =
+        replays.iter().map(|p| (p.name.as_str(), p.sah, &p.all, &p.subset)).collect();
     for (name, _, r, _) in &rows {
         if let Some((i, want, got)) = r.disagree.first() {
             let ray = &rays[*i];
@@ -288,7 +359,7 @@ async fn whatif(ctx: &query::Engine, max_rays: u64, share: f64) -> Result<Report
         }
     }
     md.push_str("\n## By kind: box and triangle tests per ray\n\n| build |");
-    for k in &kinds {
+    for k in kinds {
         let _ = write!(md, " {k} |");
     }
     md.push_str("\n|---|");
@@ -325,8 +396,8 @@ async fn whatif(ctx: &query::Engine, max_rays: u64, share: f64) -> Result<Report
     let _ = writeln!(
         md,
         "## A representative subset\n\n{} rays ({:.2}% of those replayed: one ray in {} of each stratum of kind, direction octant and origin cell of a 4x4x4 grid) predict each build's tests per ray within **{:.2}%** (mean {:.2}%); they rank the builds as the full replay does with Spearman {:.3}.\n",
-        sub.len(),
-        100.0 * sub.len() as f64 / rays.len().max(1) as f64,
+        subset,
+        100.0 * subset as f64 / rays.len().max(1) as f64,
         (1.0 / share).round(),
         100.0 * errors.iter().copied().fold(0.0, f64::max),
         100.0 * errors.iter().sum::<f64>() / errors.len().max(1) as f64,
@@ -342,5 +413,5 @@ async fn whatif(ctx: &query::Engine, max_rays: u64, share: f64) -> Result<Report
             100.0 * e
         );
     }
-    Ok(Report { markdown: md, grids: Vec::new() })
+    md
 }
