@@ -135,7 +135,6 @@ impl Query {
             self.loaded = Some((ctx.frame, self.settings.clone()));
             return Ok(());
         };
-        let mut categories_in_order: Vec<String> = Vec::new();
         let has = |n: &[&str]| n.iter().all(|c| schema.index_of(c).is_ok());
         let as_segments = has(&SEGMENT_COLUMNS);
         if !as_segments && !has(&POINT_COLUMNS) {
@@ -144,56 +143,7 @@ impl Query {
                 schema.fields().iter().map(|f| f.name().as_str()).collect::<Vec<_>>().join(", ")
             )));
         }
-        let values = |b: &RecordBatch| -> Result<Values> {
-            let Some(name) = &self.settings.colour_by else { return Ok(Values::None) };
-            let c = b
-                .column_by_name(name)
-                .ok_or_else(|| Error::Columns(format!("colour_by column `{name}` is not in the query's result")))?;
-            let numeric = c.data_type().is_numeric() || matches!(c.data_type(), DataType::Boolean);
-            Ok(if numeric {
-                let f = arrow::compute::cast(c, &DataType::Float64)?;
-                let f = f.as_primitive::<Float64Type>();
-                Values::Numbers((0..f.len()).map(|i| if f.is_null(i) { f64::NAN } else { f.value(i) }).collect())
-            } else {
-                Values::Names(kind_names(c.as_ref())?)
-            })
-        };
-        let mut all: Vec<Values> = batches.iter().map(values).collect::<Result<_>>()?;
-        let (lo, hi) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |acc, v| match v {
-            Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).fold(acc, |(a, b), &x| (a.min(x), b.max(x))),
-            _ => acc,
-        });
-        // A number column of a few distinct values (a constant, depths, material ids) is a set of
-        // categories: each value gets its own colour and a count, not a place on a colour bar.
-        if lo <= hi {
-            let mut distinct: Vec<f64> = Vec::new();
-            let few = all.iter().all(|v| match v {
-                Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).all(|&x| {
-                    if !distinct.contains(&x) {
-                        distinct.push(x);
-                    }
-                    distinct.len() <= MAX_CATEGORIES
-                }),
-                _ => true,
-            });
-            if few && (distinct.len() == 1 || distinct.iter().all(|x| x.fract() == 0.0)) {
-                all = all
-                    .into_iter()
-                    .map(|v| match v {
-                        Values::Numbers(n) => Values::Names(
-                            n.into_iter().map(|x| x.is_finite().then(|| crate::legend::label(x))).collect(),
-                        ),
-                        other => other,
-                    })
-                    .collect();
-                distinct.sort_by(f64::total_cmp);
-                categories_in_order = distinct.iter().map(|x| crate::legend::label(*x)).collect();
-            }
-        }
-        let (lo, hi) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |acc, v| match v {
-            Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).fold(acc, |(a, b), &x| (a.min(x), b.max(x))),
-            _ => acc,
-        });
+        let Colouring { values: all, lo, hi, categories: categories_in_order } = self.colouring(&batches)?;
         let map = colour_map(&self.settings.map)?;
         // Categories numbered in legend order (sorted values for numbers, else first seen), with
         // the rows drawn of each.
@@ -269,7 +219,89 @@ impl Query {
         self.rows = rows;
         self.row_of = row_of;
         self.skipped = builder.skipped;
-        self.legend = match (&self.settings.colour_by, lo <= hi, names.is_empty()) {
+        self.legend = self.legend_of(lo, hi, names, &counts);
+        self.segments = Some(bufs);
+        self.loaded = Some((ctx.frame, self.settings.clone()));
+        Ok(())
+    }
+}
+
+/// How a query's rows are coloured: each batch's values of `colour_by`, their range where they are
+/// numbers, and the categories in legend order (sorted values where a number column holds few).
+struct Colouring {
+    values: Vec<Values>,
+    lo: f64,
+    hi: f64,
+    categories: Vec<String>,
+}
+
+impl Query {
+    /// The colouring of `batches` by the `colour_by` column.
+    fn colouring(&self, batches: &[RecordBatch]) -> Result<Colouring> {
+        let mut categories_in_order: Vec<String> = Vec::new();
+        let values = |b: &RecordBatch| -> Result<Values> {
+            let Some(name) = &self.settings.colour_by else { return Ok(Values::None) };
+            let c = b
+                .column_by_name(name)
+                .ok_or_else(|| Error::Columns(format!("colour_by column `{name}` is not in the query's result")))?;
+            let numeric = c.data_type().is_numeric() || matches!(c.data_type(), DataType::Boolean);
+            Ok(if numeric {
+                let f = arrow::compute::cast(c, &DataType::Float64)?;
+                let f = f.as_primitive::<Float64Type>();
+                Values::Numbers((0..f.len()).map(|i| if f.is_null(i) { f64::NAN } else { f.value(i) }).collect())
+            } else {
+                Values::Names(kind_names(c.as_ref())?)
+            })
+        };
+        let mut all: Vec<Values> = batches.iter().map(values).collect::<Result<_>>()?;
+        let (lo, hi) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |acc, v| match v {
+            Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).fold(acc, |(a, b), &x| (a.min(x), b.max(x))),
+            _ => acc,
+        });
+        // A number column of a few distinct values (a constant, depths, material ids) is a set of
+        // categories: each value gets its own colour and a count, not a place on a colour bar.
+        if lo <= hi {
+            let mut distinct: Vec<f64> = Vec::new();
+            let few = all.iter().all(|v| match v {
+                Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).all(|&x| {
+                    if !distinct.contains(&x) {
+                        distinct.push(x);
+                    }
+                    distinct.len() <= MAX_CATEGORIES
+                }),
+                _ => true,
+            });
+            if few && (distinct.len() == 1 || distinct.iter().all(|x| x.fract() == 0.0)) {
+                all = all
+                    .into_iter()
+                    .map(|v| match v {
+                        Values::Numbers(n) => Values::Names(
+                            n.into_iter().map(|x| x.is_finite().then(|| crate::legend::label(x))).collect(),
+                        ),
+                        other => other,
+                    })
+                    .collect();
+                distinct.sort_by(f64::total_cmp);
+                categories_in_order = distinct.iter().map(|x| crate::legend::label(*x)).collect();
+            }
+        }
+        let (lo, hi) = all.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |acc, v| match v {
+            Values::Numbers(n) => n.iter().filter(|x| x.is_finite()).fold(acc, |(a, b), &x| (a.min(x), b.max(x))),
+            _ => acc,
+        });
+        Ok(Colouring { values: all, lo, hi, categories: categories_in_order })
+    }
+
+    /// The legend of a colouring: a colour bar over `lo..hi`, or the categories drawn with their
+    /// counts.
+    fn legend_of(
+        &self,
+        lo: f64,
+        hi: f64,
+        names: BTreeMap<String, usize>,
+        counts: &BTreeMap<String, u64>,
+    ) -> Vec<Legend> {
+        match (&self.settings.colour_by, lo <= hi, names.is_empty()) {
             (Some(c), true, _) => {
                 vec![Legend::ColourBar {
                     title: c.clone(),
@@ -292,10 +324,7 @@ impl Query {
                 }]
             }
             _ => Vec::new(),
-        };
-        self.segments = Some(bufs);
-        self.loaded = Some((ctx.frame, self.settings.clone()));
-        Ok(())
+        }
     }
 }
 
