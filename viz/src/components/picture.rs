@@ -331,6 +331,115 @@ pub fn half_difference_rmse(sum: &[glam::Vec3A], even: &[glam::Vec3A], n: u32) -
     Some((diff_ms / f64::from(n) / (1.0 / ne + 1.0 / no)).sqrt())
 }
 
+/// One idle step of the GPU tracer: two equal batches of k samples (one counted as the even
+/// samples, one as the odd) over the view; the samples then taken in all, the step's seconds,
+/// and a point of the convergence curve when the halves were read back (once per doubling).
+/// `None` when the halves could not be made.
+fn gpu_samples(
+    g: &mut GpuImage,
+    ctx: &IdleCtx,
+    camera: renderers::Camera,
+    spp: u32,
+    max_spp: u32,
+    t0: std::time::Instant,
+) -> Result<Option<(u32, f64, Option<f64>)>> {
+    let gpu_err = |e: gpu_tracer::Error| Error::Layer { layer: "image".into(), message: e.to_string() };
+    // Two equal batches of k samples: one counts as the even samples, one as the odd.
+    g.tracer.set_camera(camera);
+    let k = g.batch.min((max_spp - spp).div_ceil(2)).max(1);
+    if g.halves.is_none() {
+        let depth = renderers::RenderOptions::default().max_depth;
+        let half = |seed| g.tracer.progressive(ctx.width, ctx.height, seed, depth).map_err(gpu_err);
+        g.halves = Some([half(0)?, half(1)?]);
+    }
+    let Some(halves) = g.halves.as_mut() else { return Ok(None) };
+    for h in halves.iter_mut() {
+        g.tracer.accumulate(h, k);
+    }
+    let n = spp + 2 * k;
+    // The convergence curve: the halves read back once per doubling of the samples.
+    let mut point = None;
+    if n >= g.next_curve || n >= max_spp {
+        // Each half's per-pixel sums (RGB and the sample count), as accumulated.
+        let sums = |h: &gpu_tracer::Progressive| {
+            let buf = h.accumulation();
+            g.tracer.gpu().read_values::<[f32; 4]>(buf, buf.size())
+        };
+        let rgb = |s: &[f32; 4]| glam::Vec3A::new(s[0], s[1], s[2]);
+        let (even, odd) = (sums(&halves[0])?, sums(&halves[1])?);
+        let ev: Vec<glam::Vec3A> = even.iter().map(rgb).collect();
+        let sum: Vec<glam::Vec3A> = ev.iter().zip(&odd).map(|(e, o)| *e + rgb(o)).collect();
+        point = half_difference_rmse(&sum, &ev, n);
+        while g.next_curve <= n {
+            g.next_curve *= 2;
+        }
+    } else {
+        // Nothing read back: wait for the work so the batch size follows its time.
+        ctx.gpu.wait()?;
+    }
+    // Aim at about 50 ms per idle call.
+    let took = t0.elapsed().as_secs_f64();
+    g.batch = if took < 0.025 {
+        (k * 2).min(256)
+    } else if took > 0.1 {
+        (k / 2).max(1)
+    } else {
+        k
+    };
+    Ok(Some((n, took, point)))
+}
+
+/// One idle step of a CPU tracer: one more sample of every pixel added to the sums (and to the
+/// even samples' sums), a point of the convergence curve, and the average so far as a picture.
+fn cpu_sample(
+    p: &mut Progressive,
+    ctx: &IdleCtx,
+    scene: &Arc<renderers::Scene>,
+    camera: renderers::Camera,
+    settings: &ImageSettings,
+    t0: std::time::Instant,
+) -> Result<Picture> {
+    let opts = renderers::RenderOptions {
+        width: ctx.width,
+        height: ctx.height,
+        spp: 1,
+        seed: u64::from(p.spp),
+        ..Default::default()
+    };
+    let choice = settings.source.cpu_tracer();
+    if p.cpu.as_ref().is_none_or(|t| t.choice() != choice) {
+        p.cpu = Some(
+            gpu_tracer::tracer(choice, scene.clone(), p.bvh.clone(), None)
+                .map_err(|e| Error::Layer { layer: "image".into(), message: format!("tracer \"{choice}\": {e}") })?,
+        );
+    }
+    let Some(tracer) = p.cpu.as_mut() else {
+        return Err(Error::Layer { layer: "image".into(), message: "no CPU tracer".into() });
+    };
+    tracer.set_camera(camera);
+    let (film, _) = tracer.render(&opts, None, &|_| {})?;
+    if p.sum.is_empty() {
+        p.sum = vec![glam::Vec3A::ZERO; film.pixels.len()];
+        p.even = p.sum.clone();
+    }
+    for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
+        *a += *b;
+    }
+    if p.spp.is_multiple_of(2) {
+        for (a, b) in p.even.iter_mut().zip(&film.pixels) {
+            *a += *b;
+        }
+    }
+    p.spp += 1;
+    p.secs += t0.elapsed().as_secs_f64();
+    if let Some(rmse) = half_difference_rmse(&p.sum, &p.even, p.spp) {
+        p.curve.push(crate::component::ConvergencePoint { secs: p.secs, spp: p.spp, rmse });
+    }
+    let n = p.spp as f32;
+    let avg = renderers::Film { width: ctx.width, height: ctx.height, pixels: p.sum.iter().map(|v| *v / n).collect() };
+    Ok(Picture { width: ctx.width, height: ctx.height, rgba: avg.to_srgb8(settings.exposure, 4) })
+}
+
 impl Layer for Image {
     type Settings = ImageSettings;
 
@@ -407,97 +516,15 @@ impl Layer for Image {
         let on_gpu = on_gpu_source(self.settings.source);
         let max_spp = self.settings.max_spp;
         let (spp, secs) = (p.spp, p.secs);
-        let gpu_err = |e: gpu_tracer::Error| Error::Layer { layer: "image".into(), message: e.to_string() };
         if let Some(g) = on_gpu.then(|| Self::gpu_tracer(p, ctx.gpu, scene)).flatten() {
-            // Two equal batches of k samples: one counts as the even samples, one as the odd.
-            g.tracer.set_camera(camera);
-            let k = g.batch.min((max_spp - spp).div_ceil(2)).max(1);
-            if g.halves.is_none() {
-                let depth = renderers::RenderOptions::default().max_depth;
-                let half = |seed| g.tracer.progressive(ctx.width, ctx.height, seed, depth).map_err(gpu_err);
-                g.halves = Some([half(0)?, half(1)?]);
-            }
-            let Some(halves) = g.halves.as_mut() else { return Ok(false) };
-            for h in halves.iter_mut() {
-                g.tracer.accumulate(h, k);
-            }
-            let n = spp + 2 * k;
-            // The convergence curve: the halves read back once per doubling of the samples.
-            let mut point = None;
-            if n >= g.next_curve || n >= max_spp {
-                // Each half's per-pixel sums (RGB and the sample count), as accumulated.
-                let sums = |h: &gpu_tracer::Progressive| {
-                    let buf = h.accumulation();
-                    g.tracer.gpu().read_values::<[f32; 4]>(buf, buf.size())
-                };
-                let rgb = |s: &[f32; 4]| glam::Vec3A::new(s[0], s[1], s[2]);
-                let (even, odd) = (sums(&halves[0])?, sums(&halves[1])?);
-                let ev: Vec<glam::Vec3A> = even.iter().map(rgb).collect();
-                let sum: Vec<glam::Vec3A> = ev.iter().zip(&odd).map(|(e, o)| *e + rgb(o)).collect();
-                point = half_difference_rmse(&sum, &ev, n);
-                while g.next_curve <= n {
-                    g.next_curve *= 2;
-                }
-            } else {
-                // Nothing read back: wait for the work so the batch size follows its time.
-                ctx.gpu.wait()?;
-            }
-            // Aim at about 50 ms per idle call.
-            let took = t0.elapsed().as_secs_f64();
-            g.batch = if took < 0.025 {
-                (k * 2).min(256)
-            } else if took > 0.1 {
-                (k / 2).max(1)
-            } else {
-                k
-            };
+            let Some((n, took, point)) = gpu_samples(g, ctx, camera, spp, max_spp, t0)? else { return Ok(false) };
             p.spp = n;
             p.secs = secs + took;
             if let Some(rmse) = point {
                 p.curve.push(crate::component::ConvergencePoint { secs: p.secs, spp: p.spp, rmse });
             }
         } else {
-            let opts = renderers::RenderOptions {
-                width: ctx.width,
-                height: ctx.height,
-                spp: 1,
-                seed: u64::from(p.spp),
-                ..Default::default()
-            };
-            let choice = self.settings.source.cpu_tracer();
-            if p.cpu.as_ref().is_none_or(|t| t.choice() != choice) {
-                p.cpu = Some(gpu_tracer::tracer(choice, scene.clone(), p.bvh.clone(), None).map_err(|e| {
-                    Error::Layer { layer: "image".into(), message: format!("tracer \"{choice}\": {e}") }
-                })?);
-            }
-            let Some(tracer) = p.cpu.as_mut() else { return Ok(false) };
-            tracer.set_camera(camera);
-            let (film, _) = tracer.render(&opts, None, &|_| {})?;
-            if p.sum.is_empty() {
-                p.sum = vec![glam::Vec3A::ZERO; film.pixels.len()];
-                p.even = p.sum.clone();
-            }
-            for (a, b) in p.sum.iter_mut().zip(&film.pixels) {
-                *a += *b;
-            }
-            if p.spp.is_multiple_of(2) {
-                for (a, b) in p.even.iter_mut().zip(&film.pixels) {
-                    *a += *b;
-                }
-            }
-            p.spp += 1;
-            p.secs += t0.elapsed().as_secs_f64();
-            if let Some(rmse) = half_difference_rmse(&p.sum, &p.even, p.spp) {
-                p.curve.push(crate::component::ConvergencePoint { secs: p.secs, spp: p.spp, rmse });
-            }
-            let n = p.spp as f32;
-            let avg = renderers::Film {
-                width: ctx.width,
-                height: ctx.height,
-                pixels: p.sum.iter().map(|v| *v / n).collect(),
-            };
-            self.traced =
-                Some(Picture { width: ctx.width, height: ctx.height, rgba: avg.to_srgb8(self.settings.exposure, 4) });
+            self.traced = Some(cpu_sample(p, ctx, scene, camera, &self.settings, t0)?);
         }
         self.generation += 1;
         Ok(true)
