@@ -248,32 +248,7 @@ impl Viewer {
                     self.queries.connecting = false;
                     s.error(format!("cannot open {}: {message}", source.label()));
                 }
-                Event::Frame(f) => {
-                    let texture = match (f.pixels, &self.display) {
-                        (Pixels::Texture(t), Some(rs)) => native_texture(rs, s.shown.as_ref().map(|sh| &sh.texture), t),
-                        (Pixels::Texture(_), None) => {
-                            s.error("a frame came as a GPU texture, but this UI has no GPU device to draw it");
-                            continue;
-                        }
-                        (Pixels::Rgba(rgba), _) => {
-                            let img = egui::ColorImage::from_rgba_unmultiplied(
-                                [f.size[0] as usize, f.size[1] as usize],
-                                &rgba,
-                            );
-                            match s.shown.as_mut().map(|sh| &mut sh.texture) {
-                                Some(ShownTexture::Egui(h)) => {
-                                    h.set(img, egui::TextureOptions::LINEAR);
-                                    ShownTexture::Egui(h.clone())
-                                }
-                                _ => {
-                                    ShownTexture::Egui(ctx.load_texture("pipeline", img, egui::TextureOptions::LINEAR))
-                                }
-                            }
-                        }
-                    };
-                    let frames = s.shown.as_ref().map_or(0, |sh| sh.frames) + 1;
-                    s.shown = Some(Shown { texture, size: f.size, ms: f.ms, frames });
-                }
+                Event::Frame(f) => self.show_frame(ctx, f),
                 Event::Layers(l) => {
                     for info in &l {
                         s.next_id = s.next_id.max(info.id.0 + 1);
@@ -297,37 +272,71 @@ impl Viewer {
                     s.traced = Some((pixel, rays));
                     s.info(format!("traced pixel {},{}: {rays} rays (immediate mode)", pixel[0], pixel[1]));
                 }
-                Event::Picked { pixel, picked } => match picked {
-                    Some(p) => {
-                        let label = p.item.label();
-                        s.info(format!("picked {label} at {},{}", pixel[0], pixel[1]));
-                        match p.item {
-                            Picked::Ray { tree, ray } => select(s, &mut self.queries, Selection { tree, ray }),
-                            Picked::Traced { .. } => s.inspector.note = Some(label),
-                            Picked::Node { node } => {
-                                s.inspector.note = Some(label);
-                                self.queries
-                                    .submit(Tag::Inspect, format!("SELECT * FROM bvh_nodes WHERE node_id = {node}"));
-                                s.inspector.tree = None;
-                            }
-                            Picked::Row { row } => {
-                                s.console.selected_row = Some(row as usize);
-                                s.inspector.note = Some(label);
-                            }
-                        }
-                        s.picked = Some(p);
-                    }
-                    None => {
-                        s.picked = None;
-                        s.info(format!("nothing to pick at {},{}", pixel[0], pixel[1]));
-                    }
-                },
+                Event::Picked { pixel, picked } => self.picked(pixel, picked),
                 Event::Screenshot(r) => match r {
                     Ok(p) => s.info(format!("wrote {}", p.display())),
                     Err(e) => s.error(e),
                 },
             }
         }
+        self.handle_query_results();
+    }
+
+    /// A frame from the worker on screen: its texture (the pipeline's own, or RGBA8 uploaded).
+    fn show_frame(&mut self, ctx: &egui::Context, f: crate::worker::Rendered) {
+        let s = &mut self.state;
+        let texture = match (f.pixels, &self.display) {
+            (Pixels::Texture(t), Some(rs)) => native_texture(rs, s.shown.as_ref().map(|sh| &sh.texture), t),
+            (Pixels::Texture(_), None) => {
+                s.error("a frame came as a GPU texture, but this UI has no GPU device to draw it");
+                return;
+            }
+            (Pixels::Rgba(rgba), _) => {
+                let img = egui::ColorImage::from_rgba_unmultiplied([f.size[0] as usize, f.size[1] as usize], &rgba);
+                match s.shown.as_mut().map(|sh| &mut sh.texture) {
+                    Some(ShownTexture::Egui(h)) => {
+                        h.set(img, egui::TextureOptions::LINEAR);
+                        ShownTexture::Egui(h.clone())
+                    }
+                    _ => ShownTexture::Egui(ctx.load_texture("pipeline", img, egui::TextureOptions::LINEAR)),
+                }
+            }
+        };
+        let frames = s.shown.as_ref().map_or(0, |sh| sh.frames) + 1;
+        s.shown = Some(Shown { texture, size: f.size, ms: f.ms, frames });
+    }
+
+    /// What a click picked: a ray selects its tree, a node or a row is inspected.
+    fn picked(&mut self, pixel: [u32; 2], picked: Option<viz::component::Pick>) {
+        let s = &mut self.state;
+        match picked {
+            Some(p) => {
+                let label = p.item.label();
+                s.info(format!("picked {label} at {},{}", pixel[0], pixel[1]));
+                match p.item {
+                    Picked::Ray { tree, ray } => select(s, &mut self.queries, Selection { tree, ray }),
+                    Picked::Traced { .. } => s.inspector.note = Some(label),
+                    Picked::Node { node } => {
+                        s.inspector.note = Some(label);
+                        self.queries.submit(Tag::Inspect, format!("SELECT * FROM bvh_nodes WHERE node_id = {node}"));
+                        s.inspector.tree = None;
+                    }
+                    Picked::Row { row } => {
+                        s.console.selected_row = Some(row as usize);
+                        s.inspector.note = Some(label);
+                    }
+                }
+                s.picked = Some(p);
+            }
+            None => {
+                s.picked = None;
+                s.info(format!("nothing to pick at {},{}", pixel[0], pixel[1]));
+            }
+        }
+    }
+
+    /// The answers of the query tasks, each into its pane.
+    fn handle_query_results(&mut self) {
         for r in self.queries.poll() {
             let s = &mut self.state;
             match (r.tag, r.result) {
