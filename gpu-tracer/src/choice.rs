@@ -3,7 +3,7 @@
 
 use std::sync::Arc;
 
-use renderers::{Bvh, CpuTracer, Film, Progressive, RenderOptions, RenderStats, Scene, Tracer, TracerChoice};
+use renderers::{Bvh, CpuTracer, Film, ProgressiveImage, RenderOptions, RenderStats, Scene, Tracer, TracerChoice};
 use rl::Recorder;
 
 use crate::GpuTracer;
@@ -79,7 +79,7 @@ impl Tracer for GpuTracer {
         height: u32,
         seed: u32,
         max_depth: u32,
-    ) -> renderers::Result<Box<dyn Progressive + '_>> {
+    ) -> renderers::Result<Box<dyn ProgressiveImage + '_>> {
         let image = GpuTracer::progressive(self, width, height, seed, max_depth).map_err(tracer_error)?;
         Ok(Box::new(GpuProgressive { tracer: self, image }))
     }
@@ -88,10 +88,10 @@ impl Tracer for GpuTracer {
 /// The GPU tracer's progressive image: the accumulation stays on the GPU until the mean is read.
 struct GpuProgressive<'a> {
     tracer: &'a GpuTracer,
-    image: crate::Progressive,
+    image: crate::Accumulation,
 }
 
-impl Progressive for GpuProgressive<'_> {
+impl ProgressiveImage for GpuProgressive<'_> {
     fn add(&mut self, samples: u32) -> renderers::Result<()> {
         self.tracer.trace(&mut self.image, samples).map_err(tracer_error)
     }

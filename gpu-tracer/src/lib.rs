@@ -112,7 +112,7 @@ const RAY_BYTES: u64 = std::mem::size_of::<GpuRay>() as u64;
 pub const MAX_RECORDED_DEPTH: u32 = 63;
 
 /// A progressive image on the GPU: the sum of the samples traced so far, per pixel.
-pub struct Progressive {
+pub struct Accumulation {
     width: u32,
     height: u32,
     accum: wgpu::Buffer,
@@ -126,7 +126,7 @@ pub struct Progressive {
     pub rays_by_kind: [u64; 5],
 }
 
-impl Progressive {
+impl Accumulation {
     /// The accumulated radiance: per pixel (rows top to bottom) four f32, the sum of the
     /// samples' RGB and the number of samples. Bound read-only, it is tone-mapped on the GPU
     /// (`viz`'s image layer) with no read-back.
@@ -380,7 +380,7 @@ impl GpuTracer {
 
     /// An empty progressive image of `w` × `h` pixels (`max_depth` bounces at most, as
     /// `renderers::RenderOptions::max_depth`).
-    pub fn progressive(&self, w: u32, h: u32, seed: u32, max_depth: u32) -> Result<Progressive> {
+    pub fn progressive(&self, w: u32, h: u32, seed: u32, max_depth: u32) -> Result<Accumulation> {
         check_size(w, h)?;
         // wgpu zero-fills new buffers: no samples yet.
         let accum = self.gpu.device.create_buffer(&wgpu::BufferDescriptor {
@@ -395,12 +395,12 @@ impl GpuTracer {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        Ok(Progressive { width: w, height: h, accum, totals, spp: 0, seed, max_depth, rays_by_kind: [0; 5] })
+        Ok(Accumulation { width: w, height: h, accum, totals, spp: 0, seed, max_depth, rays_by_kind: [0; 5] })
     }
 
     /// Adds `samples` path-traced samples per pixel to `p` (one dispatch each) and waits for
-    /// them, counting the rays traced by kind (`Progressive::rays_by_kind`).
-    pub fn trace(&self, p: &mut Progressive, samples: u32) -> Result<()> {
+    /// them, counting the rays traced by kind (`Accumulation::rays_by_kind`).
+    pub fn trace(&self, p: &mut Accumulation, samples: u32) -> Result<()> {
         self.dispatch(p, [0, 0, p.width, p.height], &p.next_samples(samples), None, false)?;
         p.spp = p.spp.saturating_add(samples);
         Ok(())
@@ -408,8 +408,8 @@ impl GpuTracer {
 
     /// Adds `samples` samples per pixel to `p` without waiting: nothing is read back and the
     /// rays are not counted (the visualizer's progressive image, tone-mapped on the GPU from
-    /// [`Progressive::accumulation`]).
-    pub fn accumulate(&self, p: &mut Progressive, samples: u32) {
+    /// [`Accumulation::accumulation`]).
+    pub fn accumulate(&self, p: &mut Accumulation, samples: u32) {
         self.submit(p, [0, 0, p.width, p.height], &p.next_samples(samples), None, false);
         p.spp = p.spp.saturating_add(samples);
     }
@@ -419,7 +419,7 @@ impl GpuTracer {
     /// returns how many rays were recorded.
     fn dispatch(
         &self,
-        p: &mut Progressive,
+        p: &mut Accumulation,
         window: [u32; 4],
         samples: &[(u32, u32)],
         rec: Option<&RecordBuffers>,
@@ -439,7 +439,7 @@ impl GpuTracer {
     /// Submits the dispatches of [`GpuTracer::dispatch`] without waiting for them.
     fn submit(
         &self,
-        p: &Progressive,
+        p: &Accumulation,
         window: [u32; 4],
         samples: &[(u32, u32)],
         rec: Option<&RecordBuffers>,
@@ -492,7 +492,7 @@ impl GpuTracer {
     }
 
     /// The mean of the samples so far, as the CPU tracer's film.
-    pub fn film(&self, p: &Progressive) -> Result<renderers::Film> {
+    pub fn film(&self, p: &Accumulation) -> Result<renderers::Film> {
         let sums: Vec<[f32; 4]> = self.read_back(&p.accum, p.accum.size())?;
         let pixels = sums
             .iter()

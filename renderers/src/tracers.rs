@@ -40,11 +40,12 @@ pub trait Tracer: Send + Sync {
 
     /// An image accumulated sample by sample (`seed` picks the random sequence; two images with
     /// different seeds are independent estimates).
-    fn progressive(&self, width: u32, height: u32, seed: u32, max_depth: u32) -> Result<Box<dyn Progressive + '_>>;
+    fn progressive(&self, width: u32, height: u32, seed: u32, max_depth: u32)
+    -> Result<Box<dyn ProgressiveImage + '_>>;
 }
 
 /// A progressive image: samples per pixel added in steps, the mean read at any time.
-pub trait Progressive {
+pub trait ProgressiveImage {
     /// Adds `samples` samples per pixel.
     fn add(&mut self, samples: u32) -> Result<()>;
     /// Samples per pixel so far.
@@ -93,7 +94,13 @@ impl Tracer for CpuTracer {
         }
     }
 
-    fn progressive(&self, width: u32, height: u32, seed: u32, max_depth: u32) -> Result<Box<dyn Progressive + '_>> {
+    fn progressive(
+        &self,
+        width: u32,
+        height: u32,
+        seed: u32,
+        max_depth: u32,
+    ) -> Result<Box<dyn ProgressiveImage + '_>> {
         let opts = RenderOptions { width, height, spp: 1, max_depth, tracer: self.choice, ..Default::default() };
         opts.validate()?;
         let sum = vec![glam::Vec3A::ZERO; width as usize * height as usize];
@@ -110,7 +117,7 @@ struct CpuProgressive<'a> {
     spp: u32,
 }
 
-impl Progressive for CpuProgressive<'_> {
+impl ProgressiveImage for CpuProgressive<'_> {
     fn add(&mut self, samples: u32) -> Result<()> {
         for _ in 0..samples {
             // Each sample its own seed: the sum of independent one-sample images.

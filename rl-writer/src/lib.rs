@@ -13,7 +13,7 @@ mod write;
 pub use arrow::datatypes::DataType;
 pub use error::{Error, Result};
 pub use immediate::MemoryTrace;
-pub use reader::{Reader, TraceSource};
+pub use reader::{Reader, TreeSource};
 pub use recorder::{Mode, Payload, RayId, Recorder, SiteRef, TreeBuilder};
 pub use sink::{RecorderOptions, Summary};
 pub use store::{

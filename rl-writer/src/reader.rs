@@ -10,7 +10,7 @@ use crate::immediate::MemoryTrace;
 use crate::{Error, Result};
 
 /// Something trees can be read from by position and id.
-pub trait TraceSource: Send + Sync {
+pub trait TreeSource: Send + Sync {
     fn tree_count(&self) -> Result<usize>;
     /// The `n`-th tree (datasets: id order; immediate mode: recording order).
     fn tree_at(&self, n: usize) -> Result<Option<Tree>>;
@@ -20,7 +20,7 @@ pub trait TraceSource: Send + Sync {
     fn stats(&self) -> Stats;
 }
 
-impl TraceSource for Dataset {
+impl TreeSource for Dataset {
     fn tree_count(&self) -> Result<usize> {
         Ok(Dataset::tree_count(self) as usize)
     }
@@ -45,7 +45,7 @@ impl TraceSource for Dataset {
     }
 }
 
-impl TraceSource for MemoryTrace {
+impl TreeSource for MemoryTrace {
     fn tree_count(&self) -> Result<usize> {
         Ok(MemoryTrace::tree_count(self))
     }
@@ -69,7 +69,7 @@ impl TraceSource for MemoryTrace {
 
 /// A read-mode cursor.
 pub struct Reader {
-    source: Box<dyn TraceSource>,
+    source: Box<dyn TreeSource>,
     tree_pos: usize,
     current: Option<Tree>,
     ray_pos: usize,
@@ -82,11 +82,11 @@ impl Reader {
     }
 
     /// A cursor over any trace source.
-    pub fn new(source: Box<dyn TraceSource>) -> Reader {
+    pub fn new(source: Box<dyn TreeSource>) -> Reader {
         Reader { source, tree_pos: 0, current: None, ray_pos: 0 }
     }
 
-    pub fn source(&self) -> &dyn TraceSource {
+    pub fn source(&self) -> &dyn TreeSource {
         self.source.as_ref()
     }
 

@@ -141,13 +141,15 @@ struct GpuImage {
     /// Samples per half per idle call (adapted to about 50 ms).
     batch: u32,
     /// The even and odd batches' sums, for the current camera and size.
-    halves: Option<[gpu_tracer::Progressive; 2]>,
+    halves: Option<[gpu_tracer::Accumulation; 2]>,
     /// The next sample count at which the halves are read back for the convergence curve
     /// (doubling: a read-back per octave of samples, never one per frame).
     next_curve: u32,
 }
 
-struct Progressive {
+/// The image layer's progressive tracing of the current view (camera and size): its CPU or GPU
+/// tracer, the sums so far and the convergence curve.
+struct ViewTrace {
     bvh: Arc<renderers::Bvh>,
     /// The CPU tracer's sum of the samples per pixel (empty until its first sample; the GPU
     /// tracer keeps its sums on the GPU).
@@ -184,7 +186,7 @@ impl FilmDrawer {
         FilmDrawer { pipeline }
     }
 
-    fn draw(&self, ctx: &RenderCtx, [even, odd]: &[gpu_tracer::Progressive; 2], exposure: f32, opacity: f32) {
+    fn draw(&self, ctx: &RenderCtx, [even, odd]: &[gpu_tracer::Accumulation; 2], exposure: f32, opacity: f32) {
         let gpu = ctx.gpu;
         let [w, h] = even.size();
         let (tw, th) = (ctx.target.width, ctx.target.height);
@@ -216,7 +218,7 @@ pub struct Image {
     texture: Option<(bool, u64, wgpu::Texture)>,
     blitter: Option<Blitter>,
     film: Option<FilmDrawer>,
-    progressive: Option<Progressive>,
+    progressive: Option<ViewTrace>,
     size: [u32; 2],
     /// Whether the last render showed a traced picture (else the recorded one).
     shown_traced: bool,
@@ -287,7 +289,7 @@ impl Image {
 
     /// The GPU tracer of `p` for `scene`, made on first use; `None` (and the reason kept in
     /// `p.gpu_failed`) where the adapter cannot run it.
-    fn gpu_tracer<'p>(p: &'p mut Progressive, gpu: &Gpu, scene: &renderers::Scene) -> Option<&'p mut GpuImage> {
+    fn gpu_tracer<'p>(p: &'p mut ViewTrace, gpu: &Gpu, scene: &renderers::Scene) -> Option<&'p mut GpuImage> {
         if p.gpu.is_none() && p.gpu_failed.is_none() {
             match gpu_tracer::GpuTracer::with_gpu(gpu, scene, &p.bvh) {
                 Ok(tracer) => p.gpu = Some(GpuImage { tracer, batch: 1, halves: None, next_curve: 2 }),
@@ -361,7 +363,7 @@ fn gpu_samples(
     let mut point = None;
     if n >= g.next_curve || n >= max_spp {
         // Each half's per-pixel sums (RGB and the sample count), as accumulated.
-        let sums = |h: &gpu_tracer::Progressive| {
+        let sums = |h: &gpu_tracer::Accumulation| {
             let buf = h.accumulation();
             g.tracer.gpu().read_values::<[f32; 4]>(buf, buf.size())
         };
@@ -392,7 +394,7 @@ fn gpu_samples(
 /// One idle step of a CPU tracer: one more sample of every pixel added to the sums (and to the
 /// even samples' sums), a point of the convergence curve, and the average so far as a picture.
 fn cpu_sample(
-    p: &mut Progressive,
+    p: &mut ViewTrace,
     ctx: &IdleCtx,
     scene: &Arc<renderers::Scene>,
     camera: renderers::Camera,
@@ -483,7 +485,7 @@ impl Layer for Image {
         }
         let Some(scene) = &ctx.sources.scene else { return Ok(false) };
         let key = (*ctx.camera, ctx.width, ctx.height);
-        let p = self.progressive.get_or_insert_with(|| Progressive {
+        let p = self.progressive.get_or_insert_with(|| ViewTrace {
             bvh: Arc::new(renderers::Bvh::build(&scene.tris)),
             sum: Vec::new(),
             even: Vec::new(),
