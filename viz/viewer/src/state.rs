@@ -233,10 +233,12 @@ pub fn select(s: &mut State, q: &mut QueryService, sel: Selection) {
     }
     s.inspector.note = Some(format!("ray {} of tree {}", sel.ray, sel.tree));
     if s.has_dataset() {
-        q.submit(Tag::Inspect, format!("SELECT * FROM rays WHERE tree_id = {} AND ray = {}", sel.tree, sel.ray));
+        let tree = store::RaySelection::all().only_trees_of(Some(sel.tree), None, None);
+        let ray = tree.clone().only(store::scene::col::RAY, [(u64::from(sel.ray), u64::from(sel.ray))]);
+        q.submit(Tag::Inspect, format!("SELECT * FROM rays WHERE {}", ray.to_sql()));
         q.submit(
             Tag::InspectTree,
-            format!("SELECT ray, parent, depth, kind, t FROM rays WHERE tree_id = {} ORDER BY ray", sel.tree),
+            format!("SELECT ray, parent, depth, kind, t FROM rays WHERE {} ORDER BY ray", tree.to_sql()),
         );
     }
 }
