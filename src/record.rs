@@ -204,7 +204,6 @@ pub fn run(a: &RecordArgs) -> Result<()> {
         height: h,
         spp: a.spp,
         seed: a.seed,
-        tracer: a.tracer,
         max_depth: a.max_depth,
         window,
         samples,
@@ -252,7 +251,7 @@ pub fn run(a: &RecordArgs) -> Result<()> {
             options.chunk_rays = a.chunk_rays as usize;
             options.sites = a.sites;
             let rec = Recorder::create(out, options).with_context(|| format!("creating {}", out.display()))?;
-            renderers::describe_recording(&rec, &scene, &bvh, &opts)?;
+            renderers::describe_recording(&rec, &scene, &bvh, tracer.choice(), &opts)?;
             if let Some(device) = tracer.device() {
                 rec.set_attributes([("tracer".to_string(), tracer.choice().to_string()), ("gpu".to_string(), device)])?;
             }

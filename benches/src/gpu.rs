@@ -115,7 +115,7 @@ pub fn run(scene_name: &str, subdivide: u32, (w, h): (u32, u32), o: &GpuBench) -
         let opts = RenderOptions { width: w, height: h, spp: 1, threads, ..Default::default() };
         let mut cpu_rounds: Vec<(f64, RenderStats)> = Vec::new();
         for _ in 0..rounds.min(3) {
-            let (_, stats) = renderers::render(&scene, &bvh, &opts, None, &|_| {})?;
+            let (_, stats) = renderers::render(&scene, &bvh, renderers::TracerChoice::Path, &opts, None, &|_| {})?;
             cpu_rounds.push((stats.secs, stats));
         }
         cpu_rounds.sort_by(|a, b| a.0.total_cmp(&b.0));

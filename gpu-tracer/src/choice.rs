@@ -44,10 +44,9 @@ impl Tracer for GpuTracer {
         recorder: Option<&Recorder>,
         progress: &(dyn Fn(u32) + Sync),
     ) -> renderers::Result<(Film, RenderStats)> {
-        let opts = RenderOptions { tracer: TracerChoice::Gpu, ..opts.clone() };
         let whole = opts.window.is_none() && opts.samples.is_none() && opts.bug.is_none();
         if recorder.is_some() || !whole {
-            return self.render_recorded(&opts, recorder, progress).map_err(tracer_error);
+            return self.render_recorded(opts, recorder, progress).map_err(tracer_error);
         }
         // Nothing to record: the samples accumulate on the GPU, read back once.
         let t0 = std::time::Instant::now();

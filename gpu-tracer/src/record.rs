@@ -6,7 +6,7 @@ use std::time::Instant;
 
 use glam::Vec3A;
 use renderers::tracer::{RecRay, SampleRecord};
-use renderers::{Film, RenderOptions, RenderStats, TracerChoice, TraversalStats};
+use renderers::{Film, RenderOptions, RenderStats, TraversalStats};
 use rl::{Kind, Recorder};
 
 use crate::{Error, GpuRay, GpuTracer, MAX_RECORDED_DEPTH, NONE, RAY_BYTES, RecordBuffers, Result};
@@ -25,9 +25,6 @@ impl GpuTracer {
         rec: Option<&Recorder>,
         progress: &(dyn Fn(u32) + Sync),
     ) -> Result<(Film, RenderStats)> {
-        if opts.tracer == TracerChoice::Whitted {
-            return Err(Error::Input("the GPU tracer is a path tracer: the Whitted tracer runs on the CPU".into()));
-        }
         if let Some(bug) = opts.bug.filter(|b| *b != renderers::Bug::ShadowDir) {
             return Err(Error::Input(format!(
                 "--inject-bug {}: the GPU tracer injects shadow-dir only; the CPU tracers (path, whitted) inject every bug",

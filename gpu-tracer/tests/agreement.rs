@@ -144,7 +144,7 @@ fn mean(a: &renderers::Film, mask: &[bool]) -> f64 {
 
 fn cpu(scene: &Scene, bvh: &Bvh, w: u32, h: u32, spp: u32, seed: u64) -> renderers::Film {
     let opts = renderers::RenderOptions { width: w, height: h, spp, seed, threads: 2, ..Default::default() };
-    renderers::render(scene, bvh, &opts, None, &|_| {}).unwrap().0
+    renderers::render(scene, bvh, renderers::TracerChoice::Path, &opts, None, &|_| {}).unwrap().0
 }
 
 /// The GPU path tracer converges to the CPU's image. Away from the lights' edges: the mean

@@ -18,10 +18,11 @@ fn record(
     let bvh = Bvh::build(&scene.tris);
     let rec =
         Recorder::create(dir, RecorderOptions { payload: renderers::payload_schema(), ..Default::default() }).unwrap();
-    renderers::describe_recording(&rec, scene, &bvh, opts).unwrap();
+    let tracer = if gpu.is_some() { renderers::TracerChoice::Gpu } else { renderers::TracerChoice::Path };
+    renderers::describe_recording(&rec, scene, &bvh, tracer, opts).unwrap();
     let out = match gpu {
         Some(g) => g.render_recorded(opts, Some(&rec), &|_| {}).unwrap(),
-        None => renderers::render(scene, &bvh, opts, Some(&rec), &|_| {}).unwrap(),
+        None => renderers::render(scene, &bvh, tracer, opts, Some(&rec), &|_| {}).unwrap(),
     };
     rec.finish().unwrap();
     out
@@ -130,7 +131,6 @@ fn what_the_gpu_cannot_record_is_an_error() {
     )
     .unwrap();
     let err = |o: RenderOptions| gpu.render_recorded(&o, Some(&rec), &|_| {}).err().unwrap().to_string();
-    assert!(err(RenderOptions { tracer: renderers::TracerChoice::Whitted, ..base.clone() }).contains("Whitted"));
     assert!(err(RenderOptions { record_visits: true, ..base.clone() }).contains("BVH nodes"));
     assert!(err(RenderOptions { window: Some([4, 4, 9, 5]), ..base.clone() }).contains("window 4,4,9,5"));
     assert!(err(RenderOptions { max_depth: 64, ..base.clone() }).contains("depth 63 at most"));

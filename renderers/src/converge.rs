@@ -4,6 +4,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use crate::bvh::Bvh;
+use crate::choice::TracerChoice;
 use crate::film::Film;
 use crate::plot::{plot_font, tick};
 use crate::render::{RenderOptions, render};
@@ -60,7 +61,7 @@ pub fn convergence(
     let reference = reference(scene, bvh, base, reference_spp)?;
     let points = measure(&reference, base.seed, spps, 1, |opts_spp, seed| {
         let opts = RenderOptions { spp: opts_spp, seed, ..base.clone() };
-        render(scene, bvh, &opts, None, &|_| {}).map(|(img, _)| img)
+        render(scene, bvh, TracerChoice::Path, &opts, None, &|_| {}).map(|(img, _)| img)
     })?;
     Ok((reference, points))
 }
@@ -69,7 +70,7 @@ pub fn convergence(
 /// `reference_spp` with seed `base.seed + 1000` (no measured image shares its samples).
 pub fn reference(scene: &Scene, bvh: &Bvh, base: &RenderOptions, reference_spp: u32) -> Result<Film> {
     let opts = RenderOptions { spp: reference_spp, seed: base.seed.wrapping_add(1000), ..base.clone() };
-    Ok(render(scene, bvh, &opts, None, &|_| {})?.0)
+    Ok(render(scene, bvh, TracerChoice::Path, &opts, None, &|_| {})?.0)
 }
 
 /// Times `render(spp, seed)` `runs` times for each of `spps` (seed `seed + i + 1` for the i-th,

@@ -22,8 +22,6 @@ pub struct RenderOptions {
     pub height: u32,
     pub spp: u32,
     pub seed: u64,
-    /// The tracer (`renderers::render` runs the CPU ones; `gpu` is `gpu_tracer`'s).
-    pub tracer: TracerChoice,
     pub max_depth: u32,
     /// Only pixels x0 <= x < x1, y0 <= y < y1.
     pub window: Option<[u32; 4]>,
@@ -44,7 +42,6 @@ impl Default for RenderOptions {
             height: 256,
             spp: 4,
             seed: 0,
-            tracer: TracerChoice::Path,
             max_depth: 8,
             window: None,
             samples: None,
@@ -106,7 +103,13 @@ impl RenderOptions {
 }
 
 /// Writes what a recording of `scene` needs besides the rays: BVH nodes, lights, attributes.
-pub fn describe_recording(rec: &Recorder, scene: &Scene, bvh: &Bvh, opts: &RenderOptions) -> Result<()> {
+pub fn describe_recording(
+    rec: &Recorder,
+    scene: &Scene,
+    bvh: &Bvh,
+    tracer: TracerChoice,
+    opts: &RenderOptions,
+) -> Result<()> {
     use store::scene::{BVH_NODES_TABLE, LIGHTS_TABLE, TRIANGLES_TABLE};
     rec.write_table(BVH_NODES_TABLE, bvh.node_table()?)?;
     rec.write_table(TRIANGLES_TABLE, scene.triangles_table()?)?;
@@ -116,7 +119,7 @@ pub fn describe_recording(rec: &Recorder, scene: &Scene, bvh: &Bvh, opts: &Rende
     let c = scene.camera;
     rec.set_attributes([
         ("scene", scene.name.clone()),
-        ("tracer", format!("{:?}", opts.tracer).to_lowercase()),
+        ("tracer", format!("{tracer:?}").to_lowercase()),
         ("spp", opts.spp.to_string()),
         ("seed", opts.seed.to_string()),
         ("max_depth", opts.max_depth.to_string()),
@@ -194,17 +197,19 @@ pub fn emit(
     tree.end();
 }
 
-/// Renders `scene`, recording every ray into `rec` when given. `progress` is called with the
+/// Renders `scene` with the CPU tracer `tracer` (path or Whitted), recording every ray into
+/// `rec` when given. `progress` is called with the
 /// number of rows finished so far.
 pub fn render(
     scene: &Scene,
     bvh: &Bvh,
+    tracer: TracerChoice,
     opts: &RenderOptions,
     rec: Option<&Recorder>,
     progress: &(dyn Fn(u32) + Sync),
 ) -> Result<(Film, RenderStats)> {
     opts.validate()?;
-    if opts.tracer.on_gpu() {
+    if tracer.on_gpu() {
         return Err(Error::Settings(
             "tracer gpu renders on the GPU (gpu_tracer::tracer), not on the CPU tracers".into(),
         ));
@@ -237,7 +242,7 @@ pub fn render(
                                 let (fx, fy) = (x as f32 + rng.next_f32(), y as f32 + rng.next_f32());
                                 sr.clear();
                                 let r = Some(&mut sr);
-                                let l = match opts.tracer {
+                                let l = match tracer {
                                     TracerChoice::Path | TracerChoice::Gpu => {
                                         path_sample(ctx, fx, fy, opts.width, opts.height, &mut rng, r)
                                     }

@@ -25,7 +25,7 @@ pub trait Tracer: Send + Sync {
         None
     }
 
-    /// Renders `opts` (`opts.tracer` is ignored: this tracer renders), handing every ray to
+    /// Renders `opts` with this tracer, handing every ray to
     /// `recorder` when given; `progress` gets the rows finished. `window` and `samples` replay a
     /// part of a render exactly (a sample's random numbers depend on its pixel, index and seed).
     fn render(
@@ -82,8 +82,7 @@ impl Tracer for CpuTracer {
         recorder: Option<&Recorder>,
         progress: &(dyn Fn(u32) + Sync),
     ) -> Result<(Film, RenderStats)> {
-        let opts = RenderOptions { tracer: self.choice, ..opts.clone() };
-        render(&self.scene, &self.bvh, &opts, recorder, progress)
+        render(&self.scene, &self.bvh, self.choice, opts, recorder, progress)
     }
 
     fn set_camera(&mut self, camera: Camera) {
@@ -101,7 +100,7 @@ impl Tracer for CpuTracer {
         seed: u32,
         max_depth: u32,
     ) -> Result<Box<dyn ProgressiveImage + '_>> {
-        let opts = RenderOptions { width, height, spp: 1, max_depth, tracer: self.choice, ..Default::default() };
+        let opts = RenderOptions { width, height, spp: 1, max_depth, ..Default::default() };
         opts.validate()?;
         let sum = vec![glam::Vec3A::ZERO; width as usize * height as usize];
         Ok(Box::new(CpuProgressive { tracer: self, opts, seed, sum, spp: 0 }))
@@ -122,7 +121,7 @@ impl ProgressiveImage for CpuProgressive<'_> {
         for _ in 0..samples {
             // Each sample its own seed: the sum of independent one-sample images.
             let opts = RenderOptions { seed: (u64::from(self.seed) << 32) | u64::from(self.spp), ..self.opts.clone() };
-            let (film, _) = render(&self.tracer.scene, &self.tracer.bvh, &opts, None, &|_| {})?;
+            let (film, _) = render(&self.tracer.scene, &self.tracer.bvh, self.tracer.choice, &opts, None, &|_| {})?;
             for (a, b) in self.sum.iter_mut().zip(&film.pixels) {
                 *a += *b;
             }

@@ -160,7 +160,7 @@ fn degenerate_and_non_finite_triangles_are_skipped_and_counted() {
 fn render_mean(scene: &Scene) -> (Vec3A, usize) {
     let bvh = Bvh::build(&scene.tris);
     let opts = RenderOptions { width: 32, height: 32, spp: 16, seed: 3, threads: 2, ..Default::default() };
-    let (film, _) = renderers::render(scene, &bvh, &opts, None, &|_| {}).unwrap();
+    let (film, _) = renderers::render(scene, &bvh, renderers::TracerChoice::Path, &opts, None, &|_| {}).unwrap();
     let bad = film.pixels.iter().filter(|p| !p.is_finite()).count();
     (film.mean(), bad)
 }

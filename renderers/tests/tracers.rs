@@ -51,7 +51,7 @@ fn white_furnace_matches_the_analytic_radiance() {
             threads: 2,
             ..Default::default()
         };
-        let (film, _) = renderers::render(&scene, &bvh, &opts, None, &|_| {}).unwrap();
+        let (film, _) = renderers::render(&scene, &bvh, TracerChoice::Path, &opts, None, &|_| {}).unwrap();
         let v: Vec<f32> = film.pixels.iter().map(|p| p.x).collect();
         let n = v.len() as f32;
         let mean = v.iter().sum::<f32>() / n;
@@ -170,11 +170,20 @@ fn obj_and_mtl_materials_and_errors() {
 }
 
 fn record(scene: &Scene, opts: &RenderOptions, dir: &Path) -> (renderers::Film, renderers::RenderStats) {
+    record_with(scene, TracerChoice::Path, opts, dir)
+}
+
+fn record_with(
+    scene: &Scene,
+    tracer: TracerChoice,
+    opts: &RenderOptions,
+    dir: &Path,
+) -> (renderers::Film, renderers::RenderStats) {
     let bvh = Bvh::build(&scene.tris);
     let rec =
         Recorder::create(dir, RecorderOptions { payload: renderers::payload_schema(), ..Default::default() }).unwrap();
-    renderers::describe_recording(&rec, scene, &bvh, opts).unwrap();
-    let out = renderers::render(scene, &bvh, opts, Some(&rec), &|_| {}).unwrap();
+    renderers::describe_recording(&rec, scene, &bvh, tracer, opts).unwrap();
+    let out = renderers::render(scene, &bvh, tracer, opts, Some(&rec), &|_| {}).unwrap();
     rec.finish().unwrap();
     out
 }
@@ -314,15 +323,8 @@ fn injected_shadow_bug_is_in_the_trace_but_not_in_the_look() {
 fn whitted_tracer_records_shadow_specular_and_transmission_rays() {
     let tmp = tempfile::tempdir().unwrap();
     let scene = BuiltinScene::CornellGlass.build(1).unwrap();
-    let opts = RenderOptions {
-        width: 24,
-        height: 24,
-        spp: 1,
-        tracer: TracerChoice::Whitted,
-        threads: 2,
-        ..Default::default()
-    };
-    let (film, stats) = record(&scene, &opts, &tmp.path().join("w"));
+    let opts = RenderOptions { width: 24, height: 24, spp: 1, threads: 2, ..Default::default() };
+    let (film, stats) = record_with(&scene, TracerChoice::Whitted, &opts, &tmp.path().join("w"));
     assert!(film.pixels.iter().all(|p| p.is_finite()));
     let ds = Dataset::open(tmp.path().join("w")).unwrap();
     assert_eq!(ds.ray_count(), stats.rays);
@@ -369,9 +371,9 @@ fn the_tracer_trait_renders_as_the_driver_does() {
     for choice in [TracerChoice::Path, TracerChoice::Whitted] {
         let t = CpuTracer::new(choice, scene.clone(), bvh.clone()).unwrap();
         assert_eq!(t.choice(), choice);
-        let opts = RenderOptions { width: 16, height: 12, spp: 2, threads: 2, tracer: choice, ..Default::default() };
-        let (a, sa) = t.render(&RenderOptions { tracer: TracerChoice::Path, ..opts.clone() }, None, &|_| {}).unwrap();
-        let (b, sb) = renderers::render(&scene, &bvh, &opts, None, &|_| {}).unwrap();
+        let opts = RenderOptions { width: 16, height: 12, spp: 2, threads: 2, ..Default::default() };
+        let (a, sa) = t.render(&opts, None, &|_| {}).unwrap();
+        let (b, sb) = renderers::render(&scene, &bvh, choice, &opts, None, &|_| {}).unwrap();
         assert_eq!(a.pixels, b.pixels, "{choice}");
         assert_eq!(sa.rays, sb.rays);
         let mut p = t.progressive(16, 12, 0, 8).unwrap();
@@ -381,7 +383,7 @@ fn the_tracer_trait_renders_as_the_driver_does() {
         let mut sum = vec![glam::Vec3A::ZERO; 16 * 12];
         for s in 0..3u64 {
             let o = RenderOptions { spp: 1, seed: s, ..opts.clone() };
-            let (f, _) = renderers::render(&scene, &bvh, &o, None, &|_| {}).unwrap();
+            let (f, _) = renderers::render(&scene, &bvh, choice, &o, None, &|_| {}).unwrap();
             sum.iter_mut().zip(&f.pixels).for_each(|(a, b)| *a += *b);
         }
         for (m, s) in mean.pixels.iter().zip(&sum) {
@@ -394,6 +396,7 @@ fn the_tracer_trait_renders_as_the_driver_does() {
     assert_eq!("cpu".parse::<TracerChoice>().unwrap(), TracerChoice::Path);
     assert!("raymarch".parse::<TracerChoice>().unwrap_err().to_string().contains("raymarch"));
     assert!(CpuTracer::new(TracerChoice::Gpu, scene.clone(), bvh.clone()).is_err());
-    let gpu_opts = RenderOptions { tracer: TracerChoice::Gpu, ..Default::default() };
-    assert!(renderers::render(&scene, &bvh, &gpu_opts, None, &|_| {}).unwrap_err().to_string().contains("gpu"));
+    let gpu_opts = RenderOptions::default();
+    let gpu = renderers::render(&scene, &bvh, TracerChoice::Gpu, &gpu_opts, None, &|_| {});
+    assert!(gpu.unwrap_err().to_string().contains("gpu"));
 }

@@ -34,9 +34,9 @@ pub fn record_cornell(dir: &Path, [width, height]: [u32; 2], options: RecorderOp
     let opts =
         renderers::RenderOptions { width, height, spp: 2, threads: 2, record_visits: true, ..Default::default() };
     let rec = Recorder::create(dir, options).unwrap();
-    renderers::describe_recording(&rec, &scene, &bvh, &opts).unwrap();
+    renderers::describe_recording(&rec, &scene, &bvh, renderers::TracerChoice::Path, &opts).unwrap();
     more(&rec);
-    let (film, _) = renderers::render(&scene, &bvh, &opts, Some(&rec), &|_| {}).unwrap();
+    let (film, _) = renderers::render(&scene, &bvh, renderers::TracerChoice::Path, &opts, Some(&rec), &|_| {}).unwrap();
     rec.finish().unwrap();
     film.write_png(&dir.join("image.png"), 1.0).unwrap();
 }
