@@ -71,8 +71,7 @@ pub fn run(
     // The GPU first: without an adapter the command fails before the long reference render.
     let mut built = Vec::new();
     for &t in tracers.iter().rev() {
-        let tracer =
-            gpu_tracer::tracer(t, scene.clone(), bvh.clone(), None).with_context(|| format!("the {t} tracer"))?;
+        let tracer = renderers::tracer(t, scene.clone(), bvh.clone()).with_context(|| format!("the {t} tracer"))?;
         if t.on_gpu() {
             // The first dispatch pays for driver-side shader work: not part of any point.
             tracer.render(&renderers::RenderOptions { spp: 1, ..base.clone() }, None, &|_| {})?;

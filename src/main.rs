@@ -135,6 +135,8 @@ fn main() {
     // Rust ignores SIGPIPE, so printing into a closed pipe (`rtvtk tree ... | head`) would panic;
     // restore the default: the process ends quietly, like any Unix tool.
     let cli = Cli::parse();
+    // The GPU tracer as `renderers::tracer`'s GPU choice (the one factory of every tracer).
+    gpu_tracer::register();
     // Except for the commands that talk over sockets (the service, its clients): a peer closing
     // its end under a write must be an error (EPIPE), not the end of the process.
     #[cfg(feature = "sql")]

@@ -235,8 +235,8 @@ pub fn run(a: &RecordArgs) -> Result<()> {
     }
     let scene = std::sync::Arc::new(scene);
     let bvh = std::sync::Arc::new(bvh);
-    let tracer = gpu_tracer::tracer(a.tracer, scene.clone(), bvh.clone(), None)
-        .with_context(|| format!("the {} tracer", a.tracer))?;
+    let tracer =
+        renderers::tracer(a.tracer, scene.clone(), bvh.clone()).with_context(|| format!("the {} tracer", a.tracer))?;
     let recorder = match (&a.out, a.no_record) {
         (Some(out), false) => {
             let mut options = RecorderOptions {

@@ -131,15 +131,18 @@ fn every_component_kind_is_spelled_once() {
     }
 }
 
-/// "a tracer": every choice is built by `gpu_tracer::tracer` and renders (the GPU one on this
+/// "a tracer": every choice is built by `renderers::tracer` (the GPU one once `gpu_tracer::register`
+/// installed it) and renders (the GPU one on this
 /// machine's adapter; `scripts/check.sh` installs lavapipe).
 #[test]
 fn every_tracer_choice_is_built_and_renders() {
     use renderers::TracerChoice;
     let scene = std::sync::Arc::new(renderers::BuiltinScene::Cornell.build(1).unwrap());
     let bvh = std::sync::Arc::new(renderers::Bvh::build(&scene.tris));
+    assert!(renderers::tracer(TracerChoice::Gpu, scene.clone(), bvh.clone()).is_err(), "no GPU tracer registered yet");
+    gpu_tracer::register();
     for choice in TracerChoice::ALL {
-        let t = gpu_tracer::tracer(choice, scene.clone(), bvh.clone(), None)
+        let t = renderers::tracer(choice, scene.clone(), bvh.clone())
             .unwrap_or_else(|e| panic!("the {choice} tracer: {e}"));
         assert_eq!(t.choice(), choice);
         let opts = renderers::RenderOptions { width: 8, height: 6, spp: 1, threads: 1, ..Default::default() };

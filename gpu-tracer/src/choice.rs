@@ -1,9 +1,7 @@
-//! The GPU path tracer as a `renderers::Tracer`, and [`tracer`]: any [`TracerChoice`] built with
-//! one call (the CPU tracers from `renderers`, the GPU one here).
+//! The GPU path tracer as a `renderers::Tracer`, and [`register`]: it installs the GPU choice in
+//! `renderers::tracer`, the one factory of every [`TracerChoice`].
 
-use std::sync::Arc;
-
-use renderers::{Bvh, CpuTracer, Film, ProgressiveImage, RenderOptions, RenderStats, Scene, Tracer, TracerChoice};
+use renderers::{Film, ProgressiveImage, RenderOptions, RenderStats, Tracer, TracerChoice};
 use rl::Recorder;
 
 use crate::GpuTracer;
@@ -12,21 +10,10 @@ fn tracer_error(e: crate::Error) -> renderers::Error {
     renderers::Error::Tracer(e.to_string())
 }
 
-/// The tracer `choice` over `scene` and its BVH: the GPU one on `gpu` (the process's device when
-/// `None`), refused where the adapter cannot run it.
-pub fn tracer(
-    choice: TracerChoice,
-    scene: Arc<Scene>,
-    bvh: Arc<Bvh>,
-    gpu: Option<&rtvtk_gpu::Gpu>,
-) -> crate::Result<Box<dyn Tracer>> {
-    Ok(match choice {
-        TracerChoice::Gpu => Box::new(match gpu {
-            Some(g) => GpuTracer::with_gpu(g, &scene, &bvh)?,
-            None => GpuTracer::new(&scene, &bvh)?,
-        }),
-        cpu => Box::new(CpuTracer::new(cpu, scene, bvh).map_err(|e| crate::Error::Input(e.to_string()))?),
-    })
+/// Installs the GPU tracer (on the process's one device) as `renderers::tracer`'s GPU choice, so
+/// that one factory builds every tracer. Idempotent: call it before asking for the GPU choice.
+pub fn register() {
+    renderers::register_gpu_tracer(|scene, bvh| Ok(Box::new(GpuTracer::new(&scene, &bvh).map_err(tracer_error)?)));
 }
 
 impl Tracer for GpuTracer {

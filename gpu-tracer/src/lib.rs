@@ -7,7 +7,7 @@ use wgpu::util::DeviceExt;
 mod choice;
 mod record;
 
-pub use choice::tracer;
+pub use choice::register;
 
 /// What the GPU tracer can report.
 #[derive(Debug, thiserror::Error)]

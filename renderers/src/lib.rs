@@ -23,4 +23,4 @@ pub use render::{RenderOptions, RenderStats, describe_recording, payload_schema,
 pub use scene::{BuiltinScene, Camera, LoadReport, Material, MaterialKind, Scene, load_obj};
 pub use scene_tables::load_scene;
 pub use tracer::Bug;
-pub use tracers::{CpuTracer, ProgressiveImage, Tracer, TracerChoice};
+pub use tracers::{CpuTracer, GpuTracerFactory, ProgressiveImage, Tracer, TracerChoice, register_gpu_tracer, tracer};

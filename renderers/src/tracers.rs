@@ -54,6 +54,32 @@ pub trait ProgressiveImage {
     fn mean(&self) -> Result<Film>;
 }
 
+/// Makes the GPU tracer over a scene and its BVH: registered by `gpu_tracer::register`, so that
+/// [`tracer`] builds every choice while this crate (and whoever wants a CPU tracer) links no wgpu.
+pub type GpuTracerFactory = fn(Arc<Scene>, Arc<Bvh>) -> Result<Box<dyn Tracer>>;
+
+static GPU_TRACER: std::sync::OnceLock<GpuTracerFactory> = std::sync::OnceLock::new();
+
+/// Installs the GPU tracer's factory (the first one installed stays).
+pub fn register_gpu_tracer(make: GpuTracerFactory) {
+    let _ = GPU_TRACER.set(make);
+}
+
+/// The tracer `choice` over `scene` and its BVH, the one factory of every choice: the CPU ones
+/// here, the GPU one through the factory `gpu_tracer::register` installs (on the process's one
+/// device; refused where the adapter cannot run it, or where no GPU tracer is linked in).
+pub fn tracer(choice: TracerChoice, scene: Arc<Scene>, bvh: Arc<Bvh>) -> Result<Box<dyn Tracer>> {
+    match choice {
+        TracerChoice::Gpu => match GPU_TRACER.get() {
+            Some(make) => make(scene, bvh),
+            None => Err(Error::Tracer(
+                "the gpu tracer is not linked into this program (gpu_tracer::register installs it)".into(),
+            )),
+        },
+        cpu => Ok(Box::new(CpuTracer::new(cpu, scene, bvh)?)),
+    }
+}
+
 /// The CPU path and Whitted tracers over a scene and its BVH.
 pub struct CpuTracer {
     scene: Arc<Scene>,

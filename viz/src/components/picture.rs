@@ -411,7 +411,7 @@ fn cpu_sample(
     let choice = settings.source.cpu_tracer();
     if p.cpu.as_ref().is_none_or(|t| t.choice() != choice) {
         p.cpu = Some(
-            gpu_tracer::tracer(choice, scene.clone(), p.bvh.clone(), None)
+            renderers::tracer(choice, scene.clone(), p.bvh.clone())
                 .map_err(|e| Error::Layer { layer: "image".into(), message: format!("tracer \"{choice}\": {e}") })?,
         );
     }

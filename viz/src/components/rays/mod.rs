@@ -572,7 +572,8 @@ impl Layer for Rays {
             message: format!("tracer \"{choice}\": {e}"),
         };
         if self.tracer.as_ref().is_none_or(|t| t.choice() != choice) {
-            let t = gpu_tracer::tracer(choice, scene.clone(), bvh, Some(ctx.gpu)).map_err(|e| layer_err(&e))?;
+            gpu_tracer::register();
+            let t = renderers::tracer(choice, scene.clone(), bvh).map_err(|e| layer_err(&e))?;
             self.tracer = Some(t);
         }
         if let Some(t) = self.tracer.as_mut() {
