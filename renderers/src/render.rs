@@ -211,7 +211,7 @@ pub fn render(
     opts.validate()?;
     if tracer.on_gpu() {
         return Err(Error::Settings(
-            "tracer gpu renders on the GPU (gpu_tracer::tracer), not on the CPU tracers".into(),
+            "tracer gpu renders on the GPU (renderers::tracer builds it), not on the CPU tracers".into(),
         ));
     }
     let start = Instant::now();
