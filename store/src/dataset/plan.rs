@@ -167,29 +167,44 @@ impl Dataset {
         Ok(AccessPlan { segments: out })
     }
 
-    /// How many rays `sel` keeps. Kind and depth alone are answered by the manifest's counts;
-    /// otherwise [`Dataset::count_planned`] over its plan.
+    /// How many rays `sel` keeps: from the manifest's counts where they say it, otherwise
+    /// [`Dataset::count_planned`] over its plan.
     pub fn count(&self, sel: &RaySelection) -> Result<u64> {
+        match self.counted_by_manifest(sel) {
+            Some(n) => Ok(n),
+            None => self.count_planned(sel, &self.plan(sel)?),
+        }
+    }
+
+    /// The rays `sel` keeps by the manifest's per-kind, per-depth counts: when it constrains
+    /// nothing but kind and depth and the counts cover every ray (`None` otherwise).
+    fn counted_by_manifest(&self, sel: &RaySelection) -> Option<u64> {
         let counts = &self.manifest().stats.rays_by_kind_depth;
         let recorded: u64 = counts.values().flatten().sum();
-        if !sel.has_tree_filters() && sel.ranges(col::RAY).is_none() && recorded == self.ray_count() {
-            let depths = sel.ranges(col::DEPTH);
-            return Ok(counts
+        if sel.has_tree_filters() || sel.ranges(col::RAY).is_some() || recorded != self.ray_count() {
+            return None;
+        }
+        let depths = sel.ranges(col::DEPTH);
+        Some(
+            counts
                 .iter()
                 .filter(|(k, _)| sel.keeps_kind(k))
                 .flat_map(|(_, v)| v.iter().enumerate())
                 .filter(|(d, _)| in_ranges(depths, *d as u64))
                 .map(|(_, &n)| n)
-                .sum());
-        }
-        self.count_planned(sel, &self.plan(sel)?)
+                .sum(),
+        )
     }
 
-    /// How many rays of `plan`'s rows `sel` keeps: the planned rays when `sel` has no row-level
-    /// range (kind, depth, ray index), else a scan of those three columns.
+    /// How many rays of `plan` (a plan of `sel`) `sel` keeps: the planned rays when `sel` has no
+    /// row-level range (kind, depth, ray index), the manifest's counts where they say it, else a
+    /// scan of those three columns.
     pub fn count_planned(&self, sel: &RaySelection, plan: &AccessPlan) -> Result<u64> {
         if !sel.has_row_filters() {
             return Ok(plan.rays());
+        }
+        if let Some(n) = self.counted_by_manifest(sel) {
+            return Ok(n);
         }
         let names: Vec<String> = [col::KIND, col::DEPTH, col::RAY].map(String::from).to_vec();
         let mut n = 0u64;
